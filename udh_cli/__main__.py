@@ -1,0 +1,3 @@
+from udh_cli.cli import main
+
+main()

@@ -1,0 +1,148 @@
+"""The ``udh`` command line: thin commands over the library, and the one place errors become exit codes."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from udh_cli import __version__, geometry
+from udh_cli.errors import UdhError
+
+app = typer.Typer(
+    name="udh",
+    help="Fast, robust homography estimation and UAV image mosaicking (Unsupervised Deep Homography).",
+    no_args_is_help=True,
+    rich_markup_mode="rich",
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+console = Console()
+err_console = Console(stderr=True)
+_state = {"debug": False}
+
+
+def _version(value: bool) -> None:
+    if value:
+        console.print(f"udh {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    debug: Annotated[bool, typer.Option("--debug", help="Show full tracebacks on errors.")] = False,
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")] = False,
+) -> None:
+    _state["debug"] = debug
+
+
+@app.command()
+def estimate(
+    image_a: Annotated[Path, typer.Argument(help="Image A (any size; colour or grey; 8 or 16 bit).")],
+    image_b: Annotated[Path, typer.Argument(help="Image B.")],
+    method: Annotated[str, typer.Option("--method", "-m", help="sift, orb, ecc, identity (and the learned methods).")] = "sift",
+    json_output: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of tables.")] = False,
+    viz: Annotated[Optional[Path], typer.Option("--viz", help="Write a picture: A's border warped onto B.")] = None,
+    gt: Annotated[Optional[Path], typer.Option("--gt", help="Ground-truth homography file (A to B) to report the corner error.")] = None,
+    best_features: Annotated[Optional[int], typer.Option(help="sift/orb: keep only the N strongest keypoints.")] = None,
+) -> None:
+    """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold])."""
+    from udh_cli.api import estimate_files
+    from udh_cli.homography_files import read_homography
+    from udh_cli.images import read_image, write_image
+    from udh_cli.viz import draw_estimate
+
+    truth = read_homography(gt) if gt is not None else None
+    options = {} if best_features is None else {"best_features": best_features}
+    result = estimate_files(image_a, image_b, method, **options)
+    a, b = read_image(image_a), read_image(image_b)
+    width, height = a.shape[1], a.shape[0]
+    payload = result.to_json()
+    payload["image_a"], payload["image_b"] = str(image_a), str(image_b)
+    payload["offsets_4pt"] = geometry.offsets_from_homography(result.homography, width, height).tolist()
+    if truth is not None:
+        payload["corner_error_px"] = float(geometry.mace(result.homography, truth, width, height))
+        payload["corner_rmse_px"] = float(geometry.corner_rmse(result.homography, truth, width, height))
+    if viz is not None:
+        write_image(viz, draw_estimate(a, b, result.homography, truth, label=f"{method}"))
+        payload["viz"] = str(viz)
+    if json_output:
+        sys.stdout.write(json.dumps(payload) + "\n")
+        return
+    _print_estimate(payload, width, height)
+
+
+def _print_estimate(payload: dict, width: int, height: int) -> None:
+    matrix = Table(title=f"H ({payload['method']}): pixels of A -> pixels of B", show_header=False)
+    for row in payload["homography"]:
+        matrix.add_row(*(f"{v: .6g}" for v in row))
+    console.print(matrix)
+    corners = Table(title="4-point parameterisation: where A's corners land in B")
+    for column in ("corner", "in A (x, y)", "in B (x, y)", "offset (px)"):
+        corners.add_column(column, justify="right")
+    names = ("top-left", "top-right", "bottom-right", "bottom-left")
+    for name, c, off in zip(names, geometry.image_corners(width, height), np.asarray(payload["offsets_4pt"])):
+        corners.add_row(name, f"{c[0]:.0f}, {c[1]:.0f}", f"{c[0] + off[0]:.2f}, {c[1] + off[1]:.2f}", f"{off[0]:+.2f}, {off[1]:+.2f}")
+    console.print(corners)
+    summary = f"confidence {payload['confidence']:.3f}   time {payload['elapsed_ms']:.1f} ms"
+    if "corner_error_px" in payload:
+        summary += f"   corner error {payload['corner_error_px']:.3f} px (RMSE {payload['corner_rmse_px']:.3f})"
+    if "viz" in payload:
+        summary += f"   picture: {payload['viz']}"
+    console.print(summary)
+
+
+_PASSTHROUGH = {"allow_extra_args": True, "ignore_unknown_options": True}
+
+
+@app.command(context_settings=_PASSTHROUGH)
+def train(ctx: typer.Context) -> None:
+    """Train the unsupervised or supervised network (needs the [train] extra)."""
+    raise UdhError("`udh train` is not built yet (see the learned-estimators issue)")
+
+
+@app.command("export-onnx", context_settings=_PASSTHROUGH)
+def export_onnx(ctx: typer.Context) -> None:
+    """Export a training checkpoint to ONNX (needs the [train] extra)."""
+    raise UdhError("`udh export-onnx` is not built yet (see the learned-estimators issue)")
+
+
+@app.command(context_settings=_PASSTHROUGH)
+def mosaic(ctx: typer.Context) -> None:
+    """Stitch a folder of UAV frames into one mosaic."""
+    raise UdhError("`udh mosaic` is not built yet (see the mosaicking issue)")
+
+
+@app.command(context_settings=_PASSTHROUGH)
+def bench(ctx: typer.Context) -> None:
+    """Reproduce the paper's evaluation."""
+    raise UdhError("`udh bench` is not built yet (see the benchmark issue)")
+
+
+def main() -> None:
+    """Console-script entry point: runs the app and turns errors into one line and an exit code."""
+    try:
+        app()
+    except UdhError as exc:
+        if _state["debug"]:
+            raise
+        err_console.print(f"[bold red]error:[/bold red] {exc}", highlight=False, soft_wrap=True)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        err_console.print("[bold red]interrupted[/bold red]")
+        sys.exit(130)
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: no traceback without --debug
+        if _state["debug"]:
+            raise
+        err_console.print(f"[bold red]internal error:[/bold red] {type(exc).__name__}: {exc} (rerun with --debug for details)", highlight=False, soft_wrap=True)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

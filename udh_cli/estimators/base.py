@@ -1,0 +1,105 @@
+"""The one interface that every homography estimator, learned or classical, implements.
+
+Mosaicking, benchmarking and the CLI depend only on :class:`Estimator` and :class:`Estimate`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Sequence
+
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.errors import EstimationFailed, UdhError
+from udh_cli.images import check_image
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The result of estimating one pair.
+
+    Attributes:
+        method: the estimator's registry name, e.g. ``"sift"``.
+        homography: (3, 3) float64 ``b_from_a`` in pixels of the images as given, h33 = 1;
+            ``None`` when the estimator failed.
+        confidence: in [0, 1]; what it means is the estimator's own (inlier share, correlation...),
+            but 0 always means "do not trust this".
+        elapsed_ms: wall time of the estimation itself, without loading models.
+        failure: why there is no homography; ``None`` on success.
+        details: estimator-specific numbers (matches, inliers, iterations...), JSON-serialisable.
+    """
+
+    method: str
+    homography: np.ndarray | None
+    confidence: float
+    elapsed_ms: float
+    failure: str | None = None
+    details: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.homography is not None
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready dict with the stable keys other tools rely on."""
+        return {
+            "method": self.method,
+            "ok": self.ok,
+            "homography": None if self.homography is None else self.homography.tolist(),
+            "confidence": float(self.confidence),
+            "elapsed_ms": float(self.elapsed_ms),
+            "failure": self.failure,
+            "details": self.details,
+        }
+
+
+class Estimator:
+    """Base class: estimates ``b_from_a`` between two images of any size, colour or grey, 8 or 16 bit.
+
+    Subclasses set ``name`` and implement :meth:`_estimate`, which either returns
+    ``(b_from_a, confidence, details)`` or raises :class:`EstimationFailed`. This class times the call,
+    checks the result (a non-finite, singular or folded homography is a failure, never an answer) and
+    packs it into an :class:`Estimate`.
+    """
+
+    name: ClassVar[str] = "base"
+
+    def estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> Estimate:
+        """Estimate the homography from ``image_a`` to ``image_b``. Never raises for a failed estimate."""
+        check_image(image_a, "image A")
+        check_image(image_b, "image B")
+        start = time.perf_counter()
+        try:
+            homography, confidence, details = self._estimate(image_a, image_b)
+            failure = None
+        except EstimationFailed as exc:
+            homography, confidence, details, failure = None, 0.0, {}, str(exc)
+        elapsed_ms = (time.perf_counter() - start) * 1e3
+        return self._checked(homography, confidence, elapsed_ms, failure, details, image_a.shape)
+
+    def estimate_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
+        """Estimate many pairs. Learned estimators override this to run them in batches."""
+        return [self.estimate(a, b) for a, b in pairs]
+
+    def _estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> tuple[np.ndarray, float, dict]:
+        raise NotImplementedError
+
+    def _checked(self, homography, confidence, elapsed_ms, failure, details, shape_a) -> Estimate:
+        if homography is not None:
+            homography = np.asarray(homography, dtype=np.float64)
+            if np.isfinite(homography).all() and abs(homography[2, 2]) > 1e-12:
+                homography = homography / homography[2, 2]
+            if not geometry.is_valid_homography(homography, shape_a[1], shape_a[0]):
+                homography, failure = None, "the estimate is degenerate (non-finite, singular or folded)"
+        if homography is None:
+            confidence = 0.0
+        return Estimate(self.name, homography, float(np.clip(confidence, 0.0, 1.0)), elapsed_ms, failure, details)
+
+
+def require_ok(estimate: Estimate) -> Estimate:
+    """Return ``estimate`` if it succeeded, else raise :class:`UdhError` with its reason."""
+    if not estimate.ok:
+        raise UdhError(f"{estimate.method} found no homography: {estimate.failure}")
+    return estimate

@@ -1,0 +1,38 @@
+"""Create estimators by name. The names here are the ``--method`` choices of every command."""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from udh_cli.errors import UdhError
+from udh_cli.estimators.base import Estimator
+
+# name -> (module, class, one-line description). Modules are imported on demand, so that choosing
+# "sift" never loads onnxruntime.
+ESTIMATORS: dict[str, tuple[str, str, str]] = {
+    "sift": ("udh_cli.estimators.features", "SiftRansac", "SIFT + ratio test + RANSAC (5 px)"),
+    "orb": ("udh_cli.estimators.features", "OrbRansac", "ORB + ratio test + RANSAC (5 px)"),
+    "ecc": ("udh_cli.estimators.ecc", "EccEstimator", "ECC, MOTION_HOMOGRAPHY, from the identity"),
+    "identity": ("udh_cli.estimators.identity", "IdentityEstimator", "no motion; the baseline"),
+}
+
+
+def estimator_names() -> list[str]:
+    """The registered method names, in registry order."""
+    return list(ESTIMATORS)
+
+
+def create_estimator(name: str, **options: Any) -> Estimator:
+    """Build the estimator registered as ``name`` with keyword ``options`` (its dataclass fields).
+
+    Raises :class:`UdhError` for an unknown name or option.
+    """
+    if name not in ESTIMATORS:
+        raise UdhError(f"unknown method '{name}'; choose one of: {', '.join(ESTIMATORS)}")
+    module_name, class_name, _ = ESTIMATORS[name]
+    cls = getattr(importlib.import_module(module_name), class_name)
+    try:
+        return cls(**options)
+    except TypeError as exc:
+        raise UdhError(f"method '{name}' does not take these options: {exc}") from None

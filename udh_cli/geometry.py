@@ -1,0 +1,293 @@
+"""The one geometry core of udh: pure functions shared by training (torch) and inference (numpy).
+
+Conventions (stated here once; every other module follows them)
+----------------------------------------------------------------
+* **Pixels.** Points are ``(x, y)`` in OpenCV's pixel convention: integer coordinates sit at pixel
+  *centres*, the origin is the centre of the top-left pixel, x points right and y points down.
+* **Direction.** A homography named ``b_from_a`` (3x3) maps pixel coordinates of image A to pixel
+  coordinates of image B: ``x_B ~ H x_A``. A scene point seen at ``x_A`` in A is seen at ``x_B`` in B.
+  This is the direction of ``cv2.findHomography(points_in_a, points_in_b)`` and of
+  ``cv2.warpPerspective(image_a, b_from_a, size_b)``, which renders A in B's frame.
+  Every homography that udh returns, stores or prints is ``b_from_a``, in pixels of the images given.
+  The paper's ``H_AB`` samples A at ``H(x)`` for pixels ``x`` of B: it is our ``a_from_b``, the inverse.
+* **Corners.** Order is top-left, top-right, bottom-right, bottom-left (clockwise on screen), at the
+  centres of the corner pixels: ``(0, 0), (w-1, 0), (w-1, h-1), (0, h-1)``.
+* **4-point parameterisation.** ``offsets`` of shape ``(..., 4, 2)``, in pixels: ``b_from_a`` maps
+  corner ``i`` of A to ``corners[i] + offsets[i]`` in B.
+* **Normalised coordinates** (torch ``grid_sample`` with ``align_corners=False``):
+  ``u = (2x + 1) / w - 1``, so -1 and +1 are the outer edges of the image, not pixel centres.
+* **Resizing.** An image resized from ``(w, h)`` to ``(w', h')`` maps ``x`` to ``(w'/w)(x + 0.5) - 0.5``,
+  which is what ``cv2.resize`` does. Homographies are rescaled with exactly this map.
+
+Every function accepts numpy arrays or torch tensors and returns the same kind, so the Tensor DLT used
+in training is the very code used at inference. torch is never imported here: a tensor argument means
+the caller already imported it.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+import numpy as np
+
+Array = Any  # numpy.ndarray or torch.Tensor; the functions return the kind they are given
+
+
+def _xp(x: Array):
+    """The array namespace of ``x``: numpy, or torch when ``x`` is a tensor."""
+    if type(x).__module__.startswith("torch"):
+        return sys.modules["torch"]
+    return np
+
+
+def _like(values, like: Array) -> Array:
+    """``values`` as an array of the same kind, dtype and device as ``like``."""
+    xp = _xp(like)
+    if xp is np:
+        return np.asarray(values, dtype=like.dtype if np.issubdtype(like.dtype, np.floating) else np.float64)
+    return xp.as_tensor(values, dtype=like.dtype, device=like.device)
+
+
+# --------------------------------------------------------------------------------------- corners
+
+
+def image_corners(width: int, height: int, like: Array | None = None) -> Array:
+    """The four corner-pixel centres of a ``width`` x ``height`` image, shape (4, 2), in corner order."""
+    c = [[0.0, 0.0], [width - 1.0, 0.0], [width - 1.0, height - 1.0], [0.0, height - 1.0]]
+    return np.asarray(c, dtype=np.float64) if like is None else _like(c, like)
+
+
+# ------------------------------------------------------------------------------------ transforms
+
+
+def to_homogeneous(points: Array) -> Array:
+    """(..., N, 2) -> (..., N, 3) with a trailing 1."""
+    xp = _xp(points)
+    return xp.concatenate([points, xp.ones_like(points[..., :1])], -1)
+
+
+def transform_points(homography: Array, points: Array) -> Array:
+    """Apply ``homography`` (..., 3, 3) to ``points`` (..., N, 2); returns (..., N, 2).
+
+    Points that map to infinity (w == 0) come back non-finite; callers that need finite output check it.
+    """
+    xp = _xp(points)
+    projected = to_homogeneous(points) @ xp.swapaxes(homography, -1, -2)  # ..., N, 3
+    return projected[..., :2] / projected[..., 2:3]
+
+
+def invert(homography: Array) -> Array:
+    """Inverse homography, scaled so that h33 = 1 where that is possible. (..., 3, 3)."""
+    xp = _xp(homography)
+    inverse = xp.linalg.inv(homography)
+    return inverse / inverse[..., 2:3, 2:3]
+
+
+# ---------------------------------------------------------------------------------- Tensor DLT
+
+
+def _similarity_normaliser(points: Array) -> Array:
+    """Hartley normalisation (..., 3, 3): centre the points and scale their mean distance to sqrt(2).
+
+    Solving the DLT in these coordinates keeps the 8x8 system well conditioned in float32.
+    """
+    xp = _xp(points)
+    centre = points.mean(-2)  # ..., 2
+    spread = xp.sqrt(((points - centre[..., None, :]) ** 2).sum(-1)).mean(-1)  # ...
+    scale = (2.0**0.5) / (spread + 1e-12)
+    zero = xp.zeros_like(scale)
+    one = xp.ones_like(scale)
+    rows = [
+        xp.stack([scale, zero, -scale * centre[..., 0]], -1),
+        xp.stack([zero, scale, -scale * centre[..., 1]], -1),
+        xp.stack([zero, zero, one], -1),
+    ]
+    return xp.stack(rows, -2)
+
+
+def homography_from_points(src: Array, dst: Array) -> Array:
+    """Tensor DLT: the homography mapping four ``src`` points onto four ``dst`` points.
+
+    Args:
+        src: (..., 4, 2) pixel points.
+        dst: (..., 4, 2) pixel points.
+
+    Returns:
+        (..., 3, 3) with h33 = 1, ``dst ~ H src``. It solves the 8x8 linear system with h33 fixed to 1
+        (the paper's Tensor DLT), batched, in Hartley-normalised coordinates. Differentiable in torch.
+        Degenerate input (three collinear points) gives a singular system: numpy raises
+        ``LinAlgError`` and torch returns non-finite values; :func:`is_valid_homography` catches both.
+    """
+    xp = _xp(src)
+    t_src = _similarity_normaliser(src)
+    t_dst = _similarity_normaliser(dst)
+    s = transform_points(t_src, src)
+    d = transform_points(t_dst, dst)
+    x, y = s[..., 0], s[..., 1]
+    u, v = d[..., 0], d[..., 1]
+    one, zero = xp.ones_like(x), xp.zeros_like(x)
+    rows_u = xp.stack([x, y, one, zero, zero, zero, -u * x, -u * y], -1)  # ..., 4, 8
+    rows_v = xp.stack([zero, zero, zero, x, y, one, -v * x, -v * y], -1)
+    system = xp.concatenate([rows_u, rows_v], -2)  # ..., 8, 8
+    rhs = xp.concatenate([u, v], -1)[..., None]  # ..., 8, 1
+    h = xp.linalg.solve(system, rhs)[..., 0]  # ..., 8
+    h_norm = xp.concatenate([h, xp.ones_like(h[..., :1])], -1).reshape(h.shape[:-1] + (3, 3))
+    homography = xp.linalg.inv(t_dst) @ h_norm @ t_src
+    return homography / homography[..., 2:3, 2:3]
+
+
+def homography_from_offsets(offsets: Array, width: int, height: int) -> Array:
+    """4-point parameterisation -> 3x3. ``offsets`` (..., 4, 2) in pixels; returns ``b_from_a`` (..., 3, 3)."""
+    corners = image_corners(width, height, like=offsets)
+    return homography_from_points(_xp(offsets).broadcast_to(corners, offsets.shape), corners + offsets)
+
+
+def offsets_from_homography(homography: Array, width: int, height: int) -> Array:
+    """3x3 -> 4-point parameterisation: (..., 3, 3) -> (..., 4, 2) pixel offsets of A's corners in B."""
+    corners = image_corners(width, height, like=homography)
+    return transform_points(homography, corners) - corners
+
+
+# ------------------------------------------------------------------------- normalised coordinates
+
+
+def pixel_to_normalized(width: int, height: int, like: Array | None = None) -> Array:
+    """(3, 3) matrix taking pixel coordinates to ``grid_sample`` coordinates (align_corners=False)."""
+    m = [[2.0 / width, 0.0, 1.0 / width - 1.0], [0.0, 2.0 / height, 1.0 / height - 1.0], [0.0, 0.0, 1.0]]
+    return np.asarray(m, dtype=np.float64) if like is None else _like(m, like)
+
+
+def normalized_homography(dst_from_src: Array, src_size: tuple[int, int], dst_size: tuple[int, int]) -> Array:
+    """A pixel homography expressed between normalised coordinates: ``N_dst H N_src^-1``.
+
+    Sizes are ``(width, height)``. With ``dst_from_src = a_from_b`` (the inverse of the estimate), this is
+    the paper's normalised inverse ``M^-1 H^-1 M``, ready for :func:`sampling_grid`.
+    """
+    n_src = pixel_to_normalized(*src_size, like=dst_from_src)
+    n_dst = pixel_to_normalized(*dst_size, like=dst_from_src)
+    xp = _xp(dst_from_src)
+    return n_dst @ dst_from_src @ xp.linalg.inv(n_src)
+
+
+def pixel_grid(width: int, height: int, like: Array | None = None) -> Array:
+    """Pixel-centre coordinates of every pixel, shape (height, width, 2), (x, y) order."""
+    ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
+    grid = np.stack([xs, ys], -1)
+    return grid if like is None else _like(grid, like)
+
+
+def sampling_grid(a_from_b: Array, size_a: tuple[int, int], size_b: tuple[int, int]) -> Array:
+    """Where to sample image A for every pixel of B, as ``grid_sample`` coordinates.
+
+    Args:
+        a_from_b: (..., 3, 3) pixel homography from B to A (the inverse of an estimate ``b_from_a``).
+        size_a: (width, height) of A, the image that is sampled.
+        size_b: (width, height) of B, whose pixel grid is filled.
+
+    Returns:
+        (..., h_b, w_b, 2) normalised coordinates in A (align_corners=False). Sampling A there renders
+        A in B's frame, like ``cv2.warpPerspective(a, b_from_a, size_b)``.
+    """
+    a_norm_from_b_norm = normalized_homography(a_from_b, size_b, size_a)  # ..., 3, 3
+    w_b, h_b = size_b
+    # Normalised B coordinates of B's pixel centres.
+    grid_b = transform_points(pixel_to_normalized(w_b, h_b, like=a_from_b), pixel_grid(w_b, h_b, like=a_from_b))
+    sampled = transform_points(a_norm_from_b_norm, grid_b.reshape(h_b * w_b, 2))  # ..., N, 2
+    return sampled.reshape(tuple(a_from_b.shape[:-2]) + (h_b, w_b, 2))
+
+
+# ------------------------------------------------------------------------------------ resizing
+
+
+def resize_matrix(size_from: tuple[int, int], size_to: tuple[int, int]) -> np.ndarray:
+    """(3, 3) map from pixel coordinates of an image of ``size_from`` to the same image resized to ``size_to``.
+
+    Sizes are ``(width, height)``. Pixel centres move by half a pixel when scaling:
+    ``x' = s (x + 0.5) - 0.5``, as ``cv2.resize`` samples.
+    """
+    sx = size_to[0] / size_from[0]
+    sy = size_to[1] / size_from[1]
+    return np.array([[sx, 0.0, 0.5 * (sx - 1.0)], [0.0, sy, 0.5 * (sy - 1.0)], [0.0, 0.0, 1.0]])
+
+
+def rescale_homography(
+    b_from_a: np.ndarray,
+    size_a_from: tuple[int, int],
+    size_a_to: tuple[int, int],
+    size_b_from: tuple[int, int] | None = None,
+    size_b_to: tuple[int, int] | None = None,
+) -> np.ndarray:
+    """A homography found between images of one resolution, expressed for another.
+
+    ``b_from_a`` maps pixels of A at ``size_a_from`` to pixels of B at ``size_b_from``; the result maps A at
+    ``size_a_to`` to B at ``size_b_to`` (B's sizes default to A's). Exact for any scale, and the two
+    axes may scale differently: ``H' = S_b H S_a^-1``.
+    """
+    size_b_from = size_a_from if size_b_from is None else size_b_from
+    size_b_to = size_a_to if size_b_to is None else size_b_to
+    s_a = resize_matrix(size_a_from, size_a_to)
+    s_b = resize_matrix(size_b_from, size_b_to)
+    out = s_b @ np.asarray(b_from_a, dtype=np.float64) @ np.linalg.inv(s_a)
+    return out / out[2, 2]
+
+
+def translation(dx: float, dy: float) -> np.ndarray:
+    """(3, 3) homography shifting points by (dx, dy) pixels."""
+    return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+
+
+# --------------------------------------------------------------------------------------- metrics
+
+
+def corner_errors(b_from_a_est: Array, b_from_a_true: Array, width: int, height: int) -> Array:
+    """Distance in B's pixels between where each estimate and the truth put A's four corners. (..., 4)."""
+    xp = _xp(b_from_a_true)
+    corners = image_corners(width, height, like=b_from_a_true)
+    diff = transform_points(b_from_a_est, corners) - transform_points(b_from_a_true, corners)
+    return xp.sqrt((diff**2).sum(-1))
+
+
+def mace(b_from_a_est: Array, b_from_a_true: Array, width: int, height: int) -> Array:
+    """Mean average corner error in pixels (DeTone et al.): the mean of the four corner distances. (...)."""
+    return corner_errors(b_from_a_est, b_from_a_true, width, height).mean(-1)
+
+
+def corner_rmse(b_from_a_est: Array, b_from_a_true: Array, width: int, height: int) -> Array:
+    """The paper's 4-point RMSE in pixels: ``sqrt(mean_i |c_i_est - c_i_true|^2)`` over the corners. (...)."""
+    xp = _xp(b_from_a_true)
+    return xp.sqrt((corner_errors(b_from_a_est, b_from_a_true, width, height) ** 2).mean(-1))
+
+
+# ---------------------------------------------------------------------------------- validation
+
+
+def is_valid_homography(b_from_a: np.ndarray | None, width: int, height: int, max_scale: float = 20.0) -> bool:
+    """Whether ``b_from_a`` is a usable estimate for an A of ``width`` x ``height`` pixels.
+
+    Rejects: non-finite entries; a singular matrix; A's corners mapping through infinity (the horizon
+    crosses the image); a folded or twisted quadrilateral; and a scale change beyond ``max_scale``.
+    """
+    if b_from_a is None:
+        return False
+    h = np.asarray(b_from_a, dtype=np.float64)
+    if h.shape != (3, 3) or not np.all(np.isfinite(h)):
+        return False
+    if abs(np.linalg.det(h)) < 1e-12 * max(1.0, float(np.abs(h).max()) ** 3):
+        return False
+    corners = image_corners(width, height)
+    w = to_homogeneous(corners) @ h[2]
+    if np.any(w <= 1e-9):
+        return False
+    quad = transform_points(h, corners)
+    if not np.all(np.isfinite(quad)):
+        return False
+    # A convex, same-orientation quadrilateral: every turn has the sign of the original square's.
+    edges = np.roll(quad, -1, axis=0) - quad
+    turns = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    if not np.all(turns > 0):
+        return False
+    area_a = float(max(width - 1, 1) * max(height - 1, 1))
+    area_b = 0.5 * abs(float(np.sum(quad[:, 0] * np.roll(quad[:, 1], -1) - np.roll(quad[:, 0], -1) * quad[:, 1])))
+    ratio = area_b / area_a
+    return 1.0 / max_scale**2 < ratio < max_scale**2

@@ -1,0 +1,57 @@
+"""Reading and writing 3x3 homography files (ground truth, results)."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from udh_cli.errors import UdhError
+
+
+def read_homography(path: str | Path) -> np.ndarray:
+    """Read a 3x3 homography, ``b_from_a`` in pixels, normalised to h33 = 1.
+
+    Accepted forms: nine numbers separated by spaces, commas or newlines (row-major; Oxford/HPatches
+    ``H1to3p`` text files are of this kind); a JSON list of 3 rows or of 9 numbers, or an object with a
+    ``homography`` key (``udh estimate --json`` output); an OpenCV FileStorage ``.xml``/``.yml`` file,
+    whose first matrix is taken. Raises :class:`UdhError` for anything else.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UdhError(f"{path}: no such homography file")
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".xml", ".yml", ".yaml"):
+            values = _read_filestorage(path)
+        elif suffix == ".json":
+            data = json.loads(path.read_text())
+            values = data.get("homography") if isinstance(data, dict) else data
+        else:
+            values = [float(v) for v in re.split(r"[\s,;]+", path.read_text().strip()) if v]
+        matrix = np.asarray(values, dtype=np.float64).reshape(3, 3)
+    except (ValueError, TypeError, AttributeError, json.JSONDecodeError, cv2.error):
+        raise UdhError(f"{path}: not a 3x3 homography; write nine numbers, row-major, x_B ~ H x_A") from None
+    if not np.isfinite(matrix).all() or abs(matrix[2, 2]) < 1e-12 or abs(np.linalg.det(matrix)) < 1e-12:
+        raise UdhError(f"{path}: the homography is singular or not finite")
+    return matrix / matrix[2, 2]
+
+
+def _read_filestorage(path: Path) -> np.ndarray:
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not storage.isOpened():
+        raise ValueError("unreadable")
+    root = storage.root()
+    for key in root.keys():
+        matrix = root.getNode(key).mat()
+        if matrix is not None:
+            return matrix
+    raise ValueError("no matrix")
+
+
+def format_homography(matrix: np.ndarray) -> str:
+    """Nine numbers, three to a line, with full precision: the format :func:`read_homography` reads."""
+    return "\n".join(" ".join(f"{v:.10g}" for v in row) for row in np.asarray(matrix, dtype=np.float64)) + "\n"

@@ -1,0 +1,122 @@
+"""Reading images from disk, turning them into the grey float arrays the estimators use, and writing
+output files atomically."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from udh_cli.errors import UdhError
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
+MIN_IMAGE_SIDE = 8  # pixels; below this no estimator can say anything useful
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Read an image file as it is stored: (H, W) or (H, W, 3) BGR, 8- or 16-bit (or float for EXR/TIFF).
+
+    EXIF orientation is applied, so the pixels come out the way a viewer shows them.
+    Raises :class:`UdhError` for a missing, unreadable, non-image, empty or tiny file.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise UdhError(f"{path}: no such file; check the path")
+    if path.is_dir():
+        raise UdhError(f"{path}: is a folder, not an image file")
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise UdhError(f"{path}: cannot read it ({exc.strerror}); check its permissions") from None
+    if data.size == 0:
+        raise UdhError(f"{path}: the file is empty; give a JPEG, PNG or TIFF image")
+    # ANYDEPTH keeps 16-bit data; ANYCOLOR keeps grey as grey. Without IGNORE_ORIENTATION, EXIF is applied.
+    image = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    if image is None:
+        raise UdhError(f"{path}: not a readable image; give a JPEG, PNG or TIFF file")
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    check_image(image, str(path))
+    return image
+
+
+def check_image(image: np.ndarray, name: str = "image") -> None:
+    """Raise :class:`UdhError` unless ``image`` is a finite 2-D grey or 3-channel array of usable size."""
+    if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3)):
+        raise UdhError(f"{name}: expected an (H, W) or (H, W, 3) image array")
+    h, w = image.shape[:2]
+    if min(h, w) < MIN_IMAGE_SIDE:
+        raise UdhError(f"{name}: the image is {w}x{h} pixels; it needs at least {MIN_IMAGE_SIDE} on each side")
+    if image.dtype.kind == "f" and not np.all(np.isfinite(image)):
+        raise UdhError(f"{name}: the image holds NaN or infinite values")
+
+
+def to_gray_float(image: np.ndarray) -> np.ndarray:
+    """Any supported image -> (H, W) float32 grey in [0, 1].
+
+    8-bit is divided by 255 and 16-bit by 65535; float input is taken to be in [0, 1] already.
+    Colour is assumed BGR, as OpenCV reads it.
+    """
+    check_image(image)
+    if image.ndim == 3:
+        image = image[..., 0] if image.shape[2] == 1 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.dtype == np.uint8:
+        return image.astype(np.float32) / 255.0
+    if image.dtype == np.uint16:
+        return image.astype(np.float32) / 65535.0
+    return image.astype(np.float32)
+
+
+def to_gray_u8(image: np.ndarray) -> np.ndarray:
+    """Any supported image -> (H, W) uint8 grey, the input that feature detectors want."""
+    return np.clip(to_gray_float(image) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def to_bgr_u8(image: np.ndarray) -> np.ndarray:
+    """Any supported image -> (H, W, 3) uint8 BGR, for drawing and compositing."""
+    gray_or_colour = image
+    if image.dtype != np.uint8:
+        scale = 255.0 / 65535.0 if image.dtype == np.uint16 else 255.0
+        gray_or_colour = np.clip(image.astype(np.float32) * scale + 0.5, 0, 255).astype(np.uint8)
+    if gray_or_colour.ndim == 2 or gray_or_colour.shape[2] == 1:
+        return cv2.cvtColor(gray_or_colour, cv2.COLOR_GRAY2BGR)
+    return gray_or_colour
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename.
+
+    A reader never sees a half-written file, and an interrupted write leaves the old file (if any).
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise UdhError(f"{path}: the folder {folder} does not exist; create it first")
+    if not os.access(folder, os.W_OK):
+        raise UdhError(f"{path}: the folder {folder} is not writable; choose another output path")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Encode ``image`` by the suffix of ``path`` (PNG, JPEG, TIFF...) and write it atomically."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise UdhError(f"{path}: unknown image type '{suffix}'; use .png, .jpg or .tif")
+    ok, encoded = cv2.imencode(suffix, image)
+    if not ok:
+        raise UdhError(f"{path}: OpenCV could not encode a {image.shape} {image.dtype} image as {suffix}")
+    return atomic_write_bytes(path, encoded.tobytes())

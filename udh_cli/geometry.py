@@ -204,7 +204,9 @@ def resize_matrix(size_from: tuple[int, int], size_to: tuple[int, int]) -> np.nd
     """(3, 3) map from pixel coordinates of an image of ``size_from`` to the same image resized to ``size_to``.
 
     Sizes are ``(width, height)``. Pixel centres move by half a pixel when scaling:
-    ``x' = s (x + 0.5) - 0.5``, as ``cv2.resize`` samples.
+    ``x' = s (x + 0.5) - 0.5``, as ``cv2.resize`` samples. ``s`` is the ratio of the sizes, which is what
+    ``cv2.resize(image, size_to)`` uses; ``cv2.resize(image, None, fx=f)`` rounds the size but samples with
+    ``f`` itself, so resize to an explicit size whenever the result is paired with this matrix.
     """
     sx = size_to[0] / size_from[0]
     sy = size_to[1] / size_from[1]
@@ -277,7 +279,11 @@ def is_valid_homography(b_from_a: np.ndarray | None, width: int, height: int, ma
         return False
     corners = image_corners(width, height)
     w = to_homogeneous(corners) @ h[2]
-    if np.any(w <= 1e-9):
+    # H is defined up to scale, sign included (-H is the same map): what matters is that all of A's
+    # corners have w of one sign, i.e. none of them lies beyond the horizon.
+    if np.all(w < 0):
+        w = -w
+    if np.any(w <= 1e-9 * np.abs(w).max()):
         return False
     quad = transform_points(h, corners)
     if not np.all(np.isfinite(quad)):

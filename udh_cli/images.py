@@ -70,9 +70,27 @@ def to_gray_float(image: np.ndarray) -> np.ndarray:
     return image.astype(np.float32)
 
 
-def to_gray_u8(image: np.ndarray) -> np.ndarray:
-    """Any supported image -> (H, W) uint8 grey, the input that feature detectors want."""
-    return np.clip(to_gray_float(image) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+def to_gray_u8(image: np.ndarray, stretch: bool = False) -> np.ndarray:
+    """Any supported image -> (H, W) uint8 grey, the input that feature detectors want.
+
+    With ``stretch``, the 0.1-99.9 percentile range of the grey values is mapped to 0-255 first. 16-bit
+    and float data (thermal, raw) often fill a small part of their range, and 8 bits of it would hold
+    too few grey levels for a detector; a constant image stays constant.
+    """
+    gray = to_gray_float(image)
+    if stretch:
+        gray = stretch_contrast(gray)
+    return np.clip(gray * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def stretch_contrast(image: np.ndarray, low: float = 0.1, high: float = 99.9) -> np.ndarray:
+    """Map the ``low``-``high`` percentile range of ``image`` (any shape, one range for all channels) to
+    [0, 1], as float32. Values outside it go beyond [0, 1]; clip them if needed. Constant input is kept."""
+    values = image.astype(np.float32)
+    lo, hi = np.percentile(values, (low, high))
+    if hi - lo <= 1e-12 * max(1.0, abs(float(hi))):
+        return values
+    return (values - np.float32(lo)) / np.float32(hi - lo)
 
 
 def to_bgr_u8(image: np.ndarray) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -53,8 +54,15 @@ class EccEstimator(Estimator):
                 gray_b, gray_a, warp, cv2.MOTION_HOMOGRAPHY, criteria, None, self.gauss_filt_size
             )
         except cv2.error as exc:
-            reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else "OpenCV error"
-            raise EstimationFailed(f"ECC did not converge ({reason.strip()})") from None
+            raise EstimationFailed(f"ECC did not converge ({_opencv_reason(exc)})") from None
         if not np.isfinite(correlation) or correlation < self.min_correlation:
             raise EstimationFailed(f"ECC converged to a poor alignment (correlation {correlation:.2f})")
         return geometry.invert(warp.astype(np.float64)), float(correlation), {"correlation": float(correlation)}
+
+
+def _opencv_reason(exc: cv2.error) -> str:
+    """The human part of an OpenCV error, without its version, source path, code and function name."""
+    text = " ".join(str(exc).split())
+    match = re.search(r"error: \(-?\d+:[^)]*\)\s*(.*?)(?:\s+in function '[^']*')?\s*$", text)
+    reason = match.group(1) if match and match.group(1) else text
+    return reason.rstrip(".") or "OpenCV error"

@@ -50,8 +50,10 @@ class FeatureRansacEstimator(Estimator):
         return keypoints, descriptors
 
     def _estimate(self, image_a, image_b):
-        keypoints_a, descriptors_a = self._detect(to_gray_u8(image_a))
-        keypoints_b, descriptors_b = self._detect(to_gray_u8(image_b))
+        # 8-bit images are display-ready and used as they are; 16-bit and float data are stretched to
+        # their own range first, or a frame that fills a sixth of 16 bits gets ~40 grey levels.
+        keypoints_a, descriptors_a = self._detect(to_gray_u8(image_a, stretch=image_a.dtype != np.uint8))
+        keypoints_b, descriptors_b = self._detect(to_gray_u8(image_b, stretch=image_b.dtype != np.uint8))
         if len(keypoints_a) < 4 or len(keypoints_b) < 4:
             raise EstimationFailed(
                 f"too few keypoints ({len(keypoints_a)} in A, {len(keypoints_b)} in B); the images may lack texture"

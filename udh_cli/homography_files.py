@@ -21,8 +21,10 @@ def read_homography(path: str | Path) -> np.ndarray:
     whose first matrix is taken. Raises :class:`UdhError` for anything else.
     """
     path = Path(path)
+    if path.is_dir():
+        raise UdhError(f"{path}: is a folder, not a homography file")
     if not path.is_file():
-        raise UdhError(f"{path}: no such homography file")
+        raise UdhError(f"{path}: no such homography file; check the path")
     suffix = path.suffix.lower()
     try:
         if suffix in (".xml", ".yml", ".yaml"):
@@ -33,15 +35,25 @@ def read_homography(path: str | Path) -> np.ndarray:
         else:
             values = [float(v) for v in re.split(r"[\s,;]+", path.read_text().strip()) if v]
         matrix = np.asarray(values, dtype=np.float64).reshape(3, 3)
+    except OSError as exc:
+        raise UdhError(f"{path}: cannot read it ({exc.strerror}); check its permissions") from None
     except (ValueError, TypeError, AttributeError, json.JSONDecodeError, cv2.error):
         raise UdhError(f"{path}: not a 3x3 homography; write nine numbers, row-major, x_B ~ H x_A") from None
-    if not np.isfinite(matrix).all() or abs(matrix[2, 2]) < 1e-12 or abs(np.linalg.det(matrix)) < 1e-12:
-        raise UdhError(f"{path}: the homography is singular or not finite")
-    return matrix / matrix[2, 2]
+    if not np.isfinite(matrix).all() or abs(matrix[2, 2]) < 1e-12 * max(1.0, float(np.abs(matrix).max())):
+        raise UdhError(f"{path}: the homography is not finite or has h33 = 0; give a usable x_B ~ H x_A")
+    matrix = matrix / matrix[2, 2]
+    # Singularity is judged on the normalised matrix, so a scaled identity (1e-6 * I) is not "singular".
+    if abs(np.linalg.det(matrix)) < 1e-12 * max(1.0, float(np.abs(matrix).max()) ** 3):
+        raise UdhError(f"{path}: the homography is singular (it flattens the image to a line)")
+    return matrix
 
 
 def _read_filestorage(path: Path) -> np.ndarray:
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    """The first matrix node in an OpenCV FileStorage file; ValueError if there is none."""
+    try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError):  # the parser raises (wrapped as SystemError) on malformed XML/YAML
+        raise ValueError("unparsable") from None
     if not storage.isOpened():
         raise ValueError("unreadable")
     root = storage.root()

@@ -3,8 +3,11 @@ output files atomically."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import cv2
@@ -34,13 +37,45 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     if data.size == 0:
         raise UdhError(f"{path}: the file is empty; give a JPEG, PNG or TIFF image")
     # ANYDEPTH keeps 16-bit data; ANYCOLOR keeps grey as grey. Without IGNORE_ORIENTATION, EXIF is applied.
-    image = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    try:
+        with _native_messages_silenced():
+            image = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    except cv2.error:  # e.g. beyond OpenCV's pixel limit, or a codec that rejects the stream outright
+        image = None
     if image is None:
         raise UdhError(f"{path}: not a readable image; give a JPEG, PNG or TIFF file")
     if image.ndim == 3 and image.shape[2] == 4:
         image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
     check_image(image, str(path))
     return image
+
+
+_STDERR_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _native_messages_silenced():
+    """Mute what the C codecs print on stderr while decoding a broken file ("libpng error: ...",
+    "Corrupt JPEG data", OpenCV's WARN log): the user gets one clear line from udh instead."""
+    with _STDERR_LOCK:
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        saved = None
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 2)
+            os.close(devnull)
+        except (OSError, ValueError, AttributeError):  # no fd 2 or no sys.stderr: only the log is muted
+            pass
+        try:
+            yield
+        finally:
+            if saved is not None:
+                os.dup2(saved, 2)
+                os.close(saved)
+            cv2.utils.logging.setLogLevel(level)
 
 
 def check_image(image: np.ndarray, name: str = "image") -> None:
@@ -57,16 +92,19 @@ def check_image(image: np.ndarray, name: str = "image") -> None:
 def to_gray_float(image: np.ndarray) -> np.ndarray:
     """Any supported image -> (H, W) float32 grey in [0, 1].
 
-    8-bit is divided by 255 and 16-bit by 65535; float input is taken to be in [0, 1] already.
-    Colour is assumed BGR, as OpenCV reads it.
+    Integers are divided by their type's maximum (255 for 8-bit, 65535 for 16-bit); float input is
+    taken to be in [0, 1] already. Colour is assumed BGR, as OpenCV reads it.
     """
     check_image(image)
     if image.ndim == 3:
-        image = image[..., 0] if image.shape[2] == 1 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    if image.dtype == np.uint8:
-        return image.astype(np.float32) / 255.0
-    if image.dtype == np.uint16:
-        return image.astype(np.float32) / 65535.0
+        image = image[..., 0] if image.shape[2] == 1 else cv2.cvtColor(_unit_float(image), cv2.COLOR_BGR2GRAY)
+    return _unit_float(image)
+
+
+def _unit_float(image: np.ndarray) -> np.ndarray:
+    """float32 copy of ``image`` with integer types scaled by their maximum, so full scale is 1."""
+    if image.dtype.kind in "iu":
+        return image.astype(np.float32) / np.float32(np.iinfo(image.dtype).max)
     return image.astype(np.float32)
 
 
@@ -97,8 +135,7 @@ def to_bgr_u8(image: np.ndarray) -> np.ndarray:
     """Any supported image -> (H, W, 3) uint8 BGR, for drawing and compositing."""
     gray_or_colour = image
     if image.dtype != np.uint8:
-        scale = 255.0 / 65535.0 if image.dtype == np.uint16 else 255.0
-        gray_or_colour = np.clip(image.astype(np.float32) * scale + 0.5, 0, 255).astype(np.uint8)
+        gray_or_colour = np.clip(_unit_float(image) * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if gray_or_colour.ndim == 2 or gray_or_colour.shape[2] == 1:
         return cv2.cvtColor(gray_or_colour, cv2.COLOR_GRAY2BGR)
     return gray_or_colour
@@ -115,8 +152,11 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
         raise UdhError(f"{path}: the folder {folder} does not exist; create it first")
     if not os.access(folder, os.W_OK):
         raise UdhError(f"{path}: the folder {folder} is not writable; choose another output path")
+    mode = _new_file_mode(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
     try:
+        if hasattr(os, "fchmod"):  # mkstemp makes the file owner-only; give it the usual permissions
+            os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
             handle.flush()
@@ -128,13 +168,26 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     return path
 
 
+def _new_file_mode(path: Path) -> int:
+    """Permissions for a file written at ``path``: those of the file it replaces, else 0o666 minus umask."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        umask = os.umask(0o022)
+        os.umask(umask)
+        return 0o666 & ~umask
+
+
 def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     """Encode ``image`` by the suffix of ``path`` (PNG, JPEG, TIFF...) and write it atomically."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in IMAGE_SUFFIXES:
         raise UdhError(f"{path}: unknown image type '{suffix}'; use .png, .jpg or .tif")
-    ok, encoded = cv2.imencode(suffix, image)
+    try:
+        ok, encoded = cv2.imencode(suffix, image)
+    except cv2.error:
+        ok = False
     if not ok:
         raise UdhError(f"{path}: OpenCV could not encode a {image.shape} {image.dtype} image as {suffix}")
     return atomic_write_bytes(path, encoded.tobytes())

@@ -101,16 +101,70 @@ def _print_estimate(payload: dict, width: int, height: int) -> None:
 _PASSTHROUGH = {"allow_extra_args": True, "ignore_unknown_options": True}
 
 
-@app.command(context_settings=_PASSTHROUGH)
-def train(ctx: typer.Context) -> None:
-    """Train the unsupervised or supervised network (needs the [train] extra)."""
-    raise UdhError("`udh train` is not built yet (see the learned-estimators issue)")
+@app.command()
+def train(
+    data: Annotated[Optional[list[Path]], typer.Option("--data", "-d", help="Folder of images (synthetic pairs) or of a flight (consecutive frames). Repeat for more.")] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run folder: checkpoint.pt, best.pt, metrics.jsonl, config.json.")] = Path("runs/udh"),
+    mode: Annotated[str, typer.Option(help="unsupervised (photometric L1, no labels) or supervised (L2 on synthetic labels).")] = "unsupervised",
+    arch: Annotated[str, typer.Option(help="Network: corr (CPU-friendly default) or vgg-paper (the paper's 34 M network).")] = "corr",
+    rho: Annotated[float, typer.Option(help="Largest corner perturbation of synthetic pairs, px (paper: 16/32/45 for 85/75/65 % overlap).")] = 32.0,
+    steps: Annotated[int, typer.Option(help="Total optimiser steps.")] = 20000,
+    batch: Annotated[int, typer.Option(help="Pairs per step (per process under torchrun).")] = 32,
+    lr: Annotated[Optional[float], typer.Option(help="Adam learning rate [default: the paper's, 1e-4 unsupervised, 5e-4 supervised].")] = None,
+    init: Annotated[Optional[str], typer.Option(help="Fine-tune from a checkpoint file or a shipped model (unsupervised, supervised).")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.")] = False,
+    data_kind: Annotated[str, typer.Option(help="auto, pool or flight.")] = "auto",
+    small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = 0.3,
+    illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.")] = True,
+    occluders: Annotated[bool, typer.Option(help="Random occluding blobs on the network's inputs.")] = False,
+    eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = 250,
+    seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = 0,
+    threads: Annotated[Optional[int], typer.Option(help="torch CPU threads [default: torch's choice].")] = None,
+) -> None:
+    """Train the unsupervised or supervised network (needs the [bold]train[/bold] extra: torch)."""
+    _require_torch()
+    from udh_cli.train.loop import TrainConfig, train as run_training
+
+    config = TrainConfig(
+        mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, arch=arch, rho=rho, small_motion_fraction=small_motion,
+        illumination=illumination, occluders=occluders, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
+        checkpoint_every=eval_every, init=init, out=str(out),
+    )
+    last = run_training(config, resume=resume, threads=threads)
+    summary = ", ".join(f"{k} {v:.4g}" for k, v in last.items() if isinstance(v, float))
+    console.print(f"done at step {last.get('step')}: {summary}; checkpoints in {out}")
 
 
-@app.command("export-onnx", context_settings=_PASSTHROUGH)
-def export_onnx(ctx: typer.Context) -> None:
-    """Export a training checkpoint to ONNX (needs the [train] extra)."""
-    raise UdhError("`udh export-onnx` is not built yet (see the learned-estimators issue)")
+def _require_torch() -> None:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        raise UdhError("training and export need torch: pip install 'udh[train]'") from None
+
+
+@app.command("export-onnx")
+def export_onnx(
+    checkpoint: Annotated[Path, typer.Argument(help="A checkpoint written by `udh train` (checkpoint.pt or best.pt).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="The .onnx file to write.")] = Path("model.onnx"),
+    check_images: Annotated[Optional[Path], typer.Option(help="Folder of images whose synthetic pairs join the parity check.")] = None,
+) -> None:
+    """Export a checkpoint's network to ONNX with its metadata, and check parity against torch."""
+    _require_torch()
+    import numpy as np
+
+    from udh_cli.train.export import export_onnx as run_export
+
+    real = None
+    if check_images is not None:
+        from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs
+
+        sources = load_sources(list_images(check_images)[:20], min_count=1)
+        pairs = make_pairs(sources, 16, PairConfig(), np.random.default_rng(0), with_context=False)
+        real = np.stack([pairs.patch_a, pairs.patch_b], 1)
+    result = run_export(checkpoint, output, real)
+    meta = result["metadata"]
+    console.print(f"wrote {result['path']}: {meta['arch']} ({meta['mode']}), {meta['steps']} steps, "
+                  f"input {meta['input_size']}px; max |onnx - torch| = {result['max_abs_diff']:.2e} px")
 
 
 @app.command(context_settings=_PASSTHROUGH)

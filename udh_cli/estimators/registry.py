@@ -15,6 +15,8 @@ ESTIMATORS: dict[str, tuple[str, str, str]] = {
     "orb": ("udh_cli.estimators.features", "OrbRansac", "ORB + ratio test + RANSAC (5 px)"),
     "ecc": ("udh_cli.estimators.ecc", "EccEstimator", "ECC, MOTION_HOMOGRAPHY, from the identity"),
     "identity": ("udh_cli.estimators.identity", "IdentityEstimator", "no motion; the baseline"),
+    "unsupervised": ("udh_cli.estimators.deep", "UnsupervisedEstimator", "the unsupervised deep network (onnxruntime)"),
+    "supervised": ("udh_cli.estimators.deep", "SupervisedEstimator", "supervised HomographyNet (onnxruntime)"),
 }
 
 

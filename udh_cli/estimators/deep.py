@@ -1,0 +1,120 @@
+"""The learned estimators (unsupervised UDH and supervised HomographyNet) on onnxruntime."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import ClassVar, Sequence
+
+import cv2
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.estimators.base import Estimate, Estimator
+from udh_cli.images import check_image, to_gray_float
+from udh_cli.onnx_model import OnnxHomographyModel
+from udh_cli.verify import alignment_ncc
+
+
+@dataclass
+class DeepEstimator(Estimator):
+    """Resize both images whole to the network's S x S input, predict the 4-point offsets, solve the DLT
+    in numpy, and rescale ``b_from_a`` exactly to the original images' pixels.
+
+    Attributes:
+        model: path of a udh ONNX model; ``None`` takes the shipped model of this estimator's name.
+        device: "auto", "cpu" or "cuda" (onnxruntime providers).
+        iterations: network rounds. Round k > 1 warps A by the current estimate and predicts the residual.
+        batch_size: pairs per onnxruntime call in :meth:`estimate_many`.
+        threads: onnxruntime intra-op threads (None: onnxruntime's default).
+
+    Confidence is the normalised cross-correlation of the aligned S x S images (0 when negative).
+    """
+
+    name: ClassVar[str] = "deep"
+    model: str | None = None
+    device: str = "auto"
+    iterations: int = 1
+    batch_size: int = 64
+    threads: int | None = None
+    network: OnnxHomographyModel = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        from udh_cli.models_catalog import shipped_onnx
+
+        path = self.model if self.model is not None else shipped_onnx(self.name)
+        self.network = OnnxHomographyModel.load(path, self.device, self.threads)
+
+    def _small(self, image: np.ndarray) -> np.ndarray:
+        s = self.network.input_size
+        return cv2.resize(to_gray_float(image), (s, s), interpolation=cv2.INTER_AREA)
+
+    def predict_small(self, small_a: np.ndarray, small_b: np.ndarray) -> np.ndarray:
+        """(N, S, S) x2 grey in [0, 1] -> (N, 3, 3) ``b_from_a`` in pixels of the S x S images."""
+        s = self.network.input_size
+        corners = geometry.image_corners(s, s)
+        b_from_a = np.repeat(np.eye(3)[None], len(small_a), 0)
+        current_a = small_a
+        for round_index in range(self.iterations):
+            offsets = self.network.predict_offsets(np.stack([current_a, small_b], 1), self.batch_size)
+            try:
+                step = geometry.homography_from_points(np.broadcast_to(corners, offsets.shape), corners + offsets)
+            except np.linalg.LinAlgError:
+                step = np.stack([_safe_dlt(corners, o) for o in offsets])
+            b_from_a = step @ b_from_a
+            b_from_a /= b_from_a[:, 2:3, 2:3]
+            if round_index + 1 < self.iterations:
+                current_a = np.stack([
+                    cv2.warpPerspective(a, h, (s, s), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                    if np.isfinite(h).all() else a
+                    for a, h in zip(small_a, b_from_a)
+                ])
+        return b_from_a
+
+    def estimate_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
+        if not pairs:
+            return []
+        for a, b in pairs:
+            check_image(a, "image A")
+            check_image(b, "image B")
+        start = time.perf_counter()
+        small_a = np.stack([self._small(a) for a, _ in pairs])
+        small_b = np.stack([self._small(b) for _, b in pairs])
+        small_h = self.predict_small(small_a, small_b)
+        s = self.network.input_size
+        results = []
+        for (a, b), h, sa, sb in zip(pairs, small_h, small_a, small_b):
+            valid = geometry.is_valid_homography(h, s, s)
+            confidence = max(0.0, alignment_ncc(sa, sb, h)) if valid else 0.0
+            full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
+            results.append((full, confidence))
+        per_pair_ms = (time.perf_counter() - start) * 1e3 / len(pairs)
+        out = []
+        for (a, _), (full, confidence) in zip(pairs, results):
+            failure = None if full is not None else "the network's 4-point output gives a degenerate homography"
+            out.append(self._checked(full, confidence, per_pair_ms, failure, {"iterations": self.iterations}, a.shape))
+        return out
+
+    def estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> Estimate:
+        return self.estimate_many([(image_a, image_b)])[0]
+
+
+def _safe_dlt(corners: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    try:
+        return geometry.homography_from_points(corners, corners + offsets)
+    except np.linalg.LinAlgError:
+        return np.full((3, 3), np.nan)
+
+
+@dataclass
+class UnsupervisedEstimator(DeepEstimator):
+    """The paper's unsupervised network (photometric L1 training)."""
+
+    name: ClassVar[str] = "unsupervised"
+
+
+@dataclass
+class SupervisedEstimator(DeepEstimator):
+    """HomographyNet: the same kind of network trained with L2 on synthetic 4-point labels."""
+
+    name: ClassVar[str] = "supervised"

@@ -1,0 +1,89 @@
+"""Loading a udh ONNX network for inference (onnxruntime only; no torch), with its metadata checked."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from udh_cli.errors import UdhError
+
+MODEL_FORMAT = "udh-onnx-1"
+
+
+def providers_for(device: str) -> list[str]:
+    """onnxruntime execution providers for ``device``: auto (CUDA when present, else CPU), cpu or cuda."""
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    if device == "cpu":
+        return ["CPUExecutionProvider"]
+    if device == "cuda":
+        if "CUDAExecutionProvider" not in available:
+            raise UdhError("--device cuda: this onnxruntime has no CUDA provider; install onnxruntime-gpu or use --device cpu")
+        return ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    if device == "auto":
+        return (["CUDAExecutionProvider"] if "CUDAExecutionProvider" in available else []) + ["CPUExecutionProvider"]
+    raise UdhError(f"unknown --device '{device}'; choose auto, cpu or cuda")
+
+
+@dataclass
+class OnnxHomographyModel:
+    """A network mapping ``(N, 2, S, S)`` patches to ``(N, 4, 2)`` 4-point offsets (see geometry).
+
+    Attributes:
+        path: the .onnx file. input_size: S. mean, std: the input standardisation it was trained with.
+        metadata: every key the exporter embedded (arch, mode, rho, steps, training data...).
+    """
+
+    path: Path
+    session: object
+    input_size: int
+    mean: float
+    std: float
+    metadata: dict[str, str]
+
+    @classmethod
+    def load(cls, path: str | Path, device: str = "auto", threads: int | None = None) -> "OnnxHomographyModel":
+        """Open and check a udh ONNX model; raises :class:`UdhError` for a missing, corrupt or foreign file."""
+        import onnxruntime as ort
+
+        path = Path(path)
+        if not path.is_file():
+            raise UdhError(f"{path}: no such model file")
+        options = ort.SessionOptions()
+        options.log_severity_level = 3
+        if threads:
+            options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        try:
+            session = ort.InferenceSession(str(path), sess_options=options, providers=providers_for(device))
+        except UdhError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - onnxruntime raises several private exception types
+            raise UdhError(f"{path}: not a loadable ONNX model ({type(exc).__name__}); give a file written by `udh export-onnx`") from None
+        metadata = dict(session.get_modelmeta().custom_metadata_map)
+        if metadata.get("udh_format") != MODEL_FORMAT:
+            raise UdhError(f"{path}: an ONNX model without udh metadata ({MODEL_FORMAT}); export it with `udh export-onnx`")
+        try:
+            size = int(metadata["input_size"])
+            mean, std = float(metadata["normalization_mean"]), float(metadata["normalization_std"])
+        except (KeyError, ValueError):
+            raise UdhError(f"{path}: the model's udh metadata is incomplete or malformed") from None
+        inputs, outputs = session.get_inputs(), session.get_outputs()
+        if (len(inputs) != 1 or list(inputs[0].shape[1:]) != [2, size, size] or len(outputs) != 1
+                or list(outputs[0].shape[1:]) != [4, 2]):
+            raise UdhError(f"{path}: the graph's shapes do not fit its metadata (want (N,2,{size},{size}) -> (N,4,2))")
+        if not (math.isfinite(mean) and math.isfinite(std) and std > 0 and size >= 16):
+            raise UdhError(f"{path}: unusable metadata (input size {size}, mean {mean}, std {std})")
+        return cls(path, session, size, mean, std, metadata)
+
+    def predict_offsets(self, patches: np.ndarray, batch_size: int = 64) -> np.ndarray:
+        """``patches`` (N, 2, S, S) grey in [0, 1] -> (N, 4, 2) float64 offsets in pixels of the S x S input."""
+        if patches.ndim != 4 or patches.shape[1:] != (2, self.input_size, self.input_size):
+            raise UdhError(f"expected patches of shape (N, 2, {self.input_size}, {self.input_size}), got {patches.shape}")
+        standardised = ((patches - self.mean) / self.std).astype(np.float32)
+        outputs = [self.session.run(None, {"patches": standardised[i : i + batch_size]})[0] for i in range(0, len(patches), batch_size)]
+        return np.concatenate(outputs).astype(np.float64)

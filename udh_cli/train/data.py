@@ -1,0 +1,174 @@
+"""Training data: synthetic pairs from image pools, and consecutive real frames from flights.
+
+Both produce the same batch layout (numpy, float32), which :func:`to_tensors` turns into torch:
+``patches (N, 2, P, P)`` in [0, 1] (what the network sees, augmented), ``offsets (N, 4, 2)`` (the truth,
+synthetic only), ``context_a (N, 2, H, W)`` (clean A frame + validity mask), ``origin (N, 2)`` and
+``clean_b (N, P, P)`` (what the photometric loss compares against).
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.errors import UdhError
+from udh_cli.images import read_image, to_gray_u8
+from udh_cli.synthetic import PairConfig, _illuminate, list_images, load_sources, make_pairs, split_holdout
+
+FLIGHT_MARKERS = ("manifest.csv", "consecutive_pairs_sift_reference.csv")
+
+
+def is_flight_folder(folder: Path) -> bool:
+    """A flight folder holds a sequence of overlapping frames; udh recognises the shared-data layout."""
+    return any((folder / marker).is_file() for marker in FLIGHT_MARKERS)
+
+
+@dataclass
+class Batch:
+    patches: np.ndarray
+    offsets: np.ndarray | None
+    context_a: np.ndarray
+    origin: np.ndarray
+    clean_b: np.ndarray
+
+
+class PoolData:
+    """Synthetic pairs (DeTone procedure) from folders of single images; every 10th image is held out."""
+
+    kind = "pool"
+    has_labels = True
+
+    def __init__(self, folders: list[Path], config: PairConfig):
+        paths = list_images(folders)
+        train_paths, held_out = split_holdout(paths)
+        if len(train_paths) < 2 or not held_out:
+            raise UdhError(f"found {len(paths)} images in {', '.join(map(str, folders))}; need at least 3 to train and hold one out")
+        self.config = config
+        self.train = load_sources(train_paths, min_count=2)
+        self.held_out = load_sources(held_out, min_count=1)
+        self.description = f"{len(self.train)} pool images ({len(self.held_out)} held out)"
+
+    def batch(self, rng: np.random.Generator, size: int, unsupervised: bool) -> Batch:
+        pairs = make_pairs(self.train, size, self.config, rng, with_context=unsupervised)
+        return Batch(np.stack([pairs.patch_a, pairs.patch_b], 1), pairs.offsets, pairs.context_a, pairs.origin, pairs.clean_b)
+
+    def validation(self, size: int, seed: int = 12345) -> Batch:
+        """A fixed set from the held-out images at the full rho, with illumination: the benchmark protocol."""
+        config = PairConfig(self.config.patch_size, self.config.rho, 0.0, True, False)
+        pairs = make_pairs(self.held_out, size, config, np.random.default_rng(seed), with_context=False)
+        return Batch(np.stack([pairs.patch_a, pairs.patch_b], 1), pairs.offsets, pairs.context_a, pairs.origin, pairs.clean_b)
+
+
+class FlightData:
+    """Consecutive frames of real flights, each frame resized whole to P x P (as the estimator does).
+
+    There are no labels: only the unsupervised loss can train on them. Every 5th pair is held out; its
+    reference homography (the folder's SIFT reference CSV, else SIFT computed here) measures progress.
+    Training pairs are augmented with the same flip/rotation for both frames, a random A/B swap, and
+    independent illumination on what the network sees.
+    """
+
+    kind = "flight"
+    has_labels = False
+
+    def __init__(self, folders: list[Path], config: PairConfig):
+        self.config = config
+        p = config.patch_size
+        self.train_pairs: list[tuple[np.ndarray, np.ndarray]] = []
+        self.val_pairs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        for folder in folders:
+            frames = list_images([folder])
+            images, sizes = [], []
+            for path in frames:
+                try:
+                    gray = to_gray_u8(read_image(path))
+                except UdhError:
+                    continue
+                sizes.append((gray.shape[1], gray.shape[0]))
+                images.append((path.name, cv2.resize(gray, (p, p), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0, gray))
+            references = _reference_homographies(folder)
+            for i in range(len(images) - 1):
+                (name_a, small_a, full_a), (name_b, small_b, full_b) = images[i], images[i + 1]
+                if i % 5 == 4:
+                    reference = references.get((name_a, name_b))
+                    if reference is None:
+                        reference = _sift_reference(full_a, full_b)
+                    if reference is not None:
+                        small = geometry.rescale_homography(reference, sizes[i], (p, p), sizes[i + 1], (p, p))
+                        self.val_pairs.append((small_a, small_b, geometry.offsets_from_homography(small, p, p)))
+                        continue
+                self.train_pairs.append((small_a, small_b))
+        if len(self.train_pairs) < 1:
+            raise UdhError(f"found no usable consecutive frame pairs in {', '.join(map(str, folders))}; a flight needs at least 2 readable frames")
+        self.description = f"{len(self.train_pairs)} consecutive real pairs ({len(self.val_pairs)} held out)"
+
+    def batch(self, rng: np.random.Generator, size: int, unsupervised: bool) -> Batch:
+        p = self.config.patch_size
+        patches = np.empty((size, 2, p, p), np.float32)
+        context = np.empty((size, 2, p, p), np.float32)
+        clean_b = np.empty((size, p, p), np.float32)
+        for i in range(size):
+            a, b = self.train_pairs[rng.integers(len(self.train_pairs))]
+            if rng.uniform() < 0.5:
+                a, b = b, a
+            turns, flip = int(rng.integers(4)), bool(rng.integers(2))
+            a, b = (np.rot90(x, turns) for x in (a, b))
+            if flip:
+                a, b = a[:, ::-1], b[:, ::-1]
+            context[i, 0], context[i, 1], clean_b[i] = a, 1.0, b
+            seen_a, seen_b = (a, b) if not self.config.illumination else (_illuminate(a, rng), _illuminate(b, rng))
+            patches[i, 0], patches[i, 1] = seen_a, seen_b
+        return Batch(patches, None, context, np.zeros((size, 2), np.float32), clean_b)
+
+    def validation(self, size: int, seed: int = 12345) -> Batch | None:
+        if not self.val_pairs:
+            return None
+        chosen = self.val_pairs[:size]
+        patches = np.stack([np.stack([a, b]) for a, b, _ in chosen]).astype(np.float32)
+        offsets = np.stack([o for _, _, o in chosen]).astype(np.float32)
+        return Batch(patches, offsets, patches[:, :1], np.zeros((len(chosen), 2), np.float32), patches[:, 1])
+
+
+def _reference_homographies(folder: Path) -> dict[tuple[str, str], np.ndarray]:
+    table = folder / "consecutive_pairs_sift_reference.csv"
+    found: dict[tuple[str, str], np.ndarray] = {}
+    if not table.is_file():
+        return found
+    with table.open(newline="") as handle:
+        for row in csv.DictReader(handle):
+            try:
+                matrix = np.array([float(v) for v in row["H_sift_ransac_1to2"].split()]).reshape(3, 3)
+            except (KeyError, ValueError):
+                continue
+            found[(row["img1"], row["img2"])] = matrix
+    return found
+
+
+def _sift_reference(gray_a: np.ndarray, gray_b: np.ndarray) -> np.ndarray | None:
+    from udh_cli.estimators import create_estimator
+
+    estimate = create_estimator("sift").estimate(gray_a, gray_b)
+    return estimate.homography if estimate.ok and estimate.confidence > 0.2 else None
+
+
+def open_data(folders: list[Path], kind: str, config: PairConfig) -> PoolData | FlightData:
+    """Open training folders as a pool of single images or as flights (``kind``: auto, pool, flight)."""
+    folders = [Path(f) for f in folders]
+    for folder in folders:
+        if not folder.is_dir():
+            raise UdhError(f"{folder}: no such data folder")
+    if kind == "auto":
+        flags = {is_flight_folder(f) for f in folders}
+        if len(flags) > 1:
+            raise UdhError("--data mixes flight folders and image pools; train on one kind at a time (or set --data-kind)")
+        kind = "flight" if flags == {True} else "pool"
+    if kind == "pool":
+        return PoolData(folders, config)
+    if kind == "flight":
+        return FlightData(folders, config)
+    raise UdhError(f"unknown --data-kind '{kind}'; choose auto, pool or flight")

@@ -1,0 +1,101 @@
+"""``udh export-onnx``: the CNN alone to ONNX, with the metadata the estimator needs, checked for parity.
+
+The DLT and rescaling run in the numpy geometry core at inference, so the graph is just the network:
+``patches (N, 2, S, S)`` standardised float32 -> ``offsets (N, 4, 2)`` pixels, with a dynamic batch.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from udh_cli.errors import UdhError
+from udh_cli.images import atomic_write_bytes
+from udh_cli.onnx_model import MODEL_FORMAT
+from udh_cli.train.archs import create_model
+from udh_cli.train.checkpoint import load_checkpoint
+
+OPSET = 17
+
+
+def model_metadata(state: dict[str, Any]) -> dict[str, str]:
+    """The ONNX metadata (all strings) describing a checkpoint: what the estimator and the model card read."""
+    config = state["config"]
+    return {
+        "udh_format": MODEL_FORMAT,
+        "arch": config["arch"],
+        "mode": config["mode"],
+        "input_size": str(config["patch_size"]),
+        "normalization_mean": repr(float(state["normalization"]["mean"])),
+        "normalization_std": repr(float(state["normalization"]["std"])),
+        "rho": repr(float(config["rho"])),
+        "steps": str(int(state["step"])),
+        "training_data": json.dumps(config["data"]),
+        "data_description": str(state.get("data_description", "")),
+        "trained_before": json.dumps(state.get("trained_before", {})),
+        "best_val_mace": repr(float(state.get("best_val", float("nan")))),
+        "convention": "offsets[i] = b_from_a(corner_i) - corner_i, corners TL,TR,BR,BL at pixel centres of the SxS input",
+    }
+
+
+def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.ndarray | None = None) -> dict[str, Any]:
+    """Export ``checkpoint`` to ``output`` (written atomically) and verify it against torch.
+
+    ``check_inputs`` (N, 2, S, S) in [0, 1] adds real patches to the random ones used for the parity check.
+    Returns ``{"path", "max_abs_diff", "metadata"}``; raises :class:`UdhError` when parity fails (> 1e-3 px).
+    """
+    import onnx
+    import onnxruntime as ort
+
+    state = load_checkpoint(checkpoint)
+    size = int(state["config"]["patch_size"])
+    model = create_model(state["config"]["arch"], size)
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        raise UdhError(f"{checkpoint}: the weights do not fit the '{state['config']['arch']}' architecture ({str(exc).splitlines()[0]})") from None
+    model.eval()
+    dummy = torch.zeros(2, 2, size, size)
+    buffer = io.BytesIO()
+    torch.onnx.export(
+        model, (dummy,), buffer, dynamo=False, opset_version=OPSET, input_names=["patches"], output_names=["offsets"],
+        dynamic_axes={"patches": {0: "batch"}, "offsets": {0: "batch"}},
+    )
+    proto = onnx.load_from_string(buffer.getvalue())
+    metadata = model_metadata(state)
+    for key, value in metadata.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.checker.check_model(proto)
+    data = proto.SerializeToString()
+
+    # Parity: random inputs and (if given) real patches, standardised as the estimator will do.
+    rng = np.random.default_rng(0)
+    inputs = rng.random((8, 2, size, size), dtype=np.float32)
+    if check_inputs is not None:
+        inputs = np.concatenate([inputs, check_inputs.astype(np.float32)])
+    mean, std = state["normalization"]["mean"], state["normalization"]["std"]
+    standardised = ((inputs - mean) / std).astype(np.float32)
+    with torch.no_grad():
+        expected = model(torch.from_numpy(standardised)).numpy()
+    session = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
+    got = session.run(None, {"patches": standardised})[0]
+    max_diff = float(np.abs(got - expected).max())
+    if not max_diff < 1e-3:
+        raise UdhError(f"ONNX and torch disagree by {max_diff:.3g} px; the export is not trustworthy")
+    atomic_write_bytes(output, data)
+    return {"path": str(output), "max_abs_diff": max_diff, "metadata": metadata}
+
+
+def export_weights(checkpoint: str | Path, output: str | Path) -> None:
+    """Strip a training checkpoint to what fine-tuning needs (weights, config, normalisation), atomically."""
+    from udh_cli.train.checkpoint import save_checkpoint
+
+    state = load_checkpoint(checkpoint)
+    keep = ("model", "config", "step", "normalization", "trained_before", "data_description", "best_val")
+    save_checkpoint(output, {k: state[k] for k in keep if k in state})

@@ -1,0 +1,330 @@
+"""``udh train``: the training loop, with atomic checkpoints, exact resume and torchrun support."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from udh_cli.errors import UdhError
+from udh_cli.synthetic import PairConfig
+from udh_cli.train import losses
+from udh_cli.train.archs import DEFAULT_ARCH, create_model
+from udh_cli.train.checkpoint import load_checkpoint, save_checkpoint
+from udh_cli.train.data import Batch, open_data
+
+PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learning rates
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a run; stored in every checkpoint and in ``config.json``.
+
+    Attributes:
+        mode: "unsupervised" (photometric L1, no labels) or "supervised" (L2 on the 4-point labels).
+        data: folders of images (synthetic pairs) or of flights (consecutive real frames).
+        data_kind: "auto" (flight folders are recognised by their manifest), "pool" or "flight".
+        arch: architecture name (see :data:`udh_cli.train.archs.ARCHS`).
+        patch_size: network input side, pixels.
+        rho: largest corner perturbation of synthetic pairs, pixels.
+        small_motion_fraction: share of synthetic pairs with a smaller, random rho.
+        illumination / occluders: input augmentations (the losses see clean images).
+        steps: total optimiser steps; batch: pairs per step and per process.
+        lr: Adam learning rate (None: the paper's, 1e-4 unsupervised, 5e-4 supervised).
+        betas, eps: Adam's, as in the paper.
+        lr_final_fraction: the learning rate decays along a cosine to this fraction of ``lr``.
+        seed: seeds data generation and initialisation.
+        eval_every, checkpoint_every: in steps. val_pairs: size of the fixed validation set.
+        init: a checkpoint (or a shipped model name) to fine-tune from.
+        out: run folder (checkpoint.pt, best.pt, metrics.jsonl, config.json).
+    """
+
+    mode: str = "unsupervised"
+    data: list[str] = field(default_factory=list)
+    data_kind: str = "auto"
+    arch: str = DEFAULT_ARCH
+    patch_size: int = 128
+    rho: float = 32.0
+    small_motion_fraction: float = 0.3
+    illumination: bool = True
+    occluders: bool = False
+    steps: int = 20000
+    batch: int = 32
+    lr: float | None = None
+    betas: tuple[float, float] = (0.9, 0.999)
+    eps: float = 1e-8
+    lr_final_fraction: float = 0.05
+    seed: int = 0
+    eval_every: int = 250
+    checkpoint_every: int = 250
+    val_pairs: int = 256
+    init: str | None = None
+    out: str = "runs/udh"
+
+    def learning_rate(self) -> float:
+        return PAPER_LR[self.mode] if self.lr is None else self.lr
+
+
+def _distributed() -> tuple[int, int]:
+    """(rank, world size) under torchrun, else (0, 1). Initialises the process group once."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1
+    if not torch.distributed.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        torch.distributed.init_process_group(backend)
+    return torch.distributed.get_rank(), world
+
+
+def _to_tensors(batch: Batch, device: torch.device) -> dict[str, torch.Tensor]:
+    out = {
+        "patches": torch.from_numpy(batch.patches).to(device),
+        "context_a": torch.from_numpy(batch.context_a).to(device),
+        "origin": torch.from_numpy(batch.origin).to(device),
+        "clean_b": torch.from_numpy(batch.clean_b).to(device),
+    }
+    if batch.offsets is not None:
+        out["offsets"] = torch.from_numpy(batch.offsets).to(device)
+    return out
+
+
+def _standardise(patches: torch.Tensor, normalization: dict[str, float]) -> torch.Tensor:
+    return (patches - normalization["mean"]) / normalization["std"]
+
+
+def resolve_init(init: str) -> Path:
+    """A checkpoint path, or the name of a shipped model ("unsupervised", "supervised")."""
+    path = Path(init)
+    if path.is_file():
+        return path
+    from udh_cli.models_catalog import shipped_checkpoint
+
+    return shipped_checkpoint(init)
+
+
+class Trainer:
+    """One training run. ``run()`` trains to ``config.steps``, resuming from ``out/checkpoint.pt`` if asked."""
+
+    def __init__(self, config: TrainConfig, resume: bool = False, threads: int | None = None, progress: bool = True):
+        if config.mode not in PAPER_LR:
+            raise UdhError(f"unknown --mode '{config.mode}'; choose unsupervised or supervised")
+        self.rank, self.world = _distributed()
+        self.out = Path(config.out)
+        self.checkpoint_path = self.out / "checkpoint.pt"
+        self.metrics_path = self.out / "metrics.jsonl"
+        self.progress = progress and self.rank == 0
+        saved = None
+        if resume:
+            if not self.checkpoint_path.is_file():
+                raise UdhError(f"--resume: no checkpoint at {self.checkpoint_path}; start without --resume or give the run's --out")
+            saved = load_checkpoint(self.checkpoint_path)
+            stored = saved["config"]
+            stored["betas"] = tuple(stored["betas"])
+            # The stored run defines everything except how long to train and where the data lies now.
+            config = TrainConfig(**{**stored, "steps": max(config.steps, int(saved["step"])), "data": config.data or stored["data"]})
+        self.config = config
+        if threads:
+            torch.set_num_threads(threads)
+        import cv2
+
+        cv2.setNumThreads(1)  # data generation runs between steps; torch owns the cores
+        self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        if not config.data:
+            raise UdhError("no --data given; name one or more folders of images or flights")
+        pair_config = PairConfig(config.patch_size, config.rho, config.small_motion_fraction, config.illumination, config.occluders)
+        self.data = open_data([Path(d) for d in config.data], config.data_kind, pair_config)
+        if config.mode == "supervised" and not self.data.has_labels:
+            raise UdhError("supervised training needs synthetic pairs from image pools; flights have no labels (use --mode unsupervised)")
+        torch.manual_seed(config.seed)
+        self.model = create_model(config.arch, config.patch_size).to(self.device)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.learning_rate(), betas=config.betas, eps=config.eps)
+        self.rng = np.random.default_rng([config.seed, self.rank])
+        self.step = 0
+        self.best_val = math.inf
+        if saved is not None:
+            self._restore(saved)
+        elif config.init:
+            init = load_checkpoint(resolve_init(config.init))
+            if init["config"]["arch"] != config.arch or int(init["config"]["patch_size"]) != config.patch_size:
+                raise UdhError(f"--init {config.init} is a {init['config']['arch']} network for {init['config']['patch_size']}px patches; "
+                               f"pass --arch {init['config']['arch']}")
+            self.model.load_state_dict(init["model"])
+            # The network's weights only make sense with the normalisation they were trained with.
+            self.normalization = dict(init["normalization"])
+            self.trained_before = {"init": str(config.init), "init_steps": int(init["step"]), "init_data": init["config"]["data"]}
+        else:
+            self.normalization = self._measure_normalization()
+            self.trained_before = {}
+        if self.world > 1:
+            self.model = torch.nn.parallel.DistributedDataParallel(self.model)
+        self.validation = self.data.validation(config.val_pairs)
+
+    # ------------------------------------------------------------------------------------ state
+
+    def _measure_normalization(self) -> dict[str, float]:
+        """Global standardisation: the mean and std of training inputs, measured once, stored with the model."""
+        sample = self.data.batch(np.random.default_rng(self.config.seed + 999), 256, unsupervised=False).patches
+        return {"mean": float(sample.mean()), "std": float(sample.std() + 1e-6)}
+
+    def _bare_model(self) -> torch.nn.Module:
+        return self.model.module if hasattr(self.model, "module") else self.model
+
+    def _state(self) -> dict[str, Any]:
+        rng_states = [self.rng.bit_generator.state]
+        if self.world > 1:
+            rng_states = [None] * self.world
+            torch.distributed.all_gather_object(rng_states, self.rng.bit_generator.state)
+        return {
+            "model": self._bare_model().state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "step": self.step,
+            "config": asdict(self.config),
+            "normalization": self.normalization,
+            "rng_states": [json.dumps(s) for s in rng_states],
+            "torch_rng": torch.get_rng_state(),
+            "best_val": self.best_val,
+            "trained_before": self.trained_before,
+            "data_description": self.data.description,
+        }
+
+    def _restore(self, saved: dict[str, Any]) -> None:
+        self.model.load_state_dict(saved["model"])
+        self.optimizer.load_state_dict(saved["optimizer"])
+        self.step = int(saved["step"])
+        self.normalization = dict(saved["normalization"])
+        states = saved.get("rng_states", [])
+        if self.rank < len(states):
+            self.rng.bit_generator.state = json.loads(states[self.rank])
+        torch.set_rng_state(saved["torch_rng"])
+        self.best_val = float(saved.get("best_val", math.inf))
+        self.trained_before = dict(saved.get("trained_before", {}))
+        self._truncate_metrics(self.step)
+
+    def _truncate_metrics(self, step: int) -> None:
+        """Drop log lines written after the checkpoint we resume from: they will be written again."""
+        if self.rank != 0 or not self.metrics_path.is_file():
+            return
+        kept = [line for line in self.metrics_path.read_text().splitlines() if line.strip() and json.loads(line).get("step", 0) <= step]
+        from udh_cli.images import atomic_write_bytes
+
+        atomic_write_bytes(self.metrics_path, ("\n".join(kept) + "\n" if kept else "").encode())
+
+    def save(self) -> None:
+        state = self._state()  # every rank joins the gather
+        if self.rank == 0:
+            save_checkpoint(self.checkpoint_path, state)
+
+    # --------------------------------------------------------------------------------- training
+
+    def _learning_rate(self) -> float:
+        """Cosine decay from lr to lr * lr_final_fraction over the run (recomputed, so resume is exact)."""
+        c = self.config
+        progress = min(1.0, self.step / max(1, c.steps))
+        return c.learning_rate() * (c.lr_final_fraction + (1 - c.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * progress)))
+
+    def _loss(self, tensors: dict[str, torch.Tensor], offsets: torch.Tensor) -> torch.Tensor:
+        if self.config.mode == "supervised":
+            return losses.supervised_loss(offsets, tensors["offsets"])
+        return losses.photometric_loss(offsets, tensors["context_a"], tensors["origin"], tensors["clean_b"])
+
+    @torch.no_grad()
+    def evaluate(self) -> dict[str, float]:
+        """Corner error on the fixed held-out set (MACE against the labels or the SIFT references)."""
+        if self.validation is None:
+            return {}
+        model = self._bare_model()
+        model.eval()
+        tensors = _to_tensors(self.validation, self.device)
+        predicted = torch.cat([model(_standardise(chunk, self.normalization)) for chunk in tensors["patches"].split(128)])
+        model.train()
+        errors = losses.corner_error(predicted, tensors["offsets"]).cpu().numpy()
+        return {"val_mace_mean": float(errors.mean()), "val_mace_median": float(np.median(errors)),
+                "val_mace_p95": float(np.percentile(errors, 95))}
+
+    def _log(self, record: dict[str, Any]) -> None:
+        if self.rank != 0:
+            return
+        self.out.mkdir(parents=True, exist_ok=True)
+        with self.metrics_path.open("a") as handle:
+            handle.write(json.dumps(record) + "\n")
+
+    def run(self) -> dict[str, Any]:
+        """Train until ``config.steps``; returns the last metrics. Ctrl-C/SIGTERM save a checkpoint first."""
+        c = self.config
+        if self.rank == 0:
+            self.out.mkdir(parents=True, exist_ok=True)
+            from udh_cli.images import atomic_write_bytes
+
+            atomic_write_bytes(self.out / "config.json", json.dumps(asdict(c), indent=2).encode())
+        previous = signal.signal(signal.SIGTERM, _raise_interrupt) if self.rank == 0 else None
+        last: dict[str, Any] = {}
+        if self.step == 0 and self.validation is not None:
+            last = {"step": 0, **self.evaluate(), "time_s": 0.0}
+            self._log(last)
+        try:
+            last = self._train_steps(last)
+        except KeyboardInterrupt:
+            self.save()
+            raise
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
+        return last
+
+    def _train_steps(self, last: dict[str, Any]) -> dict[str, Any]:
+        c = self.config
+        from udh_cli.train.progress import TrainProgress
+
+        started = time.perf_counter()
+        running_loss, seen = 0.0, 0
+        self.model.train()
+        with TrainProgress(c.steps, self.step, enabled=self.progress) as bar:
+            while self.step < c.steps:
+                batch = self.data.batch(self.rng, c.batch, unsupervised=c.mode == "unsupervised")
+                tensors = _to_tensors(batch, self.device)
+                for group in self.optimizer.param_groups:
+                    group["lr"] = self._learning_rate()
+                offsets = self.model(_standardise(tensors["patches"], self.normalization))
+                loss = self._loss(tensors, offsets)
+                if not torch.isfinite(loss):
+                    raise UdhError(f"the loss became {loss.item()} at step {self.step + 1}; the last good checkpoint "
+                                   f"{self.checkpoint_path} is kept: lower --lr and continue with --resume")
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                self.optimizer.step()
+                self.step += 1
+                running_loss += float(loss.detach())
+                seen += 1
+                if self.step % c.eval_every == 0 or self.step == c.steps:
+                    last = {"step": self.step, "loss": running_loss / seen, "lr": self._learning_rate(), **self.evaluate(),
+                            "time_s": round(time.perf_counter() - started, 1)}
+                    running_loss, seen = 0.0, 0
+                    self._log(last)
+                    if last.get("val_mace_mean", math.inf) < self.best_val and self.rank == 0:
+                        self.best_val = last["val_mace_mean"]
+                        save_checkpoint(self.out / "best.pt", {**self._model_only_state(), "step": self.step})
+                if self.step % c.checkpoint_every == 0 or self.step == c.steps:
+                    self.save()
+                bar.update(self.step, float(loss.detach()), last.get("val_mace_median"))
+        return last
+
+    def _model_only_state(self) -> dict[str, Any]:
+        return {"model": self._bare_model().state_dict(), "config": asdict(self.config), "normalization": self.normalization,
+                "trained_before": self.trained_before, "data_description": self.data.description, "best_val": self.best_val}
+
+
+def _raise_interrupt(signum, frame):  # noqa: ARG001 - signal handler signature
+    raise KeyboardInterrupt
+
+
+def train(config: TrainConfig, resume: bool = False, threads: int | None = None, progress: bool = True) -> dict[str, Any]:
+    """Library entry point of ``udh train``: returns the final metrics record."""
+    return Trainer(config, resume=resume, threads=threads, progress=progress).run()

@@ -1,0 +1,30 @@
+"""Photometric verification: how well does an estimate align the two images?"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def alignment_ncc(gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray, min_overlap: float = 0.1) -> float:
+    """Normalised cross-correlation between B and A warped into B's frame, over their overlap.
+
+    Args:
+        gray_a, gray_b: (H, W) float32 grey images.
+        b_from_a: (3, 3) homography between them, pixels.
+        min_overlap: below this share of B covered by A, the answer is 0 (nothing to verify).
+
+    Returns:
+        NCC in [-1, 1]; gain and bias changes do not lower it. 0 for a non-finite H or too little overlap.
+    """
+    if not np.isfinite(b_from_a).all():
+        return 0.0
+    size = (gray_b.shape[1], gray_b.shape[0])
+    warped = cv2.warpPerspective(gray_a, b_from_a, size, flags=cv2.INTER_LINEAR)
+    mask = cv2.warpPerspective(np.ones_like(gray_a), b_from_a, size, flags=cv2.INTER_NEAREST) > 0.5
+    if mask.mean() < min_overlap:
+        return 0.0
+    x, y = warped[mask].astype(np.float64), gray_b[mask].astype(np.float64)
+    x, y = x - x.mean(), y - y.mean()
+    denominator = np.sqrt((x * x).sum() * (y * y).sum())
+    return float((x * y).sum() / denominator) if denominator > 1e-12 else 0.0

@@ -1,0 +1,12 @@
+"""UAV mosaicking over the Estimator interface: ``run_mosaic(folder_or_video, "mosaic.png", MosaicConfig())``.
+
+Stages, one module each: :mod:`.frames` (input), :mod:`.pairwise` (batched estimation with fallback),
+:mod:`.graph` (parts, chaining, overlap candidates), :mod:`.solve` (global least squares),
+:mod:`.gains` (exposure), :mod:`.composite` (canvas and blending), :mod:`.truth` (simulator ground truth);
+:mod:`.pipeline` wires them.
+"""
+
+from udh_cli.mosaic.pipeline import DEFAULT_METHOD, MosaicConfig, run_mosaic
+from udh_cli.mosaic.report import Reporter
+
+__all__ = ["DEFAULT_METHOD", "MosaicConfig", "Reporter", "run_mosaic"]

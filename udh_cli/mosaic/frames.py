@@ -1,0 +1,212 @@
+"""Mosaic input: a folder of frames or a video, read once into small grey working copies.
+
+Full-resolution pixels are not kept: compositing reads them again one frame at a time
+(:meth:`FrameSet.full_images`), so memory holds only the working copies, ``N * work_w * work_h`` bytes.
+"""
+
+from __future__ import annotations
+
+import re
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import cv2
+import numpy as np
+
+from udh_cli.errors import UdhError
+from udh_cli.images import IMAGE_SUFFIXES, read_image, to_bgr_u8, to_gray_u8
+from udh_cli.mosaic.exif import capture_time
+from udh_cli.mosaic.report import Reporter
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm", ".wmv", ".ts")
+ORDERS = ("name", "time")  # the --order choices
+IGNORED_FILES = ("ground_truth.json",)  # files a frame folder may hold that are not frames (the simulator's)
+
+
+@dataclass
+class Frame:
+    """One input frame.
+
+    Attributes:
+        index: position in the sequence, 0-based; pairs and the sidecar refer to frames by it.
+        name: the file name, or ``"video.mp4#120"`` for frame 120 of a video.
+        size: (width, height) at full resolution, after EXIF orientation.
+        work: (h', w') uint8 grey copy at the working size (the longest side at most ``work_size``).
+        path: the image file; ``None`` for video frames.
+        video_frame: the frame number in the video; ``None`` for image files.
+        capture_time: EXIF capture time, when ordering by time.
+    """
+
+    index: int
+    name: str
+    size: tuple[int, int]
+    work: np.ndarray
+    path: Path | None = None
+    video_frame: int | None = None
+    capture_time: str | None = None
+
+    @property
+    def work_size(self) -> tuple[int, int]:
+        return (self.work.shape[1], self.work.shape[0])
+
+
+@dataclass
+class FrameSet:
+    """The frames of one run, in sequence order, and the files that were skipped (with why)."""
+
+    source: Path
+    frames: list[Frame]
+    skipped: list[dict] = field(default_factory=list)  # {"file": name, "reason": text}
+
+    @property
+    def is_video(self) -> bool:
+        return bool(self.frames) and self.frames[0].video_frame is not None
+
+    def full_images(self, indices: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(index, (H, W, 3) BGR uint8)`` at full resolution for ``indices``, in sequence order.
+
+        Image files are read again; a video is decoded again from the start, sequentially.
+        """
+        wanted = sorted(set(indices))
+        if not self.is_video:
+            for index in wanted:
+                yield index, to_bgr_u8(read_image(self.frames[index].path))
+            return
+        by_video_frame = {self.frames[i].video_frame: i for i in wanted}
+        capture = cv2.VideoCapture(str(self.source))
+        try:
+            number, last = 0, max(by_video_frame)
+            while number <= last:
+                ok, image = capture.read()
+                if not ok:
+                    raise UdhError(f"{self.source}: the video ended early on the second pass (frame {number}); extract its frames to a folder")
+                if number in by_video_frame:
+                    yield by_video_frame[number], image
+                number += 1
+        finally:
+            capture.release()
+
+
+def work_copy(image: np.ndarray, work_size: int) -> np.ndarray:
+    """(h', w') uint8 grey copy whose longest side is at most ``work_size`` pixels (never enlarged)."""
+    grey = to_gray_u8(image)
+    h, w = grey.shape
+    scale = min(1.0, work_size / max(w, h))
+    if scale >= 1.0:
+        return grey
+    size = (max(8, round(w * scale)), max(8, round(h * scale)))
+    return cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+
+
+def _natural_key(name: str) -> list:
+    """Sort key that puts frame_2 before frame_10."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+def open_frames(
+    source: str | Path,
+    work_size: int,
+    order: str = "name",
+    every: int = 1,
+    exclude: Iterable[Path] = (),
+    reporter: Reporter | None = None,
+) -> FrameSet:
+    """Read a folder of frames or a video into a :class:`FrameSet`.
+
+    Args:
+        source: a folder of JPEG/PNG/TIFF frames, or a video file.
+        work_size: longest side of the working copies, pixels.
+        order: ``"name"`` (natural sort of file names) or ``"time"`` (EXIF capture time, then name).
+        every: for a video, keep every N-th frame.
+        exclude: files to leave out (the run's own outputs, when they are written into the folder).
+
+    Corrupt frames and non-image files are skipped with a warning and listed in ``skipped``.
+    Raises :class:`UdhError` when fewer than two usable frames remain or the video cannot be decoded.
+    """
+    reporter = reporter or Reporter(quiet=True)
+    source = Path(source)
+    if order not in ORDERS:
+        raise UdhError(f"unknown order '{order}'; choose one of: {', '.join(ORDERS)}")
+    if every < 1:
+        raise UdhError(f"--every {every}: give a positive number of frames")
+    if not source.exists():
+        raise UdhError(f"{source}: no such folder or video; check the path")
+    frames = _open_video(source, work_size, every, reporter) if source.is_file() else _open_folder(source, work_size, order, exclude, reporter)
+    _check_sizes(frames, reporter)
+    return frames
+
+
+def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Path], reporter: Reporter) -> FrameSet:
+    excluded = {Path(p).resolve() for p in exclude}
+    entries = sorted((p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")), key=lambda p: _natural_key(p.name))
+    entries = [p for p in entries if p.resolve() not in excluded and p.name not in IGNORED_FILES]
+    skipped: list[dict] = []
+    candidates = []
+    for path in entries:
+        if path.suffix.lower() in IMAGE_SUFFIXES:
+            candidates.append(path)
+        else:
+            skipped.append({"file": path.name, "reason": f"not an image file (suffix '{path.suffix}')"})
+            reporter.warn(f"skipping {path.name}: not an image file")
+    if not candidates:
+        raise UdhError(f"{folder}: no image files found (looked for {', '.join(IMAGE_SUFFIXES)}); point to a folder of frames or a video")
+    if order == "time":
+        times = {p: capture_time(p) for p in candidates}
+        missing = [p.name for p in candidates if times[p] is None]
+        if missing:
+            reporter.warn(f"{len(missing)} frames have no EXIF capture time and go last, by name: {', '.join(missing[:5])}{'...' if len(missing) > 5 else ''}")
+        candidates.sort(key=lambda p: (times[p] is None, times[p] or "", _natural_key(p.name)))
+    frames: list[Frame] = []
+    with reporter.stage("reading frames", len(candidates)) as advance:
+        for path in candidates:
+            try:
+                image = read_image(path)
+            except UdhError as exc:
+                skipped.append({"file": path.name, "reason": str(exc)})
+                reporter.warn(f"skipping {path.name}: cannot be decoded (corrupt or not an image)")
+                advance(1)
+                continue
+            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(image, work_size), path, None, capture_time(path) if order == "time" else None))
+            advance(1)
+    if len(frames) < 2:
+        found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"
+        raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames")
+    return FrameSet(folder, frames, skipped)
+
+
+def _open_video(path: Path, work_size: int, every: int, reporter: Reporter) -> FrameSet:
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        raise UdhError(f"{path}: is a single image; give a folder of frames or a video")
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise UdhError(f"{path}: cannot open this as a video; give a folder of frames or a video OpenCV can decode (e.g. MP4/H.264)")
+    total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+    frames: list[Frame] = []
+    try:
+        with reporter.stage("reading video", total) as advance:
+            number = 0
+            while True:
+                ok, image = capture.read()
+                if not ok:
+                    break
+                if number % every == 0:
+                    frames.append(Frame(len(frames), f"{path.name}#{number}", (image.shape[1], image.shape[0]), work_copy(image, work_size), None, number))
+                number += 1
+                advance(1)
+    finally:
+        capture.release()
+    if number == 0:
+        raise UdhError(f"{path}: no frame could be decoded from this video; check the file or extract its frames to a folder")
+    if len(frames) < 2:
+        raise UdhError(f"{path}: only {len(frames)} frame kept of {number} (--every {every}); a mosaic needs at least two")
+    return FrameSet(path, frames)
+
+
+def _check_sizes(frames: FrameSet, reporter: Reporter) -> None:
+    """Mixed sizes are handled (every homography is per frame), but they usually mean a stray file: say so."""
+    sizes = Counter(f.size for f in frames.frames)
+    if len(sizes) > 1:
+        listing = ", ".join(f"{w}x{h} ({n})" for (w, h), n in sizes.most_common())
+        reporter.warn(f"the frames come in {len(sizes)} sizes: {listing}; each frame is used at its own size")

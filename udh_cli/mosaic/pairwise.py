@@ -1,0 +1,146 @@
+"""Pairwise estimation for the mosaic: batched through ``Estimator.estimate_many``, at the working size,
+with a fallback method for pairs the first method fails or doubts, rescaled exactly to full resolution."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.estimators import Estimate, Estimator
+from udh_cli.mosaic.frames import Frame
+from udh_cli.mosaic.report import Reporter
+
+PAIR_KINDS = ("consecutive", "bridge", "overlap")  # next frame; skipping a broken link; loop closure
+
+
+@dataclass
+class PairRequest:
+    """A pair to estimate: ``b_from_a`` between frames ``a`` and ``b``.
+
+    ``prior`` is a full-resolution ``b_from_a`` predicted by chaining (overlap pairs): B is then warped
+    into A's frame first and only the residual is estimated, so that methods with a small capture range
+    (the learned ones) can close loops between frames far apart in the sequence.
+    """
+
+    a: int
+    b: int
+    kind: str
+    prior: np.ndarray | None = None
+
+
+@dataclass
+class PairResult:
+    """The outcome of one pair.
+
+    Attributes:
+        a, b, kind: as requested.
+        estimates: every attempt, first method then fallback; homographies in working-size pixels
+            (of the pre-warped B when ``prior`` was used).
+        b_from_a: the accepted homography, full-resolution pixels; ``None`` when the pair failed.
+        status: ``"ok"``, ``"failed"`` (no method gave a confident estimate) or ``"rejected"`` (an
+            estimate disagreed with the chained prediction, or with the global solve).
+        reason: why it is not ``"ok"``.
+        method: the method whose estimate was accepted.
+        prior: the chained prediction that was used, full resolution.
+        consistency_px: filled by the solve: {"before": rms px, "after": rms px}.
+    """
+
+    a: int
+    b: int
+    kind: str
+    estimates: list[Estimate] = field(default_factory=list)
+    b_from_a: np.ndarray | None = None
+    status: str = "failed"
+    reason: str | None = None
+    method: str | None = None
+    prior: np.ndarray | None = None
+    consistency_px: dict[str, float | None] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def confidence(self) -> float:
+        return max((e.confidence for e in self.estimates if e.ok), default=0.0)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "a": self.a,
+            "b": self.b,
+            "kind": self.kind,
+            "status": self.status,
+            "reason": self.reason,
+            "method": self.method,
+            "confidence": self.confidence,
+            "b_from_a": None if self.b_from_a is None else self.b_from_a.tolist(),
+            "prewarped": self.prior is not None,
+            "consistency_px": self.consistency_px,
+            "estimates": [e.to_json() for e in self.estimates],
+        }
+
+
+def _work_inputs(request: PairRequest, frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The two working images for a request and, when pre-warping, the working-size prior ``b_from_a``."""
+    fa, fb = frames[request.a], frames[request.b]
+    if request.prior is None:
+        return fa.work, fb.work, None
+    prior_work = geometry.rescale_homography(request.prior, fa.size, fa.work_size, fb.size, fb.work_size)
+    # B rendered in A's frame: pixel x of the warped image shows B at prior_work(x).
+    warped_b = cv2.warpPerspective(fb.work, prior_work, fa.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    return fa.work, warped_b, prior_work
+
+
+def _full_resolution(estimate: Estimate, request: PairRequest, frames: Sequence[Frame], prior_work: np.ndarray | None) -> np.ndarray:
+    """The estimate as a full-resolution ``b_from_a`` (undoing the pre-warp and the working scale)."""
+    fa, fb = frames[request.a], frames[request.b]
+    work_b_from_a = estimate.homography if prior_work is None else prior_work @ estimate.homography
+    return geometry.rescale_homography(work_b_from_a, fa.work_size, fa.size, fb.work_size, fb.size)
+
+
+def estimate_pairs(
+    requests: Sequence[PairRequest],
+    frames: Sequence[Frame],
+    estimator: Estimator,
+    fallback: Estimator | None,
+    min_confidence: float,
+    reporter: Reporter,
+    stage: str,
+    batch_size: int = 16,
+) -> list[PairResult]:
+    """Estimate every request; a failed or doubtful (confidence < ``min_confidence``) pair is retried with
+    ``fallback``. Batches of ``batch_size`` pairs go to ``estimate_many`` so learned methods batch them."""
+    results = [PairResult(r.a, r.b, r.kind, prior=r.prior) for r in requests]
+    with reporter.stage(stage, len(requests)) as advance:
+        pending = list(range(len(requests)))
+        for attempt, method in enumerate((estimator, fallback)):
+            if method is None or not pending:
+                continue
+            still_pending = []
+            for start in range(0, len(pending), batch_size):
+                batch = pending[start : start + batch_size]
+                inputs = [_work_inputs(requests[i], frames) for i in batch]
+                estimates = method.estimate_many([(a, b) for a, b, _ in inputs])
+                for i, (_, _, prior_work), estimate in zip(batch, inputs, estimates):
+                    result = results[i]
+                    result.estimates.append(estimate)
+                    if estimate.ok and estimate.confidence >= min_confidence:
+                        result.b_from_a = _full_resolution(estimate, requests[i], frames, prior_work)
+                        result.status, result.reason, result.method = "ok", None, estimate.method
+                    else:
+                        result.reason = estimate.failure if not estimate.ok else f"confidence {estimate.confidence:.2f} < {min_confidence}"
+                        result.reason = f"{estimate.method}: {result.reason}"
+                        still_pending.append(i)
+                    if attempt == 0 and result.ok or attempt == 1 or fallback is None:
+                        advance(1)
+            pending = still_pending
+    return results
+
+
+def corner_disagreement_px(b_from_a: np.ndarray, other_b_from_a: np.ndarray, size_a: tuple[int, int]) -> float:
+    """Mean distance in B's pixels between where two homographies put A's corners."""
+    return float(geometry.mace(b_from_a, other_b_from_a, *size_a))

@@ -1,0 +1,379 @@
+"""``run_mosaic``: frames -> pairwise estimates -> chaining -> loop closure -> global solve -> canvas.
+
+Each step is one call into a module of this package; this file only wires them and writes the outputs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from udh_cli import __version__, geometry
+from udh_cli.errors import UdhError
+from udh_cli.estimators import Estimator, create_estimator
+from udh_cli.images import atomic_write_bytes, write_image
+from udh_cli.mosaic import composite as compositing
+from udh_cli.mosaic.frames import FrameSet, open_frames
+from udh_cli.mosaic.gains import solve_gains
+from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
+from udh_cli.mosaic.pairwise import PairRequest, PairResult, corner_disagreement_px, estimate_pairs
+from udh_cli.mosaic.report import Reporter
+from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_part, summarise
+from udh_cli.mosaic.truth import corner_errors_vs_truth, summarise_truth
+from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
+
+# The default method. SIFT for now: switch to "unsupervised" once the learned estimator is registered and
+# measured on the flights (the pipeline itself needs no change: it only uses the Estimator interface).
+DEFAULT_METHOD = "sift"
+OUTPUT_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
+SIDECAR_FORMAT = "udh-mosaic/1"
+
+
+@dataclass(frozen=True)
+class MosaicConfig:
+    """Every choice of a mosaic run; the CLI's options and defaults come from here.
+
+    Attributes:
+        method: registered estimator name for every pair.
+        fallback: registered estimator name for pairs ``method`` fails or doubts; ``None`` for none.
+        work_size: longest side, pixels, of the copies the estimators see.
+        order: frame order in a folder: ``"name"`` or ``"time"`` (EXIF capture time).
+        every: for a video, keep every N-th frame.
+        min_confidence: estimates below this confidence count as failures (then fallback, then split).
+        overlap_min: non-consecutive frames whose chained footprints overlap by this share of the smaller
+            frame are estimated too (loop closure).
+        overlap_per_frame: at most this many loop-closure partners per frame (bounds the work).
+        max_disagreement: a loop-closure estimate is rejected when it moves the corners more than this
+            share of the frame diagonal away from the chained prediction (a wrong match, not drift).
+        huber_px: the global solve counts residuals beyond this (reference pixels) linearly.
+        blend: ``"feather"``, ``"multiband"`` or ``"none"``.
+        gain_compensation: equalise exposure between frames.
+        max_size: longest side of the mosaic in pixels; larger canvases are downscaled. ``None``: full size.
+        max_canvas_bytes: refuse a canvas that would need more memory than this to blend.
+        batch_size: pairs per ``estimate_many`` call.
+        preview: also write a small JPEG preview beside the mosaic.
+    """
+
+    method: str = DEFAULT_METHOD
+    fallback: str | None = None
+    work_size: int = 800
+    order: str = "name"
+    every: int = 1
+    min_confidence: float = 0.2
+    overlap_min: float = 0.3
+    overlap_per_frame: int = 3
+    max_disagreement: float = 0.1
+    huber_px: float = 2.0
+    blend: str = "feather"
+    gain_compensation: bool = True
+    max_size: int | None = None
+    max_canvas_bytes: int = compositing.DEFAULT_MAX_CANVAS_BYTES
+    batch_size: int = 16
+    preview: bool = True
+
+
+@dataclass
+class Part:
+    """A connected run of frames mosaicked on its own: its frames, reference, homographies and canvas."""
+
+    number: int
+    frames: list[int]
+    reference: int
+    chained: dict[int, np.ndarray]
+    solved: dict[int, np.ndarray]
+    tree: set[int]
+    canvas: compositing.Canvas | None = None
+    file: Path | None = None
+    preview: Path | None = None
+
+
+def output_paths(output: Path, n_parts: int) -> list[Path]:
+    """The mosaic file of each part: ``output`` itself for one part, ``stem.partK.suffix`` for several."""
+    if n_parts == 1:
+        return [output]
+    return [output.with_name(f"{output.stem}.part{k}{output.suffix}") for k in range(1, n_parts + 1)]
+
+
+def sidecar_path(output: Path) -> Path:
+    return output.with_suffix(".json")
+
+
+def preview_path(mosaic_file: Path) -> Path:
+    return mosaic_file.with_name(f"{mosaic_file.stem}.preview.jpg")
+
+
+def check_output(output: Path) -> None:
+    """Fail before any work when the mosaic could not be written."""
+    if output.suffix.lower() not in OUTPUT_SUFFIXES:
+        raise UdhError(f"{output}: unknown image type '{output.suffix}'; use .png or .tif (they keep the alpha channel)")
+    folder = output.parent if str(output.parent) else Path(".")
+    if not folder.is_dir():
+        raise UdhError(f"{output}: the folder {folder} does not exist; create it first")
+    if not os.access(folder, os.W_OK):
+        raise UdhError(f"{output}: the folder {folder} is not writable; choose another output path")
+    if output.is_dir():
+        raise UdhError(f"{output}: is a folder; give a file name such as mosaic.png")
+
+
+def run_mosaic(
+    source: str | Path,
+    output: str | Path,
+    config: MosaicConfig = MosaicConfig(),
+    reporter: Reporter | None = None,
+    estimator: Estimator | None = None,
+    fallback: Estimator | None = None,
+    ground_truth: str | Path | None = None,
+) -> dict[str, Any]:
+    """Mosaic a folder of frames (or a video) into ``output``; returns the sidecar dict (also written).
+
+    ``estimator`` / ``fallback`` override ``config.method`` / ``config.fallback`` with ready instances.
+    ``ground_truth`` is a simulator ground-truth file; when ``None``, ``FOLDER/ground_truth.json`` is used
+    if present. Raises :class:`UdhError` for unusable input; a failing pair never raises, it splits the run.
+    """
+    reporter = reporter or Reporter(quiet=True)
+    source, output = Path(source), Path(output)
+    check_output(output)
+    started = time.perf_counter()
+    truth = _load_truth(source, ground_truth)
+    estimator = estimator or create_estimator(config.method)
+    fallback = fallback or (create_estimator(config.fallback) if config.fallback else None)
+
+    frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter)
+    frames = frameset.frames
+    pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter)
+    parts = _chain_parts(frameset, pairs)
+    pairs += _close_loops(frameset, parts, pairs, estimator, fallback, config, reporter)
+    parts = _chain_parts(frameset, pairs)  # loop pairs only add edges inside parts: same parts, re-chained
+    loops = _solve(frameset, parts, pairs, config, reporter)
+    gains = _gains(frameset, pairs, config, reporter)
+    _plan_canvases(frameset, parts, output, config)
+    for part in parts:
+        _composite_part(frameset, part, gains, config, reporter)
+    report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter)
+    report["timings_s"]["total"] = time.perf_counter() - started
+    atomic_write_bytes(sidecar_path(output), (json.dumps(report, indent=1) + "\n").encode())
+    report["sidecar"] = str(sidecar_path(output))
+    return report
+
+
+# ------------------------------------------------------------------------------------------ steps
+
+
+def _own_files(output: Path) -> list[Path]:
+    """Outputs of this run (or an earlier one), which must never be read back as frames."""
+    return [output, sidecar_path(output), preview_path(output)] + [p for p in output.parent.glob(f"{output.stem}.part*")]
+
+
+def _load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:
+    if ground_truth is not None:
+        return load_ground_truth(ground_truth)
+    auto = source / GROUND_TRUTH_FILE
+    return load_ground_truth(auto) if source.is_dir() and auto.is_file() else None
+
+
+def _estimate_sequence(frameset: FrameSet, estimator, fallback, config: MosaicConfig, reporter: Reporter) -> list[PairResult]:
+    """Consecutive pairs, then a bridge over each broken link (i-1 -> i+1 and i -> i+2)."""
+    frames = frameset.frames
+    args = (frames, estimator, fallback, config.min_confidence, reporter)
+    pairs = estimate_pairs([PairRequest(i, i + 1, "consecutive") for i in range(len(frames) - 1)], *args, "consecutive pairs", config.batch_size)
+    broken = [p for p in pairs if not p.ok]
+    for pair in broken:
+        reporter.warn(f"pair {frames[pair.a].name} -> {frames[pair.b].name} failed ({pair.reason}); trying to bridge it")
+    bridges = sorted({(a, b) for p in broken for a, b in ((p.a - 1, p.b), (p.a, p.b + 1)) if a >= 0 and b < len(frames)})
+    if bridges:
+        pairs += estimate_pairs([PairRequest(a, b, "bridge") for a, b in bridges], *args, "bridging gaps", config.batch_size)
+    return pairs
+
+
+def _chain_parts(frameset: FrameSet, pairs: list[PairResult]) -> list[Part]:
+    parts = []
+    for members in connected_parts(len(frameset.frames), pairs):
+        reference = reference_frame(members)
+        chained, tree = chain_to_reference(members, reference, pairs)
+        parts.append(Part(0, members, reference, chained, dict(chained), tree))
+    for number, part in enumerate((p for p in parts if len(p.frames) > 1), start=1):
+        part.number = number
+    return parts
+
+
+def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], estimator, fallback, config: MosaicConfig, reporter: Reporter) -> list[PairResult]:
+    """Estimate non-consecutive overlapping pairs, pre-warped by the chain; reject those that contradict it."""
+    frames = frameset.frames
+    sizes = [f.size for f in frames]
+    known = {(min(p.a, p.b), max(p.a, p.b)) for p in pairs}
+    requests = []
+    for part in parts:
+        if len(part.frames) < 3:
+            continue
+        for a, b, _ in overlap_candidates(part.frames, part.chained, sizes, known, config.overlap_min, config.overlap_per_frame):
+            prior = geometry.invert(part.chained[b]) @ part.chained[a]
+            requests.append(PairRequest(a, b, "overlap", prior / prior[2, 2]))
+    if not requests:
+        return []
+    results = estimate_pairs(requests, frames, estimator, fallback, config.min_confidence, reporter, "loop-closure pairs", config.batch_size)
+    for result in results:
+        if not result.ok:
+            continue
+        w, h = frames[result.b].size
+        disagreement = corner_disagreement_px(result.b_from_a, result.prior, frames[result.a].size)
+        if disagreement > config.max_disagreement * float(np.hypot(w, h)):
+            result.status = "rejected"
+            result.reason = f"moves the corners {disagreement:.0f} px away from the chained prediction (limit {config.max_disagreement:.0%} of the diagonal)"
+            result.b_from_a = None
+    return results
+
+
+def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], config: MosaicConfig, reporter: Reporter) -> dict[str, Any]:
+    """Global solve per part; fills every pair's consistency figures and returns the loop summaries."""
+    sizes = [f.size for f in frameset.frames]
+    loops_before, loops_after, all_after = [], [], []
+    multi = [p for p in parts if len(p.frames) > 1]
+    with reporter.stage("global solve", len(multi)) as advance:
+        for part in multi:
+            members = set(part.frames)
+            inside = [p for p in pairs if p.ok and p.a in members and p.b in members]
+            points = [pair_points(p, sizes[p.a], sizes[p.b]) for p in inside]
+            part.solved = solve_part(part.reference, part.chained, sizes, points, config.huber_px)
+            for pair, pts in zip(inside, points):
+                before, after = pair_rms_px(part.chained, pts), pair_rms_px(part.solved, pts)
+                pair.consistency_px = {"before": before, "after": after, "loop": id(pair) not in part.tree}
+                all_after.append(after)
+                if id(pair) not in part.tree:
+                    loops_before.append(before)
+                    loops_after.append(after)
+            advance(1)
+    return {
+        "units": "pixels of each part's reference frame at full resolution",
+        "loops_before": summarise(loops_before),
+        "loops_after": summarise(loops_after),
+        "all_pairs_after": summarise(all_after),
+    }
+
+
+def _gains(frameset: FrameSet, pairs: list[PairResult], config: MosaicConfig, reporter: Reporter) -> np.ndarray:
+    n = len(frameset.frames)
+    if not config.gain_compensation:
+        return np.ones(n)
+    with reporter.stage("gain compensation", 1) as advance:
+        gains = solve_gains(n, pairs, frameset.frames)
+        advance(1)
+    return gains
+
+
+def _plan_canvases(frameset: FrameSet, parts: list[Part], output: Path, config: MosaicConfig) -> None:
+    """Every canvas is planned (and a too-big one refused) before any pixel is written."""
+    multi = [p for p in parts if len(p.frames) > 1]
+    if not multi:
+        raise UdhError("no pair of frames could be matched, so nothing can be mosaicked; try --fallback sift or a larger --work-size")
+    sizes = [f.size for f in frameset.frames]
+    for part, path in zip(multi, output_paths(output, len(multi))):
+        part.canvas = compositing.plan_canvas(part.solved, sizes, config.blend, config.max_size, config.max_canvas_bytes)
+        part.file = path
+
+
+def _composite_part(frameset: FrameSet, part: Part, gains: np.ndarray, config: MosaicConfig, reporter: Reporter) -> None:
+    if part.canvas is None:
+        return
+    to_mosaic = {i: part.canvas.mosaic_from_ref @ part.solved[i] for i in part.frames}
+    stage = "compositing" if part.number == 1 else f"compositing part {part.number}"
+    mosaic = compositing.composite(frameset, to_mosaic, part.canvas.size, gains, config.blend, reporter, stage)
+    with reporter.stage("writing", 1) as advance:
+        if part.file.suffix.lower() in (".jpg", ".jpeg"):
+            reporter.warn(f"{part.file.name}: JPEG has no alpha channel; uncovered areas are black (use .png or .tif to keep the mask)")
+            write_image(part.file, mosaic[..., :3])
+        else:
+            write_image(part.file, mosaic)
+        if config.preview:
+            part.preview = preview_path(part.file)
+            write_image(part.preview, compositing.preview(mosaic))
+        advance(1)
+
+
+def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter: Reporter) -> dict[str, Any]:
+    frames = frameset.frames
+    part_of = {i: part for part in parts for i in part.frames}
+    records = []
+    for frame in frames:
+        part = part_of[frame.index]
+        placed = part.canvas is not None
+        mosaic_from_frame = part.canvas.mosaic_from_ref @ part.solved[frame.index] if placed else None
+        reason = None if placed else _unplaced_reason(frame.index, pairs, frames)
+        if not placed:
+            reporter.warn(f"{frame.name} is not in any mosaic: {reason}")
+        records.append(
+            {
+                "index": frame.index,
+                "file": frame.name,
+                "width": frame.size[0],
+                "height": frame.size[1],
+                "status": "placed" if placed else "unplaced",
+                "reason": reason,
+                "part": part.number if placed else None,
+                "gain": float(gains[frame.index]),
+                "mosaic_from_frame": None if mosaic_from_frame is None else (mosaic_from_frame / mosaic_from_frame[2, 2]).tolist(),
+            }
+        )
+    multi = [p for p in parts if p.canvas is not None]
+    if len(multi) > 1:
+        reporter.warn(f"the sequence is split into {len(multi)} parts, each written on its own: {', '.join(p.file.name for p in multi)}")
+    report: dict[str, Any] = {
+        "format": SIDECAR_FORMAT,
+        "udh_version": __version__,
+        "source": str(frameset.source),
+        "method": estimator.name,
+        "fallback": None if fallback is None else fallback.name,
+        "config": {k: v for k, v in asdict(config).items() if k not in ("method", "fallback")},
+        "parts": [
+            {
+                "part": p.number,
+                "file": str(p.file),
+                "preview": None if p.preview is None else str(p.preview),
+                "width": p.canvas.size[0],
+                "height": p.canvas.size[1],
+                "scale": p.canvas.scale,
+                "reference_frame": p.reference,
+                "frames": p.frames,
+            }
+            for p in multi
+        ],
+        "frames": records,
+        "skipped_files": frameset.skipped,
+        "pairs": [p.to_json() for p in pairs],
+        "loop_consistency": loops,
+        "summary": {
+            "frames": len(frames),
+            "placed": sum(r["status"] == "placed" for r in records),
+            "unplaced": sum(r["status"] != "placed" for r in records),
+            "skipped_files": len(frameset.skipped),
+            "parts": len(multi),
+            "pairs_ok": sum(p.ok for p in pairs),
+            "pairs_failed": sum(p.status == "failed" for p in pairs),
+            "pairs_rejected": sum(p.status == "rejected" for p in pairs),
+        },
+        "warnings": reporter.warnings,
+        "timings_s": dict(reporter.timings_s),
+    }
+    if truth is not None:
+        before, after = {}, {}
+        for p in multi:
+            before.update(corner_errors_vs_truth(frames, p.reference, p.chained, truth))
+            after.update(corner_errors_vs_truth(frames, p.reference, p.solved, truth))
+        report["ground_truth_error"] = {
+            "measure": "corner distance of frame->reference homographies vs the truth, reference-frame pixels",
+            "chained": summarise_truth(before),
+            "solved": summarise_truth(after),
+            "per_frame_solved": {frames[i].name: v for i, v in sorted(after.items())},
+        }
+    return report
+
+
+def _unplaced_reason(index: int, pairs: list[PairResult], frames) -> str:
+    tried = [p for p in pairs if index in (p.a, p.b)]
+    reasons = "; ".join(f"{frames[p.a].name}->{frames[p.b].name}: {p.reason}" for p in tried[:3])
+    return f"no pair with it succeeded ({reasons})" if tried else "it has no neighbouring frame"

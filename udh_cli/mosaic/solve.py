@@ -1,0 +1,179 @@
+"""The global solve: all frame-to-reference homographies at once, from every estimated pair (loop closure).
+
+Each pair ``b_from_a`` gives point correspondences ``p`` (in A) and ``q = b_from_a p`` (in B), sampled on a
+3x3 grid over the part of A that B sees. The solve finds ``ref_from_frame`` for every frame but the
+reference (held at the identity, which fixes the gauge) minimising the Huber-robust sum over pairs of
+``|ref_from_a(p) - ref_from_b(q)|``, in reference-frame pixels, by Levenberg-Marquardt. Each homography is
+parameterised by 8 entries (h33 = 1) in Hartley-normalised coordinates, so the normal equations are well
+conditioned; they are dense, 8 (N - 1) square, which is small for the hundreds of frames of a flight.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.mosaic.pairwise import PairResult
+
+GRID_POINTS = 3  # per side: 9 correspondences per pair
+
+
+@dataclass(frozen=True)
+class PairPoints:
+    """Correspondences of one pair: ``points_a`` (K, 2) in A's pixels, ``points_b`` (K, 2) in B's pixels."""
+
+    a: int
+    b: int
+    points_a: np.ndarray
+    points_b: np.ndarray
+
+
+def pair_points(pair: PairResult, size_a: tuple[int, int], size_b: tuple[int, int]) -> PairPoints:
+    """A 3x3 grid over the bounding box of the overlap (A's rectangle and B's footprint seen in A)."""
+    rect_a = geometry.image_corners(*size_a).astype(np.float32)
+    b_in_a = geometry.transform_points(geometry.invert(pair.b_from_a), geometry.image_corners(*size_b)).astype(np.float32)
+    area, polygon = cv2.intersectConvexConvex(rect_a, b_in_a)
+    if polygon is not None and area > 0.01 * cv2.contourArea(rect_a):
+        low, high = polygon.reshape(-1, 2).min(0), polygon.reshape(-1, 2).max(0)
+    else:  # no overlap left by the estimate: use A's corners (the residual then shows the disagreement)
+        low, high = rect_a.min(0), rect_a.max(0)
+    ticks = np.linspace(0.0, 1.0, GRID_POINTS)
+    grid = np.stack(np.meshgrid(ticks, ticks), -1).reshape(-1, 2)
+    points_a = low + grid * (high - low)
+    return PairPoints(pair.a, pair.b, points_a, geometry.transform_points(pair.b_from_a, points_a))
+
+
+def pair_rms_px(ref_from: dict[int, np.ndarray], points: PairPoints) -> float:
+    """RMS distance in reference pixels between where A's and B's homographies put the same scene points."""
+    diff = geometry.transform_points(ref_from[points.a], points.points_a) - geometry.transform_points(ref_from[points.b], points.points_b)
+    return float(np.sqrt((diff**2).sum(-1).mean()))
+
+
+def _normaliser(size: tuple[int, int]) -> np.ndarray:
+    """Centre the frame and scale its longest side to 2."""
+    w, h = size
+    s = 2.0 / max(w, h)
+    return np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
+
+
+def _project_with_jacobian(params: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project (K, 2) points by the 8-parameter homography; returns (K, 2) and the Jacobian (K, 2, 8)."""
+    g = params
+    x, y = points[:, 0], points[:, 1]
+    w = g[6] * x + g[7] * y + 1.0
+    u = (g[0] * x + g[1] * y + g[2]) / w
+    v = (g[3] * x + g[4] * y + g[5]) / w
+    zero = np.zeros_like(x)
+    du = np.stack([x / w, y / w, 1 / w, zero, zero, zero, -u * x / w, -u * y / w], -1)
+    dv = np.stack([zero, zero, zero, x / w, y / w, 1 / w, -v * x / w, -v * y / w], -1)
+    return np.stack([u, v], -1), np.stack([du, dv], 1)
+
+
+def _huber(errors: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """Huber cost and IRLS weight of point residual norms (K,)."""
+    cost = np.where(errors <= k, 0.5 * errors**2, k * (errors - 0.5 * k))
+    weight = np.where(errors <= k, 1.0, k / np.maximum(errors, 1e-12))
+    return cost, weight
+
+
+def solve_part(
+    reference: int,
+    initial: dict[int, np.ndarray],
+    sizes: Sequence[tuple[int, int]],
+    points: Sequence[PairPoints],
+    huber_px: float = 2.0,
+    iterations: int = 60,
+) -> dict[int, np.ndarray]:
+    """Jointly refine ``ref_from_frame`` for the frames of one part.
+
+    Args:
+        reference: the frame held at the identity.
+        initial: frame -> (3, 3) ``ref_from_frame`` (the chained estimate); its keys are the part.
+        sizes: (width, height) of every frame, full resolution.
+        points: correspondences of every accepted pair inside the part.
+        huber_px: residuals beyond this many reference pixels count linearly (robust to bad pairs).
+
+    Returns:
+        frame -> refined ``ref_from_frame`` (3, 3), h33 = 1; the reference stays the identity.
+    """
+    frames = [i for i in sorted(initial) if i != reference]
+    if not frames or not points:
+        return dict(initial)
+    column = {frame: 8 * k for k, frame in enumerate(frames)}
+    t_ref = _normaliser(sizes[reference])
+    scale_ref = t_ref[0, 0]  # normalised units per reference pixel
+    normalisers = {i: _normaliser(sizes[i]) for i in initial}
+    params = {}
+    for i in initial:
+        g = t_ref @ initial[i] @ np.linalg.inv(normalisers[i])
+        params[i] = (g / g[2, 2]).ravel()[:8]
+    normalised = [
+        (p.a, p.b, geometry.transform_points(normalisers[p.a], p.points_a), geometry.transform_points(normalisers[p.b], p.points_b))
+        for p in points
+    ]
+    k = huber_px * scale_ref
+
+    def evaluate(current: dict[int, np.ndarray], with_system: bool):
+        total = 0.0
+        system = np.zeros((8 * len(frames), 8 * len(frames))) if with_system else None
+        gradient = np.zeros(8 * len(frames)) if with_system else None
+        for a, b, pa, pb in normalised:
+            proj_a, jac_a = _project_with_jacobian(current[a], pa)
+            proj_b, jac_b = _project_with_jacobian(current[b], pb)
+            residual = proj_a - proj_b  # K, 2
+            cost, weight = _huber(np.sqrt((residual**2).sum(-1)), k)
+            total += float(cost.sum())
+            if not with_system:
+                continue
+            blocks = [(column[a], jac_a, 1.0)] if a in column else []
+            blocks += [(column[b], jac_b, -1.0)] if b in column else []
+            for c1, j1, s1 in blocks:
+                weighted = s1 * j1 * weight[:, None, None]  # K, 2, 8
+                gradient[c1 : c1 + 8] += np.einsum("kij,ki->j", weighted, residual)
+                for c2, j2, s2 in blocks:
+                    system[c1 : c1 + 8, c2 : c2 + 8] += s2 * np.einsum("kij,kil->jl", weighted, j2)
+        return total, system, gradient
+
+    damping = 1e-3
+    cost, system, gradient = evaluate(params, True)
+    for _ in range(iterations):
+        diagonal = np.diag(system).copy() + 1e-12
+        try:
+            step = np.linalg.solve(system + damping * np.diag(diagonal), -gradient)
+        except np.linalg.LinAlgError:
+            damping *= 10
+            continue
+        trial = dict(params)
+        for frame, c in column.items():
+            trial[frame] = params[frame] + step[c : c + 8]
+        trial_cost, _, _ = evaluate(trial, False)
+        if trial_cost < cost:
+            improvement = (cost - trial_cost) / max(cost, 1e-30)
+            params = trial
+            cost, system, gradient = evaluate(params, True)
+            damping = max(damping / 3, 1e-9)
+            if improvement < 1e-10:
+                break
+        else:
+            damping *= 5
+            if damping > 1e8:
+                break
+    out = {}
+    for i in initial:
+        g = np.append(params[i], 1.0).reshape(3, 3)
+        h = np.linalg.inv(t_ref) @ g @ normalisers[i]
+        out[i] = h / h[2, 2]
+    out[reference] = np.eye(3)
+    return out
+
+
+def summarise(values: Sequence[float]) -> dict[str, float | int | None]:
+    """count, mean, median and max of a list of pixel figures (``None`` when empty)."""
+    if not values:
+        return {"count": 0, "mean_px": None, "median_px": None, "max_px": None}
+    array = np.asarray(values, dtype=np.float64)
+    return {"count": int(array.size), "mean_px": float(array.mean()), "median_px": float(np.median(array)), "max_px": float(array.max())}

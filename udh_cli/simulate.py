@@ -1,0 +1,349 @@
+"""A simulated drone flight with exact ground truth: a procedural ground, a nadir camera, JPEG frames.
+
+The ground is an image that this module paints itself (fields with crop rows, roads, trees, buildings and
+multi-octave noise), so the example data owes nothing to any outside source. A pinhole camera flies a
+lawn-mower path over it at a fixed altitude with small roll, pitch, yaw and altitude jitter; every frame
+is an exact planar homography of the ground, then gets an exposure change, sensor noise and JPEG coding.
+
+Geometry (conventions of :mod:`udh_cli.geometry`): the world frame is the ground image's pixel frame
+(x right, y down) with Z pointing into the ground, so a camera with identity rotation looks straight down
+and its image axes line up with the ground's. A camera centred at ``(X, Y, -altitude)`` with rotation
+``R`` and intrinsics ``K`` sees ground pixel ``(x, y)`` at ``K R [[1, 0, -X], [0, 1, -Y], [0, 0, altitude]]
+(x, y, 1)``: that product is ``frame_from_ground``.
+
+Run ``python -m udh_cli.simulate OUT_FOLDER --seed 7`` to write a flight; see :func:`main` for options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.errors import UdhError
+from udh_cli.images import atomic_write_bytes
+
+GROUND_TRUTH_FILE = "ground_truth.json"
+GROUND_TRUTH_FORMAT = "udh-sim-flight/1"
+
+
+@dataclass(frozen=True)
+class FlightConfig:
+    """How a simulated flight is made.
+
+    Attributes:
+        frame_size: (width, height) of every frame, pixels.
+        strips: number of parallel flight lines (lawn-mower path, flown back and forth).
+        frames_per_strip: frames taken along each line.
+        forward_overlap: share of a frame's width that the next frame on the same line sees again.
+        side_overlap: share of a frame's height that neighbouring lines share.
+        ground_px_per_frame_px: ground sampling: ground pixels covered by one frame pixel at nadir
+            (1.0 renders the ground at its own resolution; above 1 would alias).
+        focal_px: focal length in frame pixels (600 px on 640 px is a 56 degree horizontal field of view).
+        tilt_deg: largest roll and pitch of the camera, degrees (the perspective jitter).
+        yaw_deg: largest yaw jitter around the flight heading, degrees.
+        altitude_jitter: largest relative change of altitude between frames.
+        position_jitter: largest offset of a frame from its planned position, as a share of the step.
+        exposure_range: (low, high) of the per-frame gain.
+        noise_sigma: standard deviation of the Gaussian sensor noise, in 8-bit grey levels.
+        jpeg_quality: JPEG quality of the written frames.
+    """
+
+    frame_size: tuple[int, int] = (640, 480)
+    strips: int = 3
+    frames_per_strip: int = 6
+    forward_overlap: float = 0.75
+    side_overlap: float = 0.6
+    ground_px_per_frame_px: float = 1.0
+    focal_px: float = 600.0
+    tilt_deg: float = 2.0
+    yaw_deg: float = 2.0
+    altitude_jitter: float = 0.02
+    position_jitter: float = 0.08
+    exposure_range: tuple[float, float] = (0.8, 1.2)
+    noise_sigma: float = 2.0
+    jpeg_quality: int = 90
+
+
+@dataclass(frozen=True)
+class SimFrame:
+    """One simulated frame: its pixels (H, W, 3) BGR uint8, ``ground_from_frame`` (3, 3) and pose."""
+
+    image: np.ndarray
+    ground_from_frame: np.ndarray
+    pose: dict
+
+
+# ------------------------------------------------------------------------------------------ ground
+
+
+def _octave_noise(rng: np.random.Generator, size: tuple[int, int], base_cells: int, octaves: int) -> np.ndarray:
+    """Multi-octave value noise (H, W) float32 in about [-1, 1]: each octave doubles the frequency and halves
+    the amplitude. ``size`` is (width, height)."""
+    width, height = size
+    total = np.zeros((height, width), np.float32)
+    amplitude, norm = 1.0, 0.0
+    for octave in range(octaves):
+        cells = base_cells * 2**octave
+        grid = rng.uniform(-1, 1, (max(2, cells * height // width + 1), cells + 1)).astype(np.float32)
+        total += amplitude * cv2.resize(grid, (width, height), interpolation=cv2.INTER_CUBIC)
+        norm += amplitude
+        amplitude *= 0.5
+    return total / norm
+
+
+def _field_labels(rng: np.random.Generator, size: tuple[int, int], n_fields: int) -> np.ndarray:
+    """Voronoi field map (H, W) int32 with wobbly borders: each pixel's nearest of ``n_fields`` seeds."""
+    width, height = size
+    seeds = rng.uniform([0, 0], [width, height], (n_fields, 2)).astype(np.float32)
+    ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
+    # Warp the coordinates by smooth noise so that field borders are not straight Voronoi edges.
+    xs += 25.0 * _octave_noise(rng, size, 4, 2)
+    ys += 25.0 * _octave_noise(rng, size, 4, 2)
+    labels = np.zeros((height, width), np.int32)
+    best = np.full((height, width), np.inf, np.float32)
+    for index, (sx, sy) in enumerate(seeds):
+        distance = (xs - sx) ** 2 + (ys - sy) ** 2
+        closer = distance < best
+        best[closer] = distance[closer]
+        labels[closer] = index
+    return labels
+
+
+def make_ground(size: tuple[int, int], seed: int = 0) -> np.ndarray:
+    """Paint a textured aerial-looking ground image (H, W, 3) BGR uint8 of ``size`` (width, height).
+
+    Deterministic for a seed. Fields carry crop rows at random angles and periods, plus noise at several
+    scales, so that SIFT, ORB, ECC and learned estimators all find texture everywhere.
+    """
+    rng = np.random.default_rng(seed)
+    width, height = size
+    ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
+    labels = _field_labels(rng, size, max(6, width * height // 90_000))
+    palette = np.array([[60, 120, 70], [40, 150, 110], [70, 160, 170], [90, 110, 130], [50, 90, 60], [110, 170, 190], [60, 140, 90]], np.float32)
+    ground = np.zeros((height, width, 3), np.float32)
+    for field in range(labels.max() + 1):
+        mask = labels == field
+        colour = palette[rng.integers(len(palette))] * rng.uniform(0.8, 1.2)
+        angle = rng.uniform(0, math.pi)
+        period = rng.uniform(5.0, 14.0)
+        rows = np.sin((xs[mask] * math.cos(angle) + ys[mask] * math.sin(angle)) * 2 * math.pi / period)
+        strength = rng.uniform(0.05, 0.2)
+        ground[mask] = colour[None, :] * (1.0 + strength * rows[:, None])
+    # Noise at several scales: soil moisture at large scales, grain at small ones.
+    ground *= 1.0 + 0.25 * _octave_noise(rng, size, 3, 6)[..., None]
+    ground += 3.0 * rng.standard_normal((height, width, 1)).astype(np.float32)
+    ground = cv2.GaussianBlur(ground, (0, 0), 0.8)
+    _draw_features(rng, ground, size)
+    return np.clip(ground, 0, 255).astype(np.uint8)
+
+
+def _draw_features(rng: np.random.Generator, ground: np.ndarray, size: tuple[int, int]) -> None:
+    """Roads, trees and buildings, drawn in place on the float ground (H, W, 3)."""
+    width, height = size
+    for _ in range(max(2, (width + height) // 700)):  # roads: gentle polylines across the ground
+        start = rng.uniform([0, 0], [width, height])
+        heading = rng.uniform(0, 2 * math.pi)
+        points = [start]
+        for _ in range(12):
+            heading += rng.normal(0, 0.25)
+            points.append(points[-1] + 150.0 * np.array([math.cos(heading), math.sin(heading)]))
+        poly = np.round(np.array(points)).astype(np.int32)
+        thickness = int(rng.integers(8, 16))
+        cv2.polylines(ground, [poly], False, (95, 100, 105), thickness, cv2.LINE_AA)
+        cv2.polylines(ground, [poly], False, (200, 205, 210), 1, cv2.LINE_AA)
+    for _ in range(width * height // 2500):  # trees and bushes: dark blobs with a lit side
+        centre = rng.uniform([0, 0], [width, height])
+        radius = float(rng.uniform(3, 11))
+        c = tuple(int(v) for v in centre)
+        cv2.circle(ground, c, int(radius), (25, 55, 30), -1, cv2.LINE_AA)
+        cv2.circle(ground, (c[0] - int(radius / 3), c[1] - int(radius / 3)), max(1, int(radius / 2)), (45, 95, 55), -1, cv2.LINE_AA)
+    for _ in range(width * height // 60_000):  # buildings: rotated rectangles with a roof ridge
+        centre = tuple(float(v) for v in rng.uniform([0, 0], [width, height]))
+        dims = tuple(float(v) for v in rng.uniform(15, 45, 2))
+        box = cv2.boxPoints((centre, dims, float(rng.uniform(0, 180)))).astype(np.int32)
+        roof = rng.uniform(90, 220)
+        cv2.fillConvexPoly(ground, box, (roof * 0.8, roof * 0.85, roof), cv2.LINE_AA)
+        cv2.line(ground, tuple(((box[0] + box[1]) // 2).tolist()), tuple(((box[2] + box[3]) // 2).tolist()), (roof * 0.5,) * 3, 2, cv2.LINE_AA)
+
+
+# ------------------------------------------------------------------------------------------ camera
+
+
+def _rotation(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """World-to-camera rotation (3, 3) from angles in radians: yaw about Z, then pitch about X, roll about Y."""
+    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    r_yaw = np.array([[cy, sy, 0], [-sy, cy, 0], [0, 0, 1]])
+    r_pitch = np.array([[1, 0, 0], [0, cp, sp], [0, -sp, cp]])
+    r_roll = np.array([[cr, 0, -sr], [0, 1, 0], [sr, 0, cr]])
+    return r_roll @ r_pitch @ r_yaw
+
+
+def frame_from_ground(x: float, y: float, altitude: float, roll: float, pitch: float, yaw: float, focal_px: float, frame_size: tuple[int, int]) -> np.ndarray:
+    """(3, 3) homography from ground pixels to the pixels of a camera at ground position ``(x, y)``.
+
+    ``altitude`` is in ground pixels, angles in radians, ``focal_px`` in frame pixels; the principal point is
+    the frame's centre ``((w - 1) / 2, (h - 1) / 2)``.
+    """
+    w, h = frame_size
+    intrinsics = np.array([[focal_px, 0, (w - 1) / 2], [0, focal_px, (h - 1) / 2], [0, 0, 1]])
+    plane = np.array([[1.0, 0, -x], [0, 1.0, -y], [0, 0, altitude]])
+    out = intrinsics @ _rotation(roll, pitch, yaw) @ plane
+    return out / out[2, 2]
+
+
+def plan_path(config: FlightConfig, rng: np.random.Generator) -> tuple[list[dict], tuple[int, int]]:
+    """Camera poses along a lawn-mower path and the ground size (width, height) that contains them all.
+
+    Each pose is a dict with ``x``, ``y`` (ground pixels), ``altitude`` (ground pixels) and ``roll_deg``,
+    ``pitch_deg``, ``yaw_deg``, ``gain``. The heading stays fixed between lines, as mapping apps fly.
+    """
+    w, h = config.frame_size
+    foot_w, foot_h = w * config.ground_px_per_frame_px, h * config.ground_px_per_frame_px
+    step_x = (1 - config.forward_overlap) * foot_w
+    step_y = (1 - config.side_overlap) * foot_h
+    margin = 0.3 * max(foot_w, foot_h)
+    ground_w = int(math.ceil(foot_w + step_x * (config.frames_per_strip - 1) + 2 * margin))
+    ground_h = int(math.ceil(foot_h + step_y * (config.strips - 1) + 2 * margin))
+    poses = []
+    for strip in range(config.strips):
+        columns = range(config.frames_per_strip)
+        for column in columns if strip % 2 == 0 else reversed(columns):
+            jitter = config.position_jitter * rng.uniform(-1, 1, 2) * np.array([step_x, step_y])
+            poses.append(
+                {
+                    "x": float(margin + foot_w / 2 + column * step_x + jitter[0]),
+                    "y": float(margin + foot_h / 2 + strip * step_y + jitter[1]),
+                    "altitude": float(config.focal_px * config.ground_px_per_frame_px * (1 + config.altitude_jitter * rng.uniform(-1, 1))),
+                    "roll_deg": float(rng.uniform(-1, 1) * config.tilt_deg),
+                    "pitch_deg": float(rng.uniform(-1, 1) * config.tilt_deg),
+                    "yaw_deg": float(rng.uniform(-1, 1) * config.yaw_deg),
+                    "gain": float(rng.uniform(*config.exposure_range)),
+                }
+            )
+    return poses, (ground_w, ground_h)
+
+
+def render_frame(ground: np.ndarray, pose: dict, config: FlightConfig, rng: np.random.Generator) -> SimFrame:
+    """Photograph ``ground`` from ``pose``: exact warp, then exposure gain, vignetting and sensor noise."""
+    w, h = config.frame_size
+    radians = {k: math.radians(pose[f"{k}_deg"]) for k in ("roll", "pitch", "yaw")}
+    to_frame = frame_from_ground(pose["x"], pose["y"], pose["altitude"], focal_px=config.focal_px, frame_size=config.frame_size, **radians)
+    ground_from_frame = geometry.invert(to_frame)
+    footprint = geometry.transform_points(ground_from_frame, geometry.image_corners(w, h))
+    gh, gw = ground.shape[:2]
+    if footprint.min() < 0 or footprint[:, 0].max() > gw - 1 or footprint[:, 1].max() > gh - 1:
+        raise UdhError("a simulated frame leaves the ground; lower tilt_deg or position_jitter")
+    image = cv2.warpPerspective(ground, to_frame, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT).astype(np.float32)
+    # Mild vignetting, as real lenses have; it also makes exposure differ across one frame.
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    radius2 = ((xs - (w - 1) / 2) ** 2 + (ys - (h - 1) / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+    image *= (pose["gain"] * (1.0 - 0.15 * radius2))[..., None]
+    image += config.noise_sigma * rng.standard_normal(image.shape).astype(np.float32)
+    return SimFrame(np.clip(image + 0.5, 0, 255).astype(np.uint8), ground_from_frame, pose)
+
+
+def simulate_flight(config: FlightConfig = FlightConfig(), seed: int = 0) -> tuple[list[SimFrame], np.ndarray]:
+    """The frames of a simulated flight, in flight order, and the ground image they were taken of."""
+    rng = np.random.default_rng(seed)
+    poses, ground_size = plan_path(config, rng)
+    ground = make_ground(ground_size, seed=int(rng.integers(2**31)))
+    return [render_frame(ground, pose, config, rng) for pose in poses], ground
+
+
+def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed: int = 0, ground_preview: bool = False) -> Path:
+    """Simulate a flight and write ``frame_NNN.jpg`` plus ``ground_truth.json`` into ``folder``.
+
+    The ground truth holds every frame's ``ground_from_frame`` and every consecutive pair's ``b_from_a``
+    (pixels of frame a to pixels of frame b). Returns the path of the ground-truth file.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    frames, ground = simulate_flight(config, seed)
+    records = []
+    for index, frame in enumerate(frames):
+        name = f"frame_{index:03d}.jpg"
+        ok, data = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, config.jpeg_quality])
+        if not ok:
+            raise UdhError(f"{name}: OpenCV could not encode the frame as JPEG")
+        atomic_write_bytes(folder / name, data.tobytes())
+        records.append({"file": name, "ground_from_frame": frame.ground_from_frame.tolist(), "pose": frame.pose})
+    pairs = []
+    for a, b in zip(frames[:-1], frames[1:]):
+        b_from_a = geometry.invert(b.ground_from_frame) @ a.ground_from_frame
+        pairs.append({"a": records[len(pairs)]["file"], "b": records[len(pairs) + 1]["file"], "b_from_a": (b_from_a / b_from_a[2, 2]).tolist()})
+    if ground_preview:
+        ok, data = cv2.imencode(".jpg", ground, [cv2.IMWRITE_JPEG_QUALITY, 85])
+        atomic_write_bytes(folder.parent / f"{folder.name}_ground.jpg", data.tobytes())
+    truth = {
+        "format": GROUND_TRUTH_FORMAT,
+        "conventions": "pixel centres at integer (x, y); b_from_a maps pixels of a to pixels of b (x_b ~ H x_a); ground_from_frame maps frame pixels to ground-image pixels",
+        "generator": "udh_cli.simulate",
+        "seed": seed,
+        "config": asdict(config),
+        "frame_size": list(config.frame_size),
+        "ground_size": [int(ground.shape[1]), int(ground.shape[0])],
+        "frames": records,
+        "consecutive_pairs": pairs,
+    }
+    return atomic_write_bytes(folder / GROUND_TRUTH_FILE, (json.dumps(truth, indent=1) + "\n").encode())
+
+
+def load_ground_truth(path: str | Path) -> dict:
+    """Read a simulator ground-truth file; homographies come back as (3, 3) float64 arrays keyed by file name.
+
+    Returns ``{"frame_size": (w, h), "ground_from_frame": {file: H}, "consecutive_pairs": [(a, b, H)]}``.
+    Raises :class:`UdhError` when the file is not one this module wrote.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise UdhError(f"{path}: cannot read the ground truth ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != GROUND_TRUTH_FORMAT:
+        raise UdhError(f"{path}: not a udh simulated-flight ground truth (format {GROUND_TRUTH_FORMAT})")
+    return {
+        "frame_size": tuple(data["frame_size"]),
+        "ground_from_frame": {r["file"]: np.asarray(r["ground_from_frame"], np.float64) for r in data["frames"]},
+        "consecutive_pairs": [(p["a"], p["b"], np.asarray(p["b_from_a"], np.float64)) for p in data["consecutive_pairs"]],
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m udh_cli.simulate OUT_FOLDER [--seed S] [--strips N] [--frames-per-strip M] ...``."""
+    defaults = FlightConfig()
+    parser = argparse.ArgumentParser(prog="python -m udh_cli.simulate", description="Write a simulated drone flight with ground truth.")
+    parser.add_argument("folder", type=Path)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--strips", type=int, default=defaults.strips)
+    parser.add_argument("--frames-per-strip", type=int, default=defaults.frames_per_strip)
+    parser.add_argument("--width", type=int, default=defaults.frame_size[0])
+    parser.add_argument("--height", type=int, default=defaults.frame_size[1])
+    parser.add_argument("--forward-overlap", type=float, default=defaults.forward_overlap)
+    parser.add_argument("--side-overlap", type=float, default=defaults.side_overlap)
+    parser.add_argument("--tilt-deg", type=float, default=defaults.tilt_deg)
+    parser.add_argument("--noise-sigma", type=float, default=defaults.noise_sigma)
+    parser.add_argument("--ground-preview", action="store_true", help="also write FOLDER_ground.jpg beside the folder")
+    args = parser.parse_args(argv)
+    config = FlightConfig(
+        frame_size=(args.width, args.height),
+        strips=args.strips,
+        frames_per_strip=args.frames_per_strip,
+        forward_overlap=args.forward_overlap,
+        side_overlap=args.side_overlap,
+        tilt_deg=args.tilt_deg,
+        noise_sigma=args.noise_sigma,
+        focal_px=defaults.focal_px * args.width / defaults.frame_size[0],
+    )
+    path = write_flight(args.folder, config, args.seed, ground_preview=args.ground_preview)
+    print(f"wrote {config.strips * config.frames_per_strip} frames and {path}")
+
+
+if __name__ == "__main__":
+    main()

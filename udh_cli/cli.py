@@ -173,10 +173,71 @@ def mosaic(ctx: typer.Context) -> None:
     raise UdhError("`udh mosaic` is not built yet (see the mosaicking issue)")
 
 
-@app.command(context_settings=_PASSTHROUGH)
-def bench(ctx: typer.Context) -> None:
-    """Reproduce the paper's evaluation."""
-    raise UdhError("`udh bench` is not built yet (see the benchmark issue)")
+bench_app = typer.Typer(
+    help="Reproduce the paper's evaluation: every method side by side on the same pairs, with plots.",
+    no_args_is_help=True,
+    rich_markup_mode="rich",
+)
+app.add_typer(bench_app, name="bench")
+
+_METHODS_HELP = "Comma-separated registry names (default: every registered method)."
+_OPTION_HELP = "A method option, METHOD.NAME=VALUE (repeatable), e.g. ecc.iterations=200 or sift.best_features=50."
+
+
+@bench_app.command("synthetic")
+def bench_synthetic(
+    images: Annotated[Optional[Path], typer.Option("--images", help="Folder of held-out images, all used. Default: the held-out tenth of ../shared/data/pools/rsscn7-aerial/images.")] = None,
+    rho: Annotated[str, typer.Option("--rho", help="Corner perturbations in px, comma-separated (16,32,45 = the paper's 85/75/65 % overlap).")] = "16,32,45",
+    n: Annotated[int, typer.Option("--n", help="Pairs per rho.")] = 500,
+    seed: Annotated[int, typer.Option("--seed", help="Seed: the same seed gives the same pairs.")] = 0,
+    illumination: Annotated[bool, typer.Option("--illumination/--no-illumination", help="Random brightness, contrast and gamma per image, as in the paper.")] = True,
+    methods: Annotated[Optional[str], typer.Option("--methods", "-m", help=_METHODS_HELP)] = None,
+    mode: Annotated[str, typer.Option("--mode", help="What sift/orb/ecc see: patch (128x128), full (320x240 frames, as the paper) or both. Other methods always get patches.")] = "both",
+    out: Annotated[Path, typer.Option("--out", help="Folder for results.md/.csv/.json, per_pair.csv and the two PNG plots.")] = Path("bench-results"),
+    save_pairs: Annotated[Optional[Path], typer.Option("--save-pairs", help="Also save the generated pairs to this .npz.")] = None,
+    load_pairs: Annotated[Optional[Path], typer.Option("--load-pairs", help="Run on pairs saved with --save-pairs (replaces --images/--rho/--n/--seed).")] = None,
+    option: Annotated[Optional[list[str]], typer.Option("--option", help=_OPTION_HELP)] = None,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.")] = True,
+) -> None:
+    """Benchmark on synthetic pairs from held-out images, drawn with the training generator."""
+    from udh_cli.bench import run_synthetic_bench
+    from udh_cli.bench.runner import parse_methods
+    from udh_cli.bench.suite import parse_options, parse_rhos
+
+    result = run_synthetic_bench(
+        images=images, rhos=parse_rhos(rho), count=n, seed=seed, illumination=illumination,
+        methods=parse_methods(methods) if methods else None, mode=mode, options=parse_options(option),
+        save_pairs=save_pairs, load_pairs=load_pairs,
+    )
+    _finish_bench(result, out, plots)
+
+
+@bench_app.command("pairs")
+def bench_pairs(
+    source: Annotated[Path, typer.Argument(help="A CSV (img1,img2,H: nine numbers, x2 ~ H x1) or an Oxford/HPatches folder (imgN + H1toNp).")],
+    methods: Annotated[Optional[str], typer.Option("--methods", "-m", help=_METHODS_HELP)] = None,
+    h_column: Annotated[str, typer.Option("--h-column", help="CSV column holding H.")] = "H",
+    prefix: Annotated[Optional[str], typer.Option("--prefix", help="Folder: the image series, e.g. graf for graf1/graf3, when several match.")] = None,
+    out: Annotated[Path, typer.Option("--out", help="Folder for the result files and plots.")] = Path("bench-results"),
+    option: Annotated[Optional[list[str]], typer.Option("--option", help=_OPTION_HELP)] = None,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.")] = True,
+) -> None:
+    """Benchmark on real image pairs with known homographies."""
+    from udh_cli.bench import run_pairs_bench
+    from udh_cli.bench.runner import parse_methods
+    from udh_cli.bench.suite import parse_options
+
+    result = run_pairs_bench(source, methods=parse_methods(methods) if methods else None, h_column=h_column,
+                             prefix=prefix, options=parse_options(option))
+    _finish_bench(result, out, plots)
+
+
+def _finish_bench(result, out: Path, plots: bool) -> None:
+    from udh_cli.bench import markdown_table, write_outputs
+
+    written = write_outputs(result, out, plots=plots)
+    sys.stdout.write(markdown_table(result))
+    err_console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, soft_wrap=True)
 
 
 def main() -> None:

@@ -1,0 +1,140 @@
+"""The two benchmarks as library calls, one per ``udh bench`` command.
+
+Each call checks its methods first (an unknown method or a missing model stops it before any work),
+then builds the pairs, runs every method on them and returns a :class:`BenchResult`;
+:func:`udh_cli.bench.report.write_outputs` writes the files.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from udh_cli.bench import runner
+from udh_cli.bench.pairsets import held_out_sources, load_sets, save_sets, synthetic_set
+from udh_cli.bench.real_pairs import load_real_pairs
+from udh_cli.bench.report import BenchResult
+from udh_cli.errors import UdhError
+from udh_cli.estimators import estimator_names
+from udh_cli.synthetic import SOURCE_SIZE
+
+MODES = ("patch", "full", "both")  # what the classical methods are shown on synthetic pairs
+FULL_METHODS = ("sift", "orb", "ecc")  # methods shown the full frames in "full"/"both" mode, as in the paper
+PAPER_RHOS = (16.0, 32.0, 45.0)  # the paper's 85 / 75 / 65 % overlap
+FULL_FRAME = (0, 0, *SOURCE_SIZE)  # an uncropped full-input window
+
+
+def default_methods() -> str:
+    """Every registered method, comma-separated: new estimators join the benchmark by registering."""
+    return ",".join(estimator_names())
+
+
+def parse_rhos(text: str) -> list[float]:
+    """``"16,32,45"`` -> ``[16.0, 32.0, 45.0]``."""
+    try:
+        rhos = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise UdhError(f"--rho {text!r}: give pixel values separated by commas, e.g. 16,32,45") from None
+    if not rhos or any(not 0 <= r <= 56 for r in rhos):
+        raise UdhError(f"--rho {text!r}: each value must be between 0 and 56 px (128-px patches in a 320x240 image)")
+    return list(dict.fromkeys(rhos))
+
+
+def parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
+    """``["ecc.iterations=200", "sift.ratio=0.8"]`` -> ``{"ecc": {"iterations": 200}, "sift": {"ratio": 0.8}}``.
+
+    Values are read as JSON when they parse (numbers, true/false, null), else kept as strings (paths).
+    """
+    options: dict[str, dict[str, Any]] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        method, dot, name = key.partition(".")
+        if not sep or not dot or not method or not name:
+            raise UdhError(f"--option {item!r}: write METHOD.NAME=VALUE, e.g. ecc.iterations=200")
+        try:
+            parsed = json.loads(value)
+        except json.JSONDecodeError:
+            parsed = value
+        options.setdefault(method.strip(), {})[name.strip()] = parsed
+    return options
+
+
+def _inputs_for(mode: str) -> list[str]:
+    if mode not in MODES:
+        raise UdhError(f"--mode {mode!r}: choose one of {', '.join(MODES)}")
+    return ["patch", "full"] if mode == "both" else [mode]
+
+
+def run_synthetic_bench(
+    images: Path | None = None,
+    rhos: list[float] = list(PAPER_RHOS),
+    count: int = 500,
+    seed: int = 0,
+    illumination: bool = True,
+    methods: list[str] | None = None,
+    mode: str = "both",
+    full_methods: list[str] = list(FULL_METHODS),
+    options: dict[str, dict[str, Any]] | None = None,
+    save_pairs: Path | None = None,
+    load_pairs: Path | None = None,
+    show_progress: bool = True,
+) -> BenchResult:
+    """Benchmark ``methods`` on synthetic pairs from held-out images (see :mod:`udh_cli.bench.pairsets`).
+
+    With ``load_pairs``, the saved set replaces ``images``, ``rhos``, ``count``, ``seed`` and
+    ``illumination``. ``mode`` says whether ``full_methods`` see the patches, the full frames, or both.
+    """
+    methods = methods or runner.parse_methods(default_methods())
+    jobs = runner.make_jobs(methods, _inputs_for(mode), full_methods, options)
+    with_full = any(job.input == "full" for job in jobs)
+    if load_pairs is not None:
+        sets, meta = load_sets(load_pairs)
+        config = {"pairs_loaded_from": str(load_pairs), **meta}
+    else:
+        if count < 1:
+            raise UdhError(f"--n {count}: need at least one pair")
+        sources, where = held_out_sources(images)
+        meta = {"images": where, "rhos": rhos, "n": count, "seed": seed, "illumination": illumination,
+                "generator": "udh_cli.synthetic.make_pairs, chunks of 64 pairs from default_rng([seed, chunk])"}
+        sets = [synthetic_set(sources, rho, count, seed, illumination, with_full=with_full) for rho in rhos]
+        if save_pairs is not None:
+            save_sets(save_pairs, sets, meta)
+        config = dict(meta)
+    config.update({"methods": methods, "mode": mode, "full_methods": [m for m in full_methods if m in methods],
+                   "options": options or {}})
+    runs = runner.run_jobs(jobs, sets, show_progress=show_progress)
+    notes = [f"Pairs: {config.get('images', config.get('pairs_loaded_from'))}; illumination "
+             f"{'on' if config.get('illumination', True) else 'off'}; seed {config.get('seed', 'n/a')}."]
+    if with_full:
+        cropped = ", ".join(f"{s.name}: {100 * np.mean(np.any(s.full_window != FULL_FRAME, axis=1)):.0f} %" for s in sets)
+        notes.append(f"Full input: A's frame is cropped around the patch where the true homography would put the "
+                     f"horizon inside it (pairs cropped: {cropped}).")
+    if with_full and config.get("illumination", True):
+        notes.append("Full frames get their own illumination draw from the generator's distribution "
+                     "(the generator does not keep the patches' draws).")
+    return BenchResult("synthetic", runs, config, notes)
+
+
+def run_pairs_bench(
+    source: Path,
+    methods: list[str] | None = None,
+    h_column: str = "H",
+    prefix: str | None = None,
+    options: dict[str, dict[str, Any]] | None = None,
+    show_progress: bool = True,
+) -> BenchResult:
+    """Benchmark ``methods`` on real pairs listed in a CSV or an Oxford/HPatches folder (see
+    :mod:`udh_cli.bench.real_pairs`). Every method is shown the images as given."""
+    methods = methods or runner.parse_methods(default_methods())
+    jobs = runner.make_jobs(methods, ["image"], [], options)
+    pair_set = load_real_pairs(source, h_column=h_column, prefix=prefix)
+    runs = runner.run_jobs(jobs, [pair_set], show_progress=show_progress)
+    notes = [f"Pairs: {source} ({len(pair_set)}: {', '.join(pair_set.labels[:6])}{', ...' if len(pair_set) > 6 else ''})."]
+    if any(word in h_column.lower() for word in ("sift", "reference", "ransac")):
+        notes.append(f"Column {h_column} holds SIFT+RANSAC reference homographies, not ground truth: "
+                     "errors are distances to SIFT's answer, and SIFT scores near zero by construction.")
+    config = {"source": str(source), "h_column": h_column, "prefix": prefix, "methods": methods, "options": options or {}}
+    return BenchResult("pairs", runs, config, notes)

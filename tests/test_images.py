@@ -161,7 +161,7 @@ def test_atomic_write_to_a_missing_folder(tmp_path):
 
 
 def test_write_image_errors_leave_nothing(tmp_path):
-    with pytest.raises(UdhError, match="unknown image type"):
+    with pytest.raises(UdhError, match="unknown file type '.gif'; use one of .jpg"):
         write_image(tmp_path / "out.gif", np.zeros((8, 8), np.uint8))
     with pytest.raises(UdhError, match="could not encode"):
         write_image(tmp_path / "out.png", np.zeros((8, 8, 2), np.uint8))

@@ -96,8 +96,12 @@ def to_gray_float(image: np.ndarray) -> np.ndarray:
     taken to be in [0, 1] already. Colour is assumed BGR, as OpenCV reads it.
     """
     check_image(image)
-    if image.ndim == 3:
-        image = image[..., 0] if image.shape[2] == 1 else cv2.cvtColor(_unit_float(image), cv2.COLOR_BGR2GRAY)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    elif image.ndim == 3:
+        if image.dtype not in (np.uint8, np.uint16, np.float32):  # depths cvtColor does not take
+            image = _unit_float(image)
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     return _unit_float(image)
 
 
@@ -146,12 +150,8 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 
     A reader never sees a half-written file, and an interrupted write leaves the old file (if any).
     """
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise UdhError(f"{path}: the folder {folder} does not exist; create it first")
-    if not os.access(folder, os.W_OK):
-        raise UdhError(f"{path}: the folder {folder} is not writable; choose another output path")
+    path = check_output_path(path)
+    folder = path.parent
     mode = _new_file_mode(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
     try:
@@ -168,6 +168,23 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     return path
 
 
+def check_output_path(path: str | os.PathLike, suffixes: tuple[str, ...] | None = None) -> Path:
+    """Raise :class:`UdhError` unless a file can be written at ``path``: its folder exists and is writable,
+    it is not itself a folder, and (if ``suffixes`` is given) its suffix is one of them. Call it before
+    long work, so that a bad output path fails at once rather than after the work is done."""
+    path = Path(path)
+    folder = path.parent
+    if suffixes is not None and path.suffix.lower() not in suffixes:
+        raise UdhError(f"{path}: unknown file type '{path.suffix}'; use one of {', '.join(suffixes)}")
+    if path.is_dir():
+        raise UdhError(f"{path}: is a folder; give a file name")
+    if not folder.is_dir():
+        raise UdhError(f"{path}: the folder {folder} does not exist; create it first")
+    if not os.access(folder, os.W_OK):
+        raise UdhError(f"{path}: the folder {folder} is not writable; choose another output path")
+    return path
+
+
 def _new_file_mode(path: Path) -> int:
     """Permissions for a file written at ``path``: those of the file it replaces, else 0o666 minus umask."""
     try:
@@ -180,10 +197,8 @@ def _new_file_mode(path: Path) -> int:
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     """Encode ``image`` by the suffix of ``path`` (PNG, JPEG, TIFF...) and write it atomically."""
-    path = Path(path)
+    path = check_output_path(path, IMAGE_SUFFIXES)
     suffix = path.suffix.lower()
-    if suffix not in IMAGE_SUFFIXES:
-        raise UdhError(f"{path}: unknown image type '{suffix}'; use .png, .jpg or .tif")
     try:
         ok, encoded = cv2.imencode(suffix, image)
     except cv2.error:

@@ -1,0 +1,187 @@
+"""`udh estimate` end to end: output formats, and bad input that fails in one line with no leftovers."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from udh_cli import cli, geometry
+from udh_cli.homography_files import format_homography
+
+from conftest import warped_pair
+
+WIDTH, HEIGHT = 320, 240
+TRUTH = geometry.homography_from_offsets(np.random.default_rng(42).uniform(-12, 12, (4, 2)), WIDTH, HEIGHT)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> dict[str, Path]:
+    """A textured pair related by TRUTH (A 8-bit grey, B as 16-bit and as colour), its truth file, and bad inputs."""
+    folder = tmp_path_factory.mktemp("cli")
+    image_a, image_b = warped_pair(TRUTH, WIDTH, HEIGHT, seed=3)
+    paths = {name: folder / name for name in ("a.png", "b16.png", "b.jpg", "truth.txt", "flat.png", "one.png", "text.png", "bad_gt.txt")}
+    cv2.imwrite(str(paths["a.png"]), image_a)
+    cv2.imwrite(str(paths["b16.png"]), (image_b.astype(np.uint16) * 257).astype(np.uint16))
+    cv2.imwrite(str(paths["b.jpg"]), cv2.applyColorMap(image_b, cv2.COLORMAP_BONE), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    paths["truth.txt"].write_text(format_homography(TRUTH))
+    cv2.imwrite(str(paths["flat.png"]), np.full((HEIGHT, WIDTH), 128, np.uint8))
+    cv2.imwrite(str(paths["one.png"]), np.zeros((1, 1), np.uint8))
+    paths["text.png"].write_text("not an image\n")
+    paths["bad_gt.txt"].write_text("1 0 0\n0 1 0\n")
+    return paths
+
+
+def run_main(monkeypatch, capfd, *args: str) -> tuple[int, str, str]:
+    """Run the console entry point in-process; returns (exit code, stdout, stderr)."""
+    monkeypatch.setattr(sys, "argv", ["udh", *args])
+    with pytest.raises(SystemExit) as stop:
+        cli.main()
+    captured = capfd.readouterr()
+    code = stop.value.code if isinstance(stop.value.code, int) else (0 if stop.value.code is None else 1)
+    return code, captured.out, captured.err
+
+
+# ---------------------------------------------------------------------------------- good input
+
+
+def test_json_output(files):
+    result = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(files["b16.png"]), "--json", "--gt", str(files["truth.txt"])])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert {"method", "homography", "elapsed_ms", "confidence"} <= set(report)
+    assert report["method"] == "sift" and report["ok"] is True
+    homography = np.asarray(report["homography"])
+    assert homography.shape == (3, 3)
+    assert float(geometry.mace(homography, TRUTH, WIDTH, HEIGHT)) < 0.2
+    assert report["corner_error_px"] == pytest.approx(float(geometry.mace(homography, TRUTH, WIDTH, HEIGHT)))
+    assert report["corner_error_px"] <= report["corner_rmse_px"] + 1e-12
+    assert 0 < report["elapsed_ms"] < 10_000 and 0.5 < report["confidence"] <= 1
+    assert report["size_a"] == [WIDTH, HEIGHT] and report["size_b"] == [WIDTH, HEIGHT]
+    np.testing.assert_allclose(report["offsets_4pt"], geometry.offsets_from_homography(homography, WIDTH, HEIGHT))
+
+
+@pytest.mark.parametrize("method", ["orb", "ecc", "identity"])
+def test_other_methods_and_colour_jpeg(files, method):
+    result = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(files["b.jpg"]), "-m", method, "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["method"] == method
+    error = float(geometry.mace(np.asarray(report["homography"]), TRUTH, WIDTH, HEIGHT))
+    assert error < {"orb": 2.0, "ecc": 0.3, "identity": 30.0}[method]
+
+
+def test_table_output_and_viz(files, tmp_path):
+    picture = tmp_path / "result.png"
+    result = CliRunner().invoke(
+        cli.app, ["estimate", str(files["a.png"]), str(files["b16.png"]), "--gt", str(files["truth.txt"]), "--viz", str(picture), "--best-features", "200"]
+    )
+    assert result.exit_code == 0, result.output
+    for text in ("pixels of A -> pixels of B", "top-left", "bottom-left", "corner error", "confidence", str(picture)):
+        assert text in result.stdout
+    drawn = cv2.imread(str(picture))
+    assert drawn is not None and drawn.shape[1] == WIDTH + 12 + WIDTH and drawn.shape[0] > HEIGHT
+    assert [p.name for p in tmp_path.iterdir()] == ["result.png"]
+
+
+# ----------------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        (["missing.png", "a.png"], "no such file"),
+        (["a.png", "text.png"], "not a readable image"),
+        (["one.png", "a.png"], "1x1 pixels"),
+        (["flat.png", "flat.png", "-m", "sift"], "sift found no homography"),
+        (["flat.png", "a.png", "-m", "orb"], "orb found no homography"),
+        (["flat.png", "a.png", "-m", "ecc"], "ecc found no homography"),
+        (["a.png", "b16.png", "--gt", "bad_gt.txt"], "not a 3x3 homography"),
+        (["a.png", "b16.png", "--gt", "missing.txt"], "no such homography file"),
+        (["a.png", "b16.png", "-m", "surf"], "unknown method 'surf'"),
+        (["a.png", "b16.png", "-m", "ecc", "--best-features", "50"], "does not take"),
+    ],
+)
+def test_bad_input_fails_in_one_line_without_leftovers(files, tmp_path, monkeypatch, capfd, case, message):
+    args = [str(files[a]) if a in files else (str(tmp_path / a) if a.endswith((".png", ".txt")) else a) for a in case]
+    picture = tmp_path / "viz.png"
+    code, out, err = run_main(monkeypatch, capfd, "estimate", *args, "--viz", str(picture), "--json")
+    assert code == 1
+    assert out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], err
+    assert "Traceback" not in err
+    assert not picture.exists() and not any(p.name.startswith(".viz") for p in tmp_path.iterdir())
+
+
+def test_bad_viz_path_fails_before_estimating(files, tmp_path, monkeypatch, capfd):
+    for viz, message in [(tmp_path / "no_folder" / "v.png", "does not exist"), (tmp_path / "v.gif", "unknown file type"), (files["a.png"], "one of the input images")]:
+        code, out, err = run_main(monkeypatch, capfd, "estimate", str(files["a.png"]), str(files["b16.png"]), "--viz", str(viz))
+        assert code == 1 and message in err and len(err.strip().splitlines()) == 1
+    assert cv2.imread(str(files["a.png"])) is not None  # the input was not overwritten
+
+
+def test_gt_is_checked_before_the_images(files, tmp_path, monkeypatch, capfd):
+    # Both are wrong; the cheap check (the truth file) is the one reported, before any image is decoded.
+    code, _, err = run_main(monkeypatch, capfd, "estimate", str(files["text.png"]), str(files["a.png"]), "--gt", str(files["bad_gt.txt"]))
+    assert code == 1 and "bad_gt.txt" in err
+
+
+def test_images_are_read_once(files, monkeypatch):
+    from udh_cli import api
+
+    calls = []
+    original = api.read_image
+    monkeypatch.setattr(api, "read_image", lambda path: calls.append(Path(path).name) or original(path))
+    api.estimate_report(files["a.png"], files["b16.png"], "identity", gt=files["truth.txt"])
+    assert calls == ["a.png", "b16.png"]
+
+
+# ------------------------------------------------------------------------------- real processes
+
+
+def udh(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1", COLUMNS="200")
+    return subprocess.run([sys.executable, "-m", "udh_cli", *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=120)
+
+
+def test_process_exit_codes_and_clean_stderr(files, tmp_path):
+    missing = udh("estimate", str(tmp_path / "missing.png"), str(files["a.png"]))
+    assert missing.returncode == 1 and missing.stdout == ""
+    assert missing.stderr.strip().startswith("error: ") and len(missing.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in missing.stderr
+
+    textureless = udh("estimate", str(files["flat.png"]), str(files["flat.png"]), "--method", "sift", "--viz", str(tmp_path / "v.png"))
+    assert textureless.returncode == 1 and "Traceback" not in textureless.stderr
+    assert textureless.stderr.strip().splitlines() == [textureless.stderr.strip()]
+    assert "texture" in textureless.stderr and not (tmp_path / "v.png").exists()
+
+
+def test_process_json_and_debug_traceback(files, tmp_path):
+    good = udh("estimate", str(files["a.png"]), str(files["b.jpg"]), "--json")
+    assert good.returncode == 0, good.stderr
+    assert good.stderr == ""
+    assert np.asarray(json.loads(good.stdout)["homography"]).shape == (3, 3)
+
+    debug = udh("--debug", "estimate", str(tmp_path / "missing.png"), str(files["a.png"]))
+    assert debug.returncode != 0
+    assert "Traceback" in debug.stderr and "UdhError" in debug.stderr and "no such file" in debug.stderr
+
+
+# ----------------------------------------------------------------------------------- real data
+
+
+def test_graf_pair_with_sift_is_within_3_px(shared_data):
+    folder = shared_data / "pairs" / "opencv-samples"
+    result = udh("estimate", "graf1.png", "graf3.png", "--method", "sift", "--gt", "H1to3p.xml", "--json", cwd=folder)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["corner_error_px"] < 3.0  # measured 1.33 px (RMSE 1.39)
+    assert report["size_a"] == [800, 640]

@@ -167,10 +167,59 @@ def export_onnx(
                   f"input {meta['input_size']}px; max |onnx - torch| = {result['max_abs_diff']:.2e} px")
 
 
-@app.command(context_settings=_PASSTHROUGH)
-def mosaic(ctx: typer.Context) -> None:
-    """Stitch a folder of UAV frames into one mosaic."""
-    raise UdhError("`udh mosaic` is not built yet (see the mosaicking issue)")
+from udh_cli.mosaic.pipeline import MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
+
+_MOSAIC = _MosaicConfig()
+
+
+@app.command()
+def mosaic(
+    source: Annotated[Path, typer.Argument(help="Folder of JPEG/PNG/TIFF frames (consecutive frames overlap), or a video file.")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Mosaic image (.png or .tif keep the alpha channel). Split runs write NAME.partK.png.")] = Path("mosaic.png"),
+    method: Annotated[str, typer.Option("--method", "-m", help="Any registered estimator: sift, orb, ecc, ... and the learned methods.")] = _MOSAIC.method,
+    fallback: Annotated[Optional[str], typer.Option("--fallback", help="Method for the pairs --method fails or doubts (e.g. sift).")] = _MOSAIC.fallback,
+    work_size: Annotated[int, typer.Option("--work-size", help="Longest side, pixels, of the copies the estimators see; homographies are rescaled exactly.")] = _MOSAIC.work_size,
+    order: Annotated[str, typer.Option("--order", help="Frame order in a folder: name or time (EXIF capture time).")] = _MOSAIC.order,
+    every: Annotated[int, typer.Option("--every", help="Video: keep every N-th frame.")] = _MOSAIC.every,
+    min_confidence: Annotated[float, typer.Option("--min-confidence", help="Estimates below this confidence count as failed.")] = _MOSAIC.min_confidence,
+    blend: Annotated[str, typer.Option("--blend", help="feather, multiband or none.")] = _MOSAIC.blend,
+    max_size: Annotated[Optional[int], typer.Option("--max-size", help="Downscale the mosaic so its longest side is at most this many pixels.")] = _MOSAIC.max_size,
+    no_gain: Annotated[bool, typer.Option("--no-gain", help="Skip gain (exposure) compensation.")] = False,
+    overlap_per_frame: Annotated[int, typer.Option("--overlap-pairs", help="Loop-closure pairs per frame at most (0: plain chaining).")] = _MOSAIC.overlap_per_frame,
+    gt: Annotated[Optional[Path], typer.Option("--gt", help="Simulator ground truth (default: SOURCE/ground_truth.json when present) to report the corner error.")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars; warnings and the summary only.")] = False,
+) -> None:
+    """Stitch a folder of UAV frames (or a video) into one mosaic, drift-free, with any estimator."""
+    from udh_cli.mosaic import Reporter, run_mosaic
+
+    config = _MosaicConfig(
+        method=method, fallback=fallback, work_size=work_size, order=order, every=every, min_confidence=min_confidence,
+        blend=blend, max_size=max_size, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame,
+    )
+    reporter = Reporter(console=err_console)
+    reporter.quiet = quiet
+    report = run_mosaic(source, output, config, reporter, ground_truth=gt)
+    _print_mosaic(report)
+
+
+def _print_mosaic(report: dict) -> None:
+    summary, loops = report["summary"], report["loop_consistency"]
+
+    def px(stats: dict, key: str = "mean_px") -> str:
+        return "-" if stats[key] is None else f"{stats[key]:.2f}"
+
+    table = Table(title=f"udh mosaic ({report['method']}" + (f", fallback {report['fallback']})" if report["fallback"] else ")"), show_header=False)
+    table.add_row("frames placed", f"{summary['placed']} of {summary['frames']}" + (f" ({summary['skipped_files']} files skipped)" if summary["skipped_files"] else ""))
+    table.add_row("pairs", f"{summary['pairs_ok']} used, {summary['pairs_failed']} failed, {summary['pairs_rejected']} rejected")
+    table.add_row("loop consistency (px)", f"before {px(loops['loops_before'])} mean / {px(loops['loops_before'], 'max_px')} max, after {px(loops['loops_after'])} / {px(loops['loops_after'], 'max_px')} ({loops['loops_after']['count']} loops)")
+    if "ground_truth_error" in report:
+        solved, chained = report["ground_truth_error"]["solved"], report["ground_truth_error"]["chained"]
+        table.add_row("error vs ground truth (px)", f"{solved['mean_corner_px']:.3f} mean, {solved['max_corner_px']:.3f} max corner (chained only: {chained['mean_corner_px']:.3f} / {chained['max_corner_px']:.3f})")
+    for part in report["parts"]:
+        table.add_row(f"mosaic part {part['part']}" if len(report["parts"]) > 1 else "mosaic", f"{part['file']} ({part['width']}x{part['height']}, {len(part['frames'])} frames)")
+    table.add_row("sidecar", report["sidecar"])
+    table.add_row("time (s)", ", ".join(f"{k} {v:.1f}" for k, v in report["timings_s"].items()))
+    console.print(table)
 
 
 bench_app = typer.Typer(

@@ -53,32 +53,18 @@ def estimate(
     best_features: Annotated[Optional[int], typer.Option(help="sift/orb: keep only the N strongest keypoints.")] = None,
 ) -> None:
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold])."""
-    from udh_cli.api import estimate_files
-    from udh_cli.homography_files import read_homography
-    from udh_cli.images import read_image, write_image
-    from udh_cli.viz import draw_estimate
+    from udh_cli.api import estimate_report
 
-    truth = read_homography(gt) if gt is not None else None
     options = {} if best_features is None else {"best_features": best_features}
-    result = estimate_files(image_a, image_b, method, **options)
-    a, b = read_image(image_a), read_image(image_b)
-    width, height = a.shape[1], a.shape[0]
-    payload = result.to_json()
-    payload["image_a"], payload["image_b"] = str(image_a), str(image_b)
-    payload["offsets_4pt"] = geometry.offsets_from_homography(result.homography, width, height).tolist()
-    if truth is not None:
-        payload["corner_error_px"] = float(geometry.mace(result.homography, truth, width, height))
-        payload["corner_rmse_px"] = float(geometry.corner_rmse(result.homography, truth, width, height))
-    if viz is not None:
-        write_image(viz, draw_estimate(a, b, result.homography, truth, label=f"{method}"))
-        payload["viz"] = str(viz)
+    report = estimate_report(image_a, image_b, method, gt=gt, viz=viz, **options)
     if json_output:
-        sys.stdout.write(json.dumps(payload) + "\n")
+        sys.stdout.write(json.dumps(report) + "\n")
         return
-    _print_estimate(payload, width, height)
+    _print_estimate(report)
 
 
-def _print_estimate(payload: dict, width: int, height: int) -> None:
+def _print_estimate(payload: dict) -> None:
+    width, height = payload["size_a"]
     matrix = Table(title=f"H ({payload['method']}): pixels of A -> pixels of B", show_header=False)
     for row in payload["homography"]:
         matrix.add_row(*(f"{v: .6g}" for v in row))

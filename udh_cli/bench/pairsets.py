@@ -149,11 +149,12 @@ def synthetic_set(
     patch_a, patch_b, truths, origin, full_a, full_b, windows = [], [], [], [], [], [], []
     for chunk, start in enumerate(range(0, count, CHUNK)):
         size = min(CHUNK, count - start)
-        batch = synthetic.make_pairs(sources, size, config, np.random.default_rng([seed, chunk]), with_context=with_full)
-        patch_a.extend(batch.patch_a)
-        patch_b.extend(batch.patch_b)
-        truths.append(batch.homographies())
-        origin.append(batch.origin)
+        # Always draw a whole chunk (the generator's first draw depends on the count), keep what is needed.
+        batch = synthetic.make_pairs(sources, CHUNK, config, np.random.default_rng([seed, chunk]), with_context=with_full)
+        patch_a.extend(batch.patch_a[:size])
+        patch_b.extend(batch.patch_b[:size])
+        truths.append(batch.homographies()[:size])
+        origin.append(batch.origin[:size])
         if with_full:
             light = np.random.default_rng([seed, chunk, 1])
             for i in range(size):

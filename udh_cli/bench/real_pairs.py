@@ -4,7 +4,7 @@ Two ways to list them:
 
 * a **CSV** file with columns ``img1``, ``img2`` and ``H``: nine numbers, row-major, separated by spaces
   (or commas/semicolons inside a quoted field), ``x_2 ~ H x_1`` in pixels. Relative image paths are
-  resolved against the CSV's folder. Another column can hold H (``h_column``); the shared-data CSVs, for
+  resolved against the CSV's folder (or its ``images/`` subfolder, the shared-data layout). Another column can hold H (``h_column``); the shared-data CSVs, for
   instance, hold SIFT+RANSAC *references* in ``H_sift_ransac_1to2``, which are not ground truth.
 * an **Oxford/HPatches-style folder**: images ``<prefix>1.<ext>`` ... ``<prefix>N.<ext>`` and homography
   files ``H1toNp`` (Oxford; any extension :func:`udh_cli.homography_files.read_homography` reads, e.g.
@@ -65,12 +65,19 @@ def load_csv_pairs(path: Path, h_column: str = "H") -> PairSet:
         matrix = matrix.reshape(3, 3) / matrix[8]
         if abs(np.linalg.det(matrix)) < 1e-12:
             raise UdhError(f"{path}, line {line}: the homography is singular")
-        path_a, path_b = (path.parent / (row[c] or "").strip() for c in ("img1", "img2"))
+        path_a, path_b = (_resolve(path.parent, (row[c] or "").strip()) for c in ("img1", "img2"))
         images_a.append(read_image(path_a))
         images_b.append(read_image(path_b))
         truths.append(matrix)
         labels.append(f"{path_a.name}->{path_b.name}")
     return PairSet(name=path.name, images_a=images_a, images_b=images_b, truths=np.stack(truths), labels=labels)
+
+
+def _resolve(folder: Path, name: str) -> Path:
+    """``name`` relative to the CSV's folder, or to its ``images/`` subfolder when only that holds it."""
+    direct = folder / name
+    nested = folder / "images" / name
+    return nested if not direct.exists() and nested.exists() else direct
 
 
 def load_folder_pairs(folder: Path, prefix: str | None = None) -> PairSet:

@@ -135,6 +135,6 @@ def run_pairs_bench(
     notes = [f"Pairs: {source} ({len(pair_set)}: {', '.join(pair_set.labels[:6])}{', ...' if len(pair_set) > 6 else ''})."]
     if any(word in h_column.lower() for word in ("sift", "reference", "ransac")):
         notes.append(f"Column {h_column} holds SIFT+RANSAC reference homographies, not ground truth: "
-                     "errors are distances to SIFT's answer, and SIFT scores near zero by construction.")
+                     "errors measure agreement with that reference, which favours feature-based methods.")
     config = {"source": str(source), "h_column": h_column, "prefix": prefix, "methods": methods, "options": options or {}}
     return BenchResult("pairs", runs, config, notes)

@@ -1,0 +1,80 @@
+"""Synthetic benchmark pairs: deterministic from the seed, full-frame geometry, save/load, and the
+identity's known error."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from udh_cli import geometry
+from udh_cli.bench import pairsets
+from udh_cli.bench.runner import make_jobs, run_jobs
+
+from conftest import textured_image
+
+
+@pytest.fixture(scope="module")
+def sources() -> list[np.ndarray]:
+    return [textured_image(320, 240, seed=s) for s in range(6)]
+
+
+def test_fixed_seed_reproduces_the_pairs_and_a_shorter_set_is_a_prefix(sources):
+    first = pairsets.synthetic_set(sources, 32, 70, seed=5)  # 70 pairs: two generator chunks
+    again = pairsets.synthetic_set(sources, 32, 70, seed=5)
+    short = pairsets.synthetic_set(sources, 32, 10, seed=5)
+    other = pairsets.synthetic_set(sources, 32, 70, seed=6)
+    assert np.array_equal(np.stack(first.images_a), np.stack(again.images_a))
+    assert np.array_equal(np.stack(first.images_b), np.stack(again.images_b))
+    assert np.array_equal(first.truths, again.truths)
+    assert np.array_equal(first.truths[:10], short.truths)
+    assert not np.allclose(first.truths, other.truths)
+
+
+def test_full_frames_hold_the_patch_and_their_truth_maps_back_to_the_patch_truth(sources):
+    pair_set = pairsets.synthetic_set(sources, 45, 40, seed=1, illumination=False, with_full=True)
+    cropped = 0
+    for i in range(len(pair_set)):
+        if not geometry.is_valid_homography(pair_set.truths[i], 128, 128):
+            continue  # ~0.5 % of rho-45 quads are not convex: the generator samples patch A past the horizon
+        x0, y0 = (int(v) for v in pair_set.origin[i])
+        left, top, right, bottom = pair_set.full_window[i]
+        cropped += (left, top, right, bottom) != (0, 0, 320, 240)
+        frame_a, frame_b = pair_set.inputs("full", [i])[0]
+        # A's window shows the (clean) patch A at the patch origin; B's frame is the source.
+        patch_in_frame = frame_a[y0 - top : y0 - top + 128, x0 - left : x0 - left + 128].astype(np.float32) / 255
+        assert np.abs(patch_in_frame - pair_set.images_a[i]).max() <= 1.0 / 255 + 1e-6
+        assert any(np.array_equal(frame_b, source) for source in sources)
+        # The exact full-frame answer (shown A = the window) scores zero at the patch corners.
+        exact = pairsets.source_from_patch(geometry.offsets_from_homography(pair_set.truths[i], 128, 128), x0, y0, 128)
+        exact_on_window = exact @ geometry.translation(left, top)
+        assert geometry.is_valid_homography(exact_on_window, right - left, bottom - top)
+        scored = pair_set.to_scored_frame("full", i, exact_on_window)
+        assert float(geometry.mace(scored, pair_set.truths[i], 128, 128)) < 1e-6
+    assert 0 < cropped < len(pair_set)  # at rho 45 some frames need the crop, most do not
+
+
+def test_save_and_load_round_trip_with_full_frames(sources, tmp_path):
+    sets = [pairsets.synthetic_set(sources, rho, 5, seed=2, with_full=True) for rho in (16, 32)]
+    path = tmp_path / "pairs.npz"
+    pairsets.save_sets(path, sets, {"seed": 2})
+    loaded, meta = pairsets.load_sets(path)
+    assert meta == {"seed": 2} and [s.name for s in loaded] == ["rho 16", "rho 32"]
+    for original, back in zip(sets, loaded):
+        assert back.rho == original.rho
+        assert np.array_equal(np.stack(back.images_a), np.stack(original.images_a))
+        np.testing.assert_allclose(back.truths, original.truths, atol=1e-4)  # offsets are stored as float32
+        assert np.array_equal(back.full_window, original.full_window)
+        assert np.array_equal(np.stack(back.full_a), np.stack(original.full_a))
+
+
+def test_identity_mace_matches_the_uniform_expectation(sources):
+    # Each corner offset is uniform in [-rho, rho]^2: E|d| = rho (sqrt(2) + ln(1 + sqrt(2))) / 3.
+    rho = 32.0
+    expected = rho * (math.sqrt(2) + math.log(1 + math.sqrt(2))) / 3
+    pair_set = pairsets.synthetic_set(sources, rho, 2000, seed=0, illumination=False)
+    (run,) = run_jobs(make_jobs(["identity"], ["patch"], []), [pair_set], show_progress=False)
+    assert expected == pytest.approx(0.7652 * rho, rel=1e-4)
+    assert run.summary.mace_mean == pytest.approx(expected, rel=0.02)
+    assert run.summary.failure_rate == pytest.approx(1.0, abs=0.01)  # 24 px on average: nearly all over 10 px

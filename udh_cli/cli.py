@@ -182,8 +182,7 @@ def mosaic(
         method=method, fallback=fallback, work_size=work_size, order=order, every=every, min_confidence=min_confidence,
         blend=blend, max_size=max_size, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame,
     )
-    reporter = Reporter(console=err_console)
-    reporter.quiet = quiet
+    reporter = Reporter(console=err_console, progress=not quiet)
     report = run_mosaic(source, output, config, reporter, ground_truth=gt)
     _print_mosaic(report)
 

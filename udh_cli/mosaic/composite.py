@@ -60,7 +60,7 @@ def plan_canvas(
     if needed > max_bytes:
         fit = int(max(size) * math.sqrt(max_bytes / needed))
         raise UdhError(
-            f"the mosaic canvas would be {size[0]}x{size[1]} px ({needed / 2**30:.1f} GiB to blend, limit {max_bytes / 2**30:.1f} GiB); "
+            f"the mosaic canvas would be {size[0]}x{size[1]} px ({needed / 2**20:,.0f} MiB to blend, limit {max_bytes / 2**20:,.0f} MiB); "
             f"pass --max-size {fit} or smaller to downscale it"
         )
     return Canvas(size, mosaic_from_ref, scale)
@@ -150,8 +150,9 @@ def composite(
             advance(1)
     if blend == "feather":
         out = np.zeros((height, width, 4), np.uint8)
-        for top in range(0, height, 256):  # in strips, so the division needs no full-canvas temporaries
-            rows = slice(top, top + 256)
+        strip = max(1, 2**18 // width)  # rows per strip: temporaries stay at a few MB whatever the canvas
+        for top in range(0, height, strip):  # in strips, so the division needs no full-canvas temporaries
+            rows = slice(top, top + strip)
             strip_weight = weight_sum[rows]
             covered = strip_weight > 1e-6
             out[rows, :, :3] = np.clip(total[rows] / np.maximum(strip_weight, 1e-6)[..., None] + 0.5, 0, 255).astype(np.uint8)

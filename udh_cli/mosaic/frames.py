@@ -151,7 +151,7 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
             skipped.append({"file": path.name, "reason": f"not an image file (suffix '{path.suffix}')"})
             reporter.warn(f"skipping {path.name}: not an image file")
     if not candidates:
-        raise UdhError(f"{folder}: no image files found (looked for {', '.join(IMAGE_SUFFIXES)}); point to a folder of frames or a video")
+        raise UdhError(f"{folder}: no image files found (looked for {', '.join(IMAGE_SUFFIXES)}); point to a folder of frames or a video{_subfolder_hint(folder)}")
     if order == "time":
         times = {p: capture_time(p) for p in candidates}
         missing = [p.name for p in candidates if times[p] is None]
@@ -172,8 +172,16 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
             advance(1)
     if len(frames) < 2:
         found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"
-        raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames")
+        raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames{_subfolder_hint(folder)}")
     return FrameSet(folder, frames, skipped)
+
+
+def _subfolder_hint(folder: Path) -> str:
+    """' (did you mean F/images?)' when a subfolder holds images: flight folders often keep them there."""
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir()):
+        if any(f.suffix.lower() in IMAGE_SUFFIXES for f in sub.iterdir()):
+            return f" (did you mean {sub}?)"
+    return ""
 
 
 def _open_video(path: Path, work_size: int, every: int, reporter: Reporter) -> FrameSet:

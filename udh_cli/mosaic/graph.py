@@ -41,13 +41,14 @@ def reference_frame(part: Sequence[int]) -> int:
 def chain_to_reference(part: Sequence[int], reference: int, pairs: Sequence[PairResult]) -> tuple[dict[int, np.ndarray], set[int]]:
     """``ref_from_frame`` (3, 3) for every frame of ``part``, by breadth-first chaining from ``reference``.
 
-    Consecutive pairs are followed before bridge and overlap pairs, so this is plain sequential chaining
-    wherever the sequence is unbroken. Returns the homographies and the ids (``id(pair)``) of the pairs
-    used as tree edges; every other ``ok`` pair in the part closes a loop.
+    Only consecutive and bridge pairs are followed (consecutive first), so this is plain sequential chaining,
+    the drift of which the loop-closure pairs then measure. Returns the homographies and the ids
+    (``id(pair)``) of the pairs used as tree edges; every other ``ok`` pair in the part closes a loop.
     """
     members = set(part)
     adjacency: dict[int, list[PairResult]] = {i: [] for i in part}
-    for pair in sorted((p for p in pairs if p.ok and p.a in members and p.b in members), key=lambda p: _KIND_PRIORITY[p.kind]):
+    sequential = (p for p in pairs if p.ok and p.kind != "overlap" and p.a in members and p.b in members)
+    for pair in sorted(sequential, key=lambda p: _KIND_PRIORITY[p.kind]):
         adjacency[pair.a].append(pair)
         adjacency[pair.b].append(pair)
     ref_from: dict[int, np.ndarray] = {reference: np.eye(3)}

@@ -52,6 +52,8 @@ class MosaicConfig:
         max_disagreement: a loop-closure estimate is rejected when it moves the corners more than this
             share of the frame diagonal away from the chained prediction (a wrong match, not drift).
         huber_px: the global solve counts residuals beyond this (reference pixels) linearly.
+        outlier_px: after the solve, a loop-closure pair whose residual exceeds this and 3x the median is
+            rejected and the solve is run again without it.
         blend: ``"feather"``, ``"multiband"`` or ``"none"``.
         gain_compensation: equalise exposure between frames.
         max_size: longest side of the mosaic in pixels; larger canvases are downscaled. ``None``: full size.
@@ -70,6 +72,7 @@ class MosaicConfig:
     overlap_per_frame: int = 3
     max_disagreement: float = 0.1
     huber_px: float = 2.0
+    outlier_px: float = 5.0
     blend: str = "feather"
     gain_compensation: bool = True
     max_size: int | None = None
@@ -149,7 +152,6 @@ def run_mosaic(
     pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter)
     parts = _chain_parts(frameset, pairs)
     pairs += _close_loops(frameset, parts, pairs, estimator, fallback, config, reporter)
-    parts = _chain_parts(frameset, pairs)  # loop pairs only add edges inside parts: same parts, re-chained
     loops = _solve(frameset, parts, pairs, config, reporter)
     gains = _gains(frameset, pairs, config, reporter)
     _plan_canvases(frameset, parts, output, config)
@@ -240,6 +242,18 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
             inside = [p for p in pairs if p.ok and p.a in members and p.b in members]
             points = [pair_points(p, sizes[p.a], sizes[p.b]) for p in inside]
             part.solved = solve_part(part.reference, part.chained, sizes, points, config.huber_px)
+            # A loop-closure pair far off the joint solution is a wrong or parallax-ridden match: drop it, solve again.
+            residuals = [pair_rms_px(part.solved, pts) for pts in points]
+            limit = max(config.outlier_px, 3.0 * float(np.median(residuals))) if residuals else 0.0
+            outliers = [i for i, (p, r) in enumerate(zip(inside, residuals)) if p.kind == "overlap" and r > limit]
+            if outliers:
+                for i in outliers:
+                    inside[i].consistency_px = {"before": pair_rms_px(part.chained, points[i]), "after": residuals[i], "loop": True}
+                    inside[i].status, inside[i].b_from_a = "rejected", None
+                    inside[i].reason = f"{residuals[i]:.1f} px from the joint solution (limit {limit:.1f} px)"
+                inside = [p for i, p in enumerate(inside) if i not in outliers]
+                points = [p for i, p in enumerate(points) if i not in outliers]
+                part.solved = solve_part(part.reference, part.chained, sizes, points, config.huber_px)
             for pair, pts in zip(inside, points):
                 before, after = pair_rms_px(part.chained, pts), pair_rms_px(part.solved, pts)
                 pair.consistency_px = {"before": before, "after": after, "loop": id(pair) not in part.tree}

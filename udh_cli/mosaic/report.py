@@ -11,16 +11,19 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 
 class Reporter:
-    """Collects warnings and per-stage wall times; draws a rich progress bar per stage unless ``quiet``.
+    """Collects warnings and per-stage wall times; draws a rich progress bar per stage when ``progress``.
+
+    ``quiet`` prints nothing at all (the library's default): warnings are still collected for the sidecar.
 
     Attributes:
         warnings: every warning issued, in order (they also go to the sidecar).
         timings_s: stage name -> wall time in seconds, in the order the stages ran.
     """
 
-    def __init__(self, console: Console | None = None, quiet: bool = False) -> None:
+    def __init__(self, console: Console | None = None, quiet: bool = False, progress: bool = True) -> None:
         self.console = console or Console(stderr=True)
         self.quiet = quiet
+        self.progress = progress and not quiet
         self.warnings: list[str] = []
         self.timings_s: dict[str, float] = {}
 
@@ -28,7 +31,7 @@ class Reporter:
     def stage(self, name: str, total: int | None = None) -> Iterator[Callable[[int], None]]:
         """Time a stage and show its progress; yields ``advance(n=1)``. Repeated names add up."""
         start = time.perf_counter()
-        if self.quiet:
+        if not self.progress:
             yield lambda n=1: None
         else:
             columns = (TextColumn(f"{name:<22}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())

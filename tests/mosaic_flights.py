@@ -1,0 +1,60 @@
+"""Helpers for the mosaic tests: small simulated flights and an estimator that fails on chosen pairs."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Callable, ClassVar
+
+import numpy as np
+
+from udh_cli.errors import EstimationFailed
+from udh_cli.estimators import Estimator, create_estimator
+from udh_cli.images import read_image
+from udh_cli.mosaic.frames import work_copy
+from udh_cli.simulate import FlightConfig, write_flight
+
+SMALL = FlightConfig(frame_size=(320, 240), strips=2, frames_per_strip=4, focal_px=300.0)  # 8 frames, fast
+ACCURATE = FlightConfig(frame_size=(480, 360), strips=2, frames_per_strip=5, focal_px=450.0)  # 10 frames, SIFT-friendly
+
+
+def make_flight(folder: Path, config: FlightConfig = SMALL, seed: int = 3) -> list[Path]:
+    """Write a simulated flight into ``folder``; returns its frame paths in order."""
+    write_flight(folder, config, seed)
+    return sorted(folder.glob("frame_*.jpg"))
+
+
+def fingerprint(image: np.ndarray) -> str:
+    return hashlib.sha1(np.ascontiguousarray(image).tobytes()).hexdigest()
+
+
+def work_fingerprints(paths: list[Path], work_size: int = 800) -> list[str]:
+    """Fingerprints of the working copies the pipeline hands to estimators, frame by frame."""
+    return [fingerprint(work_copy(read_image(p), work_size)) for p in paths]
+
+
+class FailOn(Estimator):
+    """Wraps a real estimator and fails every pair for which ``should_fail(index_a, index_b)`` is true.
+
+    Frames are recognised by the fingerprints of their working copies; a pre-warped image (loop closure)
+    matches no frame and gets index ``None``.
+    """
+
+    name: ClassVar[str] = "failing"
+
+    def __init__(self, fingerprints: list[str], should_fail: Callable[[int | None, int | None], bool], inner: str = "sift") -> None:
+        self.index = {f: i for i, f in enumerate(fingerprints)}
+        self.should_fail = should_fail
+        self.inner = create_estimator(inner)
+        self.calls: list[tuple[int | None, int | None]] = []
+
+    def _estimate(self, image_a, image_b):
+        a, b = self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))
+        self.calls.append((a, b))
+        if self.should_fail(a, b):
+            raise EstimationFailed("made to fail by the test")
+        return self.inner._estimate(image_a, image_b)
+
+    def estimate_many(self, pairs):
+        self.batches = getattr(self, "batches", []) + [len(pairs)]
+        return super().estimate_many(pairs)

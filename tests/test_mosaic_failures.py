@@ -1,0 +1,77 @@
+"""Failing pairs: the fallback method, bridging a bad frame, splitting into parts; never a crash or a silent drop."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from udh_cli.errors import UdhError
+from udh_cli.estimators import create_estimator
+from udh_cli.mosaic import MosaicConfig, run_mosaic
+
+from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
+
+FAST = MosaicConfig(overlap_per_frame=1, batch_size=4)
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    """8 frames: line one is frames 0-3, line two is frames 4-7."""
+    folder = tmp_path_factory.mktemp("flight")
+    paths = make_flight(folder, SMALL, seed=4)
+    return folder, work_fingerprints(paths)
+
+
+def test_fallback_rescues_a_failed_pair(flight, tmp_path):
+    folder, prints = flight
+    primary = FailOn(prints, lambda a, b: {a, b} == {2, 3})
+    report = run_mosaic(folder, tmp_path / "m.png", FAST, estimator=primary, fallback=create_estimator("sift"))
+    assert report["summary"]["placed"] == 8 and report["summary"]["parts"] == 1
+    pair = next(p for p in report["pairs"] if (p["a"], p["b"]) == (2, 3))
+    assert pair["status"] == "ok" and pair["method"] == "sift"
+    assert [e["method"] for e in pair["estimates"]] == ["failing", "sift"]
+    assert pair["estimates"][0]["failure"] == "made to fail by the test"
+    others = [p for p in report["pairs"] if (p["a"], p["b"]) != (2, 3) and p["status"] == "ok"]
+    assert all(p["method"] == "failing" for p in others)  # the fallback only ran where it was needed
+    assert max(primary.batches) > 1  # pairs reach the estimator in batches
+    assert report["ground_truth_error"]["solved"]["max_corner_px"] < 3
+
+
+def test_a_bad_frame_is_bridged_and_reported(flight, tmp_path):
+    folder, prints = flight
+    primary = FailOn(prints, lambda a, b: 5 in (a, b))
+    report = run_mosaic(folder, tmp_path / "m.png", FAST, estimator=primary)
+    frames = report["frames"]
+    assert frames[5]["status"] == "unplaced" and "made to fail" in frames[5]["reason"]
+    assert all(f["status"] == "placed" and f["part"] == 1 for i, f in enumerate(frames) if i != 5)
+    bridge = next(p for p in report["pairs"] if (p["a"], p["b"]) == (4, 6))
+    assert bridge["kind"] == "bridge" and bridge["status"] == "ok"
+    assert any("frame_005.jpg is not in any mosaic" in w for w in report["warnings"])
+    assert (tmp_path / "m.png").is_file() and not list(tmp_path.glob("m.part*"))
+
+
+def test_unbridgeable_gap_splits_the_sequence(flight, tmp_path):
+    folder, prints = flight
+    across = lambda a, b: a is not None and b is not None and (a < 4) != (b < 4)  # noqa: E731
+    primary, fallback = FailOn(prints, across), FailOn(prints, across)
+    report = run_mosaic(folder, tmp_path / "m.png", FAST, estimator=primary, fallback=fallback)
+    assert report["summary"]["parts"] == 2 and report["summary"]["placed"] == 8
+    assert [f["part"] for f in report["frames"]] == [1, 1, 1, 1, 2, 2, 2, 2]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg",
+    ]
+    failed = [p for p in report["pairs"] if p["status"] == "failed"]
+    assert {(p["a"], p["b"]) for p in failed} == {(3, 4), (2, 4), (3, 5)}
+    assert all(len(p["estimates"]) == 2 for p in failed)  # first method, then fallback
+    assert any("split into 2 parts" in w for w in report["warnings"])
+    sidecar = json.loads((tmp_path / "m.json").read_text())
+    assert [p["frames"] for p in sidecar["parts"]] == [[0, 1, 2, 3], [4, 5, 6, 7]]
+    assert [p["reference_frame"] for p in sidecar["parts"]] == [2, 6]
+
+
+def test_nothing_matches_is_an_error_not_a_crash(flight, tmp_path):
+    folder, prints = flight
+    with pytest.raises(UdhError, match="no pair of frames could be matched"):
+        run_mosaic(folder, tmp_path / "m.png", FAST, estimator=FailOn(prints, lambda a, b: True))
+    assert list(tmp_path.iterdir()) == []

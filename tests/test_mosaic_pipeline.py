@@ -1,0 +1,140 @@
+"""run_mosaic end to end on simulated flights: accuracy against ground truth, the sidecar, bounded canvases."""
+
+from __future__ import annotations
+
+import json
+import tracemalloc
+
+import cv2
+import numpy as np
+import pytest
+
+from udh_cli import geometry
+from udh_cli.errors import UdhError
+from udh_cli.mosaic import MosaicConfig, run_mosaic
+from udh_cli.mosaic.composite import BYTES_PER_PIXEL, composite, plan_canvas
+from udh_cli.mosaic.frames import open_frames
+from udh_cli.mosaic.report import Reporter
+from udh_cli.simulate import load_ground_truth
+
+from mosaic_flights import ACCURATE, SMALL, make_flight
+
+
+@pytest.fixture(scope="module")
+def accurate_run(tmp_path_factory):
+    """SIFT over a 10-frame, two-line flight at 480x360 (the configuration the README example scales up)."""
+    folder = tmp_path_factory.mktemp("flight")
+    make_flight(folder, ACCURATE, seed=3)
+    out = tmp_path_factory.mktemp("out") / "mosaic.png"
+    report = run_mosaic(folder, out, MosaicConfig(method="sift"))
+    return folder, out, report
+
+
+def test_every_frame_within_one_pixel_of_truth_after_the_solve(accurate_run):
+    folder, _, report = accurate_run
+    truth = load_ground_truth(folder / "ground_truth.json")
+    assert report["summary"]["placed"] == 10 and report["summary"]["parts"] == 1
+    # Recompute the error from the sidecar alone: frame->reference homographies against the truth
+    # (the mosaic is anchored at the reference frame, so this is the gauge-free comparison).
+    frames = report["frames"]
+    reference = report["parts"][0]["reference_frame"]
+    mosaic_from_ref = np.asarray(frames[reference]["mosaic_from_frame"])
+    ref_from_ground = geometry.invert(truth["ground_from_frame"][frames[reference]["file"]])
+    errors = []
+    for frame in frames:
+        ref_from_frame = geometry.invert(mosaic_from_ref) @ np.asarray(frame["mosaic_from_frame"])
+        true = ref_from_ground @ truth["ground_from_frame"][frame["file"]]
+        errors.append(float(geometry.corner_errors(ref_from_frame, true / true[2, 2], frame["width"], frame["height"]).max()))
+    assert max(errors) <= 1.0
+    assert report["ground_truth_error"]["solved"]["max_corner_px"] == pytest.approx(max(errors), abs=1e-6)
+    # The solve improves on plain chaining, and closes the loops.
+    assert report["ground_truth_error"]["solved"]["mean_corner_px"] < report["ground_truth_error"]["chained"]["mean_corner_px"]
+    loops = report["loop_consistency"]
+    assert loops["loops_after"]["count"] >= 5
+    assert loops["loops_after"]["max_px"] < loops["loops_before"]["max_px"]
+    assert loops["loops_after"]["max_px"] < 0.5
+
+
+def test_sidecar_contents(accurate_run):
+    _, out, report = accurate_run
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["format"] == "udh-mosaic/1" and sidecar["method"] == "sift"
+    assert set(sidecar) >= {"frames", "pairs", "parts", "loop_consistency", "summary", "timings_s", "warnings", "config", "skipped_files"}
+    mosaic = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert mosaic.shape[2] == 4  # alpha channel
+    part = sidecar["parts"][0]
+    assert (part["width"], part["height"]) == (mosaic.shape[1], mosaic.shape[0]) and part["scale"] == 1.0
+    assert out.with_name("mosaic.preview.jpg").is_file()
+    for frame in sidecar["frames"]:
+        assert frame["status"] == "placed" and frame["part"] == 1 and 0.5 < frame["gain"] < 2
+        h = np.asarray(frame["mosaic_from_frame"])
+        quad = geometry.transform_points(h, geometry.image_corners(frame["width"], frame["height"]))
+        assert quad.min() >= -0.5 and quad[:, 0].max() <= mosaic.shape[1] - 0.5 and quad[:, 1].max() <= mosaic.shape[0] - 0.5
+        # The frame's centre pixel is covered, and the mosaic shows the same grey level there (gain aside).
+        centre = geometry.transform_points(h, np.array([[frame["width"] / 2, frame["height"] / 2]]))[0]
+        x, y = np.round(centre).astype(int)
+        assert mosaic[y, x, 3] == 255
+    consecutive = [p for p in sidecar["pairs"] if p["kind"] == "consecutive"]
+    assert [(p["a"], p["b"]) for p in consecutive] == [(i, i + 1) for i in range(9)]
+    for pair in sidecar["pairs"]:
+        assert pair["status"] in ("ok", "failed", "rejected")
+        assert pair["estimates"] and {"method", "confidence", "homography", "ok", "failure"} <= set(pair["estimates"][0])
+        if pair["status"] == "ok":
+            assert 0 < pair["confidence"] <= 1 and np.asarray(pair["b_from_a"]).shape == (3, 3)
+            assert pair["consistency_px"]["after"] < 1.0
+    assert any(p["kind"] == "overlap" and p["prewarped"] for p in sidecar["pairs"])
+    assert {"reading frames", "consecutive pairs", "global solve", "compositing", "total"} <= set(sidecar["timings_s"])
+
+
+def test_mosaic_pixels_agree_with_the_frames(accurate_run):
+    folder, out, report = accurate_run
+    mosaic = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    frame = report["frames"][3]
+    image = cv2.imread(str(folder / frame["file"]))
+    warped = cv2.warpPerspective(image, np.asarray(frame["mosaic_from_frame"]), (mosaic.shape[1], mosaic.shape[0]))
+    inside = cv2.warpPerspective(np.full(image.shape[:2], 255, np.uint8), np.asarray(frame["mosaic_from_frame"]), (mosaic.shape[1], mosaic.shape[0]))
+    inside = cv2.erode(inside, np.ones((15, 15), np.uint8)) > 0
+    grey_m = cv2.cvtColor(mosaic[..., :3], cv2.COLOR_BGR2GRAY)[inside].astype(np.float32)
+    grey_f = cv2.cvtColor(warped, cv2.COLOR_BGR2GRAY)[inside].astype(np.float32)
+    assert np.corrcoef(grey_m, grey_f)[0, 1] > 0.9  # aligned: blending never averages misregistered texture
+
+
+@pytest.fixture(scope="module")
+def small_flight(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("small")
+    make_flight(folder, SMALL, seed=4)
+    return folder
+
+
+def test_max_size_bounds_the_canvas(small_flight, tmp_path):
+    out = tmp_path / "small.png"
+    report = run_mosaic(small_flight, out, MosaicConfig(method="sift", max_size=300, overlap_per_frame=1, blend="multiband"))
+    mosaic = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert max(mosaic.shape[:2]) == 300
+    assert report["parts"][0]["scale"] < 1.0
+    assert report["ground_truth_error"]["solved"]["max_corner_px"] < 3  # measured in reference pixels, not canvas pixels
+
+
+def test_too_big_canvas_is_refused_before_writing(small_flight, tmp_path):
+    out = tmp_path / "big.png"
+    with pytest.raises(UdhError, match="--max-size"):
+        run_mosaic(small_flight, out, MosaicConfig(method="orb", overlap_per_frame=0, max_canvas_bytes=100_000))
+    assert list(tmp_path.iterdir()) == []
+    ref_from = {0: np.eye(3), 1: geometry.translation(1e6, 0.0)}
+    with pytest.raises(UdhError, match="would be 1000640x240"):
+        plan_canvas(ref_from, [(640, 240), (640, 240)], "feather")
+
+
+@pytest.mark.parametrize("blend", ["feather", "none"])
+def test_compositing_memory_is_the_canvas_plus_one_frame(small_flight, blend):
+    frames = open_frames(small_flight, 800)
+    # Spread the frames far apart on a large canvas: peak memory must follow the canvas, not frames x canvas.
+    to_mosaic = {i: geometry.translation(150.0 * i, 40.0 * (i % 2)) for i in range(len(frames.frames))}
+    size = (150 * len(frames.frames) + 340, 300)
+    tracemalloc.start()
+    out = composite(frames, to_mosaic, size, np.ones(len(frames.frames)), blend, Reporter(quiet=True))
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert out.shape == (300, size[0], 4) and out[..., 3].mean() > 100
+    frame_bytes = 320 * 240 * 3 * 4  # one frame as float32 colour
+    assert peak < BYTES_PER_PIXEL[blend] * size[0] * size[1] + 12 * frame_bytes

@@ -1,0 +1,77 @@
+"""The global solve on synthetic pair graphs: it removes chaining drift and shrugs off a wrong loop pair."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates
+from udh_cli.mosaic.pairwise import PairResult
+from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_part
+
+SIZE = (320, 240)
+
+
+def _truth(n_per_strip: int = 5) -> dict[int, np.ndarray]:
+    """ref_from_frame of two strips flown back and forth, frame 0 is the reference; mild perspective."""
+    rng = np.random.default_rng(0)
+    out = {}
+    for index in range(2 * n_per_strip):
+        strip, step = divmod(index, n_per_strip)
+        column = step if strip == 0 else n_per_strip - 1 - step
+        h = geometry.translation(80.0 * column, 100.0 * strip) @ geometry.homography_from_offsets(rng.uniform(-3, 3, (4, 2)), *SIZE)
+        out[index] = h / h[2, 2]
+    first = geometry.invert(out[0])
+    return {i: first @ h / (first @ h)[2, 2] for i, h in out.items()}
+
+
+def _pair(truth, a, b, kind, error=np.eye(3)) -> PairResult:
+    b_from_a = error @ geometry.invert(truth[b]) @ truth[a]
+    return PairResult(a, b, kind, b_from_a=b_from_a / b_from_a[2, 2], status="ok")
+
+
+def _max_error(ref_from, truth) -> float:
+    return max(float(geometry.corner_errors(ref_from[i], truth[i], *SIZE).max()) for i in truth)
+
+
+def test_solve_removes_drift_of_biased_chain():
+    truth = _truth()
+    sizes = [SIZE] * len(truth)
+    bias = np.array([[1.003, 0.0, 0.4], [0.0, 1.003, -0.3], [0.0, 0.0, 1.0]])  # every consecutive pair slightly off
+    pairs = [_pair(truth, i, i + 1, "consecutive", bias) for i in range(len(truth) - 1)]
+    parts = connected_parts(len(truth), pairs)
+    assert parts == [list(range(len(truth)))]
+    chained, tree = chain_to_reference(parts[0], 0, pairs)
+    assert len(tree) == len(truth) - 1
+    known = {(p.a, p.b) for p in pairs}
+    loops = overlap_candidates(parts[0], chained, sizes, known, min_overlap=0.3, per_frame=3)
+    assert loops and all(b - a >= 2 for a, b, _ in loops)
+    pairs += [_pair(truth, a, b, "overlap") for a, b, _ in loops]  # loop closures measured without bias
+    points = [pair_points(p, SIZE, SIZE) for p in pairs]
+    solved = solve_part(0, chained, sizes, points)
+    drift, remaining = _max_error(chained, truth), _max_error(solved, truth)
+    assert drift > 5.0
+    assert remaining < drift / 3
+    # The loops were inconsistent under the chain and much less so after the solve (the biased consecutive
+    # pairs and the exact loop pairs cannot all be met: least squares shares the disagreement out).
+    loop_points = points[len(truth) - 1 :]
+    before = max(pair_rms_px(chained, p) for p in loop_points)
+    after = max(pair_rms_px(solved, p) for p in loop_points)
+    assert before > 3.0 and after < before / 3
+    np.testing.assert_allclose(solved[0], np.eye(3), atol=1e-12)
+
+
+def test_exact_pairs_give_the_exact_solution_from_any_reference():
+    truth = _truth()
+    sizes = [SIZE] * len(truth)
+    pairs = [_pair(truth, i, i + 1, "consecutive") for i in range(len(truth) - 1)]
+    pairs += [_pair(truth, 1, 8, "overlap"), _pair(truth, 2, 7, "overlap"), _pair(truth, 3, 6, "overlap")]
+    chained, tree = chain_to_reference(list(range(len(truth))), 4, pairs)
+    assert len(tree) == len(truth) - 1  # loop pairs are never chained along
+    to_4 = geometry.invert(truth[4])
+    truth_4 = {i: (to_4 @ h) / (to_4 @ h)[2, 2] for i, h in truth.items()}
+    # Start the solve away from the answer: it must come back to the truth, with the reference fixed.
+    start = {i: (h @ geometry.translation(3.0, -2.0) if i != 4 else h) for i, h in chained.items()}
+    solved = solve_part(4, start, sizes, [pair_points(p, SIZE, SIZE) for p in pairs])
+    assert _max_error(solved, truth_4) < 1e-3
+    np.testing.assert_allclose(solved[4], np.eye(3), atol=1e-12)

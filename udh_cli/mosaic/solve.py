@@ -61,20 +61,28 @@ def _normaliser(size: tuple[int, int]) -> np.ndarray:
 
 
 def _project_with_jacobian(params: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Project (K, 2) points by the 8-parameter homography; returns (K, 2) and the Jacobian (K, 2, 8)."""
-    g = params
-    x, y = points[:, 0], points[:, 1]
-    w = g[6] * x + g[7] * y + 1.0
-    u = (g[0] * x + g[1] * y + g[2]) / w
-    v = (g[3] * x + g[4] * y + g[5]) / w
+    """Project points by 8-parameter homographies, batched.
+
+    Args:
+        params: (P, 8) one homography per pair (h33 = 1).
+        points: (P, K, 2).
+
+    Returns:
+        projected (P, K, 2) and the Jacobian with respect to the parameters (P, K, 2, 8).
+    """
+    g = params[:, None, :]  # P, 1, 8
+    x, y = points[..., 0], points[..., 1]
+    w = g[..., 6] * x + g[..., 7] * y + 1.0
+    u = (g[..., 0] * x + g[..., 1] * y + g[..., 2]) / w
+    v = (g[..., 3] * x + g[..., 4] * y + g[..., 5]) / w
     zero = np.zeros_like(x)
     du = np.stack([x / w, y / w, 1 / w, zero, zero, zero, -u * x / w, -u * y / w], -1)
     dv = np.stack([zero, zero, zero, x / w, y / w, 1 / w, -v * x / w, -v * y / w], -1)
-    return np.stack([u, v], -1), np.stack([du, dv], 1)
+    return np.stack([u, v], -1), np.stack([du, dv], -2)
 
 
 def _huber(errors: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """Huber cost and IRLS weight of point residual norms (K,)."""
+    """Huber cost and IRLS weight of point residual norms (any shape)."""
     cost = np.where(errors <= k, 0.5 * errors**2, k * (errors - 0.5 * k))
     weight = np.where(errors <= k, 1.0, k / np.maximum(errors, 1e-12))
     return cost, weight
@@ -103,58 +111,56 @@ def solve_part(
     frames = [i for i in sorted(initial) if i != reference]
     if not frames or not points:
         return dict(initial)
-    column = {frame: 8 * k for k, frame in enumerate(frames)}
+    n = len(frames)
+    slot = {frame: k for k, frame in enumerate(frames)}
+    slot[reference] = n  # a dummy slot whose rows and columns are dropped: the reference is fixed
     t_ref = _normaliser(sizes[reference])
-    scale_ref = t_ref[0, 0]  # normalised units per reference pixel
     normalisers = {i: _normaliser(sizes[i]) for i in initial}
-    params = {}
+    params = np.zeros((n + 1, 8))
     for i in initial:
         g = t_ref @ initial[i] @ np.linalg.inv(normalisers[i])
-        params[i] = (g / g[2, 2]).ravel()[:8]
-    normalised = [
-        (p.a, p.b, geometry.transform_points(normalisers[p.a], p.points_a), geometry.transform_points(normalisers[p.b], p.points_b))
-        for p in points
-    ]
-    k = huber_px * scale_ref
+        params[slot[i]] = (g / g[2, 2]).ravel()[:8]
+    slot_a = np.array([slot[p.a] for p in points])
+    slot_b = np.array([slot[p.b] for p in points])
+    points_a = np.stack([geometry.transform_points(normalisers[p.a], p.points_a) for p in points])  # P, K, 2
+    points_b = np.stack([geometry.transform_points(normalisers[p.b], p.points_b) for p in points])
+    k = huber_px * t_ref[0, 0]  # in normalised reference units
 
-    def evaluate(current: dict[int, np.ndarray], with_system: bool):
-        total = 0.0
-        system = np.zeros((8 * len(frames), 8 * len(frames))) if with_system else None
-        gradient = np.zeros(8 * len(frames)) if with_system else None
-        for a, b, pa, pb in normalised:
-            proj_a, jac_a = _project_with_jacobian(current[a], pa)
-            proj_b, jac_b = _project_with_jacobian(current[b], pb)
-            residual = proj_a - proj_b  # K, 2
-            cost, weight = _huber(np.sqrt((residual**2).sum(-1)), k)
-            total += float(cost.sum())
-            if not with_system:
-                continue
-            blocks = [(column[a], jac_a, 1.0)] if a in column else []
-            blocks += [(column[b], jac_b, -1.0)] if b in column else []
-            for c1, j1, s1 in blocks:
-                weighted = s1 * j1 * weight[:, None, None]  # K, 2, 8
-                gradient[c1 : c1 + 8] += np.einsum("kij,ki->j", weighted, residual)
-                for c2, j2, s2 in blocks:
-                    system[c1 : c1 + 8, c2 : c2 + 8] += s2 * np.einsum("kij,kil->jl", weighted, j2)
-        return total, system, gradient
+    def cost_of(current: np.ndarray) -> float:
+        residual = _project_with_jacobian(current[slot_a], points_a)[0] - _project_with_jacobian(current[slot_b], points_b)[0]
+        return float(_huber(np.sqrt((residual**2).sum(-1)), k)[0].sum())
+
+    def normal_equations(current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        proj_a, jac_a = _project_with_jacobian(current[slot_a], points_a)
+        proj_b, jac_b = _project_with_jacobian(current[slot_b], points_b)
+        residual = proj_a - proj_b  # P, K, 2
+        _, weight = _huber(np.sqrt((residual**2).sum(-1)), k)  # P, K
+        blocks = np.zeros((n + 1, n + 1, 8, 8))
+        gradient = np.zeros((n + 1, 8))
+        for s1, j1, sign1 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
+            np.add.at(gradient, s1, sign1 * np.einsum("pk,pkij,pki->pj", weight, j1, residual))
+            for s2, j2, sign2 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
+                np.add.at(blocks, (s1, s2), sign1 * sign2 * np.einsum("pk,pkij,pkil->pjl", weight, j1, j2))
+        system = blocks[:n, :n].transpose(0, 2, 1, 3).reshape(8 * n, 8 * n)
+        return system, gradient[:n].ravel()
 
     damping = 1e-3
-    cost, system, gradient = evaluate(params, True)
+    cost = cost_of(params)
+    system, gradient = normal_equations(params)
     for _ in range(iterations):
-        diagonal = np.diag(system).copy() + 1e-12
+        diagonal = np.diag(system) + 1e-12
         try:
             step = np.linalg.solve(system + damping * np.diag(diagonal), -gradient)
         except np.linalg.LinAlgError:
             damping *= 10
             continue
-        trial = dict(params)
-        for frame, c in column.items():
-            trial[frame] = params[frame] + step[c : c + 8]
-        trial_cost, _, _ = evaluate(trial, False)
+        trial = params.copy()
+        trial[:n] += step.reshape(n, 8)
+        trial_cost = cost_of(trial)
         if trial_cost < cost:
             improvement = (cost - trial_cost) / max(cost, 1e-30)
-            params = trial
-            cost, system, gradient = evaluate(params, True)
+            params, cost = trial, trial_cost
+            system, gradient = normal_equations(params)
             damping = max(damping / 3, 1e-9)
             if improvement < 1e-10:
                 break
@@ -164,7 +170,7 @@ def solve_part(
                 break
     out = {}
     for i in initial:
-        g = np.append(params[i], 1.0).reshape(3, 3)
+        g = np.append(params[slot[i]], 1.0).reshape(3, 3)
         h = np.linalg.inv(t_ref) @ g @ normalisers[i]
         out[i] = h / h[2, 2]
     out[reference] = np.eye(3)

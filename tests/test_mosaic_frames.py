@@ -1,0 +1,78 @@
+"""Frame input details: EXIF capture-time order, natural name order, working copies, wrong loop closures."""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.estimators import Estimator, create_estimator
+from udh_cli.mosaic import MosaicConfig, run_mosaic
+from udh_cli.mosaic.exif import capture_time
+from udh_cli.mosaic.frames import open_frames
+
+from conftest import textured_image
+from mosaic_flights import SMALL, fingerprint, make_flight, work_fingerprints
+
+
+def _jpeg_with_time(path: Path, image: np.ndarray, when: str) -> None:
+    """A JPEG whose APP1 EXIF block holds DateTimeOriginal (in the Exif IFD) = ``when``."""
+    text = when.encode() + b"\x00"  # 20 bytes
+    # TIFF header, IFD0 with one entry (Exif IFD pointer), Exif IFD with one entry (DateTimeOriginal), string.
+    ifd0, exif_ifd = 8, 8 + 2 + 12 + 4
+    string_at = exif_ifd + 2 + 12 + 4
+    tiff = b"II*\x00" + struct.pack("<I", ifd0)
+    tiff += struct.pack("<H", 1) + struct.pack("<HHII", 0x8769, 4, 1, exif_ifd) + struct.pack("<I", 0)
+    tiff += struct.pack("<H", 1) + struct.pack("<HHII", 0x9003, 2, len(text), string_at) + struct.pack("<I", 0)
+    tiff += text
+    payload = b"Exif\x00\x00" + tiff
+    app1 = b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+    encoded = cv2.imencode(".jpg", image)[1].tobytes()
+    path.write_bytes(encoded[:2] + app1 + encoded[2:])
+
+
+def test_order_by_capture_time_and_by_natural_name(tmp_path):
+    times = {"frame_2.jpg": "2020:01:01 10:00:03", "frame_10.jpg": "2020:01:01 10:00:01", "frame_1.jpg": "2020:01:01 10:00:02"}
+    for seed, (name, when) in enumerate(times.items()):
+        _jpeg_with_time(tmp_path / name, textured_image(64, 48, seed), when)
+    assert capture_time(tmp_path / "frame_10.jpg") == "2020:01:01 10:00:01"
+    by_name = open_frames(tmp_path, 800, order="name")
+    assert [f.name for f in by_name.frames] == ["frame_1.jpg", "frame_2.jpg", "frame_10.jpg"]
+    by_time = open_frames(tmp_path, 800, order="time")
+    assert [f.name for f in by_time.frames] == ["frame_10.jpg", "frame_1.jpg", "frame_2.jpg"]
+    assert capture_time(tmp_path / "missing.jpg") is None
+
+
+def test_working_copies_are_small_and_grey(tmp_path):
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((900, 1600, 3), np.uint8))
+    cv2.imwrite(str(tmp_path / "b.png"), np.zeros((900, 1600, 3), np.uint8))
+    frames = open_frames(tmp_path, 800).frames
+    assert frames[0].size == (1600, 900) and frames[0].work_size == (800, 450) and frames[0].work.ndim == 2
+
+
+class ShiftLoops(Estimator):
+    """SIFT, except that loop-closure pairs (pre-warped, so B matches no frame) come back 60 px off."""
+
+    name = "shift-loops"
+
+    def __init__(self, prints):
+        self.known = set(prints)
+        self.sift = create_estimator("sift")
+
+    def _estimate(self, image_a, image_b):
+        homography, confidence, details = self.sift._estimate(image_a, image_b)
+        if fingerprint(image_b) not in self.known:
+            homography = geometry.translation(60.0, 0.0) @ homography
+        return homography, confidence, details
+
+
+def test_loop_closures_that_contradict_the_chain_are_rejected(tmp_path):
+    paths = make_flight(tmp_path / "f", SMALL, seed=4)
+    report = run_mosaic(tmp_path / "f", tmp_path / "m.png", MosaicConfig(overlap_per_frame=1), estimator=ShiftLoops(work_fingerprints(paths)))
+    loops = [p for p in report["pairs"] if p["kind"] == "overlap"]
+    assert loops and all(p["status"] == "rejected" and "chained prediction" in p["reason"] for p in loops)
+    assert report["summary"]["placed"] == 8
+    assert report["ground_truth_error"]["solved"]["max_corner_px"] < 3  # the wrong pairs did not reach the solve

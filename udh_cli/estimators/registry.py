@@ -17,6 +17,8 @@ ESTIMATORS: dict[str, tuple[str, str, str]] = {
     "identity": ("udh_cli.estimators.identity", "IdentityEstimator", "no motion; the baseline"),
     "unsupervised": ("udh_cli.estimators.deep", "UnsupervisedEstimator", "the unsupervised deep network (onnxruntime)"),
     "supervised": ("udh_cli.estimators.deep", "SupervisedEstimator", "supervised HomographyNet (onnxruntime)"),
+    "unsupervised+ecc": ("udh_cli.estimators.refined", "RefinedEstimator", "unsupervised network, then coarse-to-fine ECC"),
+    "auto": ("udh_cli.estimators.refined", "AutoEstimator", "unsupervised+ecc, verified; SIFT+ECC when it does not verify"),
 }
 
 

@@ -1,0 +1,183 @@
+"""Training: both losses learn, checkpoints resume exactly after a kill, bad input fails cleanly, torchrun works."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from conftest import textured_image  # noqa: E402
+from udh_cli.errors import UdhError  # noqa: E402
+from udh_cli.train import losses  # noqa: E402
+from udh_cli.train.checkpoint import load_checkpoint  # noqa: E402
+from udh_cli.train.loop import TrainConfig, Trainer, train  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def pool(tmp_path_factory) -> Path:
+    """A folder of 12 textured images the test makes itself (one in ten is held out by the split)."""
+    folder = tmp_path_factory.mktemp("pool")
+    for i in range(12):
+        cv2.imwrite(str(folder / f"img{i:02d}.png"), textured_image(320, 240, seed=100 + i))
+    return folder
+
+
+def tiny_config(pool: Path, out: Path, **changes) -> TrainConfig:
+    """32-pixel patches, rho 6: small enough to learn something in seconds on a CPU."""
+    base = TrainConfig(data=[str(pool)], patch_size=32, rho=6.0, small_motion_fraction=0.0, steps=300, batch=32,
+                       lr=2e-3, eval_every=100, checkpoint_every=100, val_pairs=64, out=str(out))
+    return replace(base, **changes)
+
+
+def read_metrics(out: Path) -> list[dict]:
+    return [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines() if line.strip()]
+
+
+@pytest.mark.parametrize("mode", ["supervised", "unsupervised"])
+def test_a_few_hundred_steps_lower_loss_and_corner_error(pool, mode):
+    """The whole differentiable path (network, Tensor DLT, spatial transformer, losses) learns: 300 Adam
+    steps on 64 fixed synthetic pairs must cut both the loss and the corner error."""
+    from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs
+    from udh_cli.train.archs import create_model
+
+    torch.manual_seed(0)
+    sources = load_sources(list_images(pool))
+    pairs = make_pairs(sources, 64, PairConfig(patch_size=32, rho=6.0, illumination=False), np.random.default_rng(0))
+    patches = torch.from_numpy(np.stack([pairs.patch_a, pairs.patch_b], 1) - 0.5) / 0.25
+    truth = torch.from_numpy(pairs.offsets)
+    context, origin, clean_b = (torch.from_numpy(x) for x in (pairs.context_a, pairs.origin, pairs.clean_b))
+    model = create_model("corr", patch_size=32)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+
+    def loss_of(offsets):
+        if mode == "supervised":
+            return losses.supervised_loss(offsets, truth)
+        return losses.photometric_loss(offsets, context, origin, clean_b)
+
+    def measure():
+        model.eval()
+        with torch.no_grad():
+            offsets = model(patches)
+            result = float(loss_of(offsets)), float(losses.corner_error(offsets, truth).mean())
+        model.train()
+        return result
+
+    loss_before, error_before = measure()
+    for _ in range(300):
+        optimizer.zero_grad()
+        loss_of(model(patches)).backward()
+        optimizer.step()
+    loss_after, error_after = measure()
+    assert 3.5 < error_before < 5.5  # about the identity's 0.765 * rho
+    assert loss_after < 0.7 * loss_before
+    assert error_after < 0.7 * error_before
+
+
+def test_unsupervised_loss_is_zero_at_the_truth_and_grows_away_from_it(pool):
+    from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs
+
+    sources = load_sources(list_images(pool)[:3])
+    pairs = make_pairs(sources, 4, PairConfig(patch_size=64, rho=10, illumination=False), np.random.default_rng(1))
+    context, origin = torch.from_numpy(pairs.context_a), torch.from_numpy(pairs.origin)
+    clean_b, truth = torch.from_numpy(pairs.clean_b), torch.from_numpy(pairs.offsets)
+    at_truth = losses.photometric_loss(truth, context, origin, clean_b).item()
+    off_truth = losses.photometric_loss(truth + 3.0, context, origin, clean_b).item()
+    assert at_truth < 0.01  # bilinear resampling noise only
+    assert off_truth > 3 * at_truth
+
+
+def test_resume_after_kill_matches_an_uninterrupted_run(pool, tmp_path):
+    """SIGKILL a training process after its first checkpoint; --resume must end bit-identical."""
+    straight = tmp_path / "straight"
+    train(tiny_config(pool, straight, steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False)
+
+    killed = tmp_path / "killed"
+    script = (
+        "import sys; sys.path.insert(0, %r); from test_train import tiny_config; from pathlib import Path;"
+        "from udh_cli.train.loop import train;"
+        "import time, udh_cli.train.loop as loop;"
+        "original = loop.Trainer.save\n"
+        "def slow_save(self):\n    original(self); time.sleep(0.5 if self.step == 20 else 0)\n"
+        "loop.Trainer.save = slow_save\n"
+        "train(tiny_config(Path(%r), Path(%r), steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False)"
+    ) % (str(Path(__file__).parent), str(pool), str(killed))
+    process = subprocess.Popen([sys.executable, "-c", script], cwd=REPO)
+    deadline = time.time() + 120
+    while time.time() < deadline and not (killed / "checkpoint.pt").exists():
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    interrupted_at = load_checkpoint(killed / "checkpoint.pt")["step"]
+    assert 20 <= interrupted_at < 60
+
+    train(tiny_config(pool, killed, steps=60), resume=True, threads=1, progress=False)
+    a = load_checkpoint(straight / "checkpoint.pt")
+    b = load_checkpoint(killed / "checkpoint.pt")
+    assert a["step"] == b["step"] == 60
+    for name, tensor in a["model"].items():
+        assert torch.equal(tensor, b["model"][name]), name
+    assert [m["step"] for m in read_metrics(killed)] == [m["step"] for m in read_metrics(straight)]
+
+
+def test_nan_loss_stops_with_a_message_and_keeps_the_checkpoint(pool, tmp_path, monkeypatch):
+    config = tiny_config(pool, tmp_path, steps=40, eval_every=20, checkpoint_every=20)
+    trainer = Trainer(config, progress=False)
+    real_loss = trainer._loss
+    monkeypatch.setattr(trainer, "_loss", lambda t, o: real_loss(t, o) * (float("nan") if trainer.step >= 25 else 1.0))
+    with pytest.raises(UdhError, match="loss became nan"):
+        trainer.run()
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["step"] == 20
+
+
+def test_bad_training_input_is_reported(tmp_path, pool):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(UdhError, match="need at least"):
+        Trainer(tiny_config(empty, tmp_path / "a"), progress=False)
+    small = tmp_path / "small"
+    small.mkdir()
+    cv2.imwrite(str(small / "one.png"), textured_image(64, 48))
+    with pytest.raises(UdhError):
+        Trainer(tiny_config(small, tmp_path / "b"), progress=False)
+    with pytest.raises(UdhError, match="no checkpoint"):
+        Trainer(tiny_config(pool, tmp_path / "c"), resume=True, progress=False)
+    with pytest.raises(UdhError, match="unknown architecture"):
+        Trainer(tiny_config(pool, tmp_path / "d", arch="resnet"), progress=False)
+
+
+def test_foreign_and_corrupt_checkpoints_are_refused(tmp_path):
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(UdhError, match="not a readable"):
+        load_checkpoint(corrupt)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(UdhError, match="not a udh checkpoint"):
+        load_checkpoint(foreign)
+
+
+def test_torchrun_two_processes(pool, tmp_path):
+    """`udh train` runs unchanged under torchrun with 2 CPU processes (gloo)."""
+    out = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29533", "-m", "udh_cli",
+               "train", "--data", str(pool), "--out", str(out), "--steps", "6", "--batch", "4", "--eval-every", "3", "--rho", "16"]
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    state = load_checkpoint(out / "checkpoint.pt")
+    assert state["step"] == 6
+    assert len(state["rng_states"]) == 2  # each process's data stream is saved for an exact resume
+    assert [m["step"] for m in read_metrics(out)] == [0, 3, 6]

@@ -1,0 +1,120 @@
+"""Beyond the paper: a network's estimate, refined photometrically and verified, with a fallback.
+
+* ``unsupervised+ecc``: the unsupervised network (several rounds), then coarse-to-fine ECC
+  (:class:`udh_cli.refine.PyramidEcc`), scored by the NCC of the aligned images.
+* ``auto``: the same, and when the score is below ``min_score`` it also runs ``fallback`` (SIFT, refined
+  the same way) and keeps whichever answer verifies better.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import ClassVar, Sequence
+
+import cv2
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.errors import EstimationFailed
+from udh_cli.estimators.base import Estimate, Estimator
+from udh_cli.estimators.registry import create_estimator
+from udh_cli.images import to_gray_float
+from udh_cli.refine import PyramidEcc
+from udh_cli.verify import alignment_ncc
+
+VERIFY_SIDE = 256  # longer side (px) of the images the NCC score is computed on
+
+
+def verification_score(image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.ndarray | None) -> float:
+    """NCC of B and the aligned A at a small working size: in [0, 1], 0 for no or a degenerate estimate."""
+    if b_from_a is None:
+        return 0.0
+    gray_a, gray_b = to_gray_float(image_a), to_gray_float(image_b)
+    size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
+    scale = min(1.0, VERIFY_SIDE / max(*size_a, *size_b))
+    work_a = (max(8, round(size_a[0] * scale)), max(8, round(size_a[1] * scale)))
+    work_b = (max(8, round(size_b[0] * scale)), max(8, round(size_b[1] * scale)))
+    small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
+    small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
+    h = geometry.rescale_homography(b_from_a, size_a, work_a, size_b, work_b)
+    return max(0.0, alignment_ncc(small_a, small_b, h))
+
+
+@dataclass
+class RefinedEstimator(Estimator):
+    """Network + photometric refinement + verification.
+
+    Attributes:
+        initial: the registry name of the first estimator (the unsupervised network by default).
+        model: ONNX path for a learned ``initial``; None takes the shipped model.
+        device: onnxruntime device for a learned ``initial``.
+        network_iterations: rounds of the network (each predicts the residual of the last).
+        refiner: the ECC pyramid and its iteration budget.
+        fallback: registry name tried when the score is below ``min_score`` (None: never).
+        min_score: the verification NCC below which an answer is doubted.
+    """
+
+    name: ClassVar[str] = "unsupervised+ecc"
+    initial: str = "unsupervised"
+    model: str | None = None
+    device: str = "auto"
+    network_iterations: int = 2
+    refiner: PyramidEcc = field(default_factory=PyramidEcc)
+    fallback: str | None = None
+    min_score: float = 0.5
+    _first: Estimator = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        options = {}
+        if self.initial in ("unsupervised", "supervised"):
+            options = {"model": self.model, "device": self.device, "iterations": self.network_iterations}
+        self._first = create_estimator(self.initial, **options)
+        self._fallback = create_estimator(self.fallback) if self.fallback else None
+
+    def _refine_and_score(self, image_a, image_b, start: Estimate) -> tuple[np.ndarray | None, float, dict]:
+        if not start.ok:
+            return None, 0.0, {"start_failure": start.failure}
+        details = {"start_method": start.method}
+        try:
+            refined, correlation = self.refiner.refine(image_a, image_b, start.homography)
+            if not geometry.is_valid_homography(refined, image_a.shape[1], image_a.shape[0]):
+                raise EstimationFailed("refinement left a degenerate homography")
+            details["ecc_correlation"] = correlation
+        except EstimationFailed as exc:
+            refined = start.homography  # keep the unrefined answer; verification judges it
+            details["refine_failure"] = str(exc)
+        return refined, verification_score(image_a, image_b, refined), details
+
+    def estimate_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
+        if not pairs:
+            return []
+        started = time.perf_counter()
+        first = self._first.estimate_many(pairs)
+        first_ms = (time.perf_counter() - started) * 1e3 / len(pairs)
+        return [self._finish(a, b, start, first_ms) for (a, b), start in zip(pairs, first)]
+
+    def estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> Estimate:
+        return self.estimate_many([(image_a, image_b)])[0]
+
+    def _finish(self, image_a, image_b, start: Estimate, first_ms: float) -> Estimate:
+        started = time.perf_counter()
+        homography, score, details = self._refine_and_score(image_a, image_b, start)
+        details["score"] = score
+        if self._fallback is not None and score < self.min_score:
+            alternative, alt_score, alt_details = self._refine_and_score(image_a, image_b, self._fallback.estimate(image_a, image_b))
+            details["fallback"] = {"method": self._fallback.name, "score": alt_score, **alt_details}
+            if alt_score > score:
+                homography, score = alternative, alt_score
+                details["used"] = self._fallback.name
+        failure = None if homography is not None else (start.failure or "no estimate")
+        elapsed = first_ms + (time.perf_counter() - started) * 1e3
+        return self._checked(homography, score, elapsed, failure, details, image_a.shape)
+
+
+@dataclass
+class AutoEstimator(RefinedEstimator):
+    """The verified combination: network + ECC, and SIFT (+ ECC) when the result does not verify."""
+
+    name: ClassVar[str] = "auto"
+    fallback: str | None = "sift"

@@ -1,0 +1,63 @@
+"""Photometric refinement: coarse-to-fine ECC from an initial homography, on a bounded budget.
+
+ECC maximises the correlation coefficient, so it is invariant to gain and bias between the images.
+It is precise near the answer and diverges far from it; a network's estimate gives it that start.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.errors import EstimationFailed
+from udh_cli.estimators.ecc import EccEstimator
+from udh_cli.images import to_gray_float
+
+
+@dataclass
+class PyramidEcc:
+    """Refine ``b_from_a`` with ECC over an image pyramid.
+
+    Attributes:
+        work_side: the longer side (pixels) of the finest level; larger images are downscaled first,
+            and the result is rescaled exactly to the originals.
+        levels: pyramid levels, each half the size of the next.
+        iterations: ECC iterations per level, coarsest first (a bounded budget).
+        eps: ECC's convergence threshold.
+    """
+
+    work_side: int = 320
+    levels: int = 3
+    iterations: tuple[int, ...] = (40, 30, 20)
+    eps: float = 1e-5
+
+    def refine(self, image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.ndarray) -> tuple[np.ndarray, float]:
+        """Returns the refined ``b_from_a`` (pixels of the given images) and the final correlation.
+
+        Raises :class:`EstimationFailed` when ECC diverges at the finest level.
+        """
+        gray_a, gray_b = to_gray_float(image_a), to_gray_float(image_b)
+        size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
+        scale = min(1.0, self.work_side / max(*size_a, *size_b))
+        current = np.asarray(b_from_a, dtype=np.float64)
+        correlation = float("nan")
+        budgets = list(self.iterations)[-self.levels :]
+        for level, budget in zip(range(self.levels - 1, -1, -1), budgets):
+            s = scale / (2**level)
+            work_a = (max(8, round(size_a[0] * s)), max(8, round(size_a[1] * s)))
+            work_b = (max(8, round(size_b[0] * s)), max(8, round(size_b[1] * s)))
+            small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
+            small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
+            start = geometry.rescale_homography(current, size_a, work_a, size_b, work_b)
+            ecc = EccEstimator(iterations=budget, eps=self.eps, gauss_filt_size=3, min_correlation=0.0)
+            try:
+                refined, correlation, _ = ecc.refine(small_a, small_b, start)
+            except EstimationFailed:
+                if level == 0:
+                    raise
+                continue  # a coarse level may lack texture; the finer ones still get their chance
+            current = geometry.rescale_homography(refined, work_a, size_a, work_b, size_b)
+        return current, correlation

@@ -116,3 +116,10 @@ def test_video_input_and_undecodable_video(flight, tmp_path, monkeypatch, capfd)
     code, _, err = run_main(monkeypatch, capfd, "mosaic", str(bad), "-o", str(tmp_path / "b.png"), *FAST)
     assert code == 1 and "cannot open this as a video" in err
     assert not (tmp_path / "b.png").exists() and not (tmp_path / "b.json").exists()
+
+
+@pytest.mark.parametrize(("option", "message"), [(["--blend", "smooth"], "unknown blend 'smooth'"), (["--method", "nope"], "unknown method 'nope'"), (["--work-size", "0"], "--work-size 0")])
+def test_bad_options_fail_before_any_work(option, message, flight, tmp_path, monkeypatch, capfd):
+    code, _, err = run_main(monkeypatch, capfd, "mosaic", str(flight), "-o", str(tmp_path / "m.png"), *option, *FAST)
+    assert code == 1 and message in err
+    assert list(tmp_path.iterdir()) == []

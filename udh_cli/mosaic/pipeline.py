@@ -19,7 +19,7 @@ from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimator, create_estimator
 from udh_cli.images import atomic_write_bytes, write_image
 from udh_cli.mosaic import composite as compositing
-from udh_cli.mosaic.frames import FrameSet, open_frames
+from udh_cli.mosaic.frames import ORDERS, FrameSet, open_frames
 from udh_cli.mosaic.gains import solve_gains
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
 from udh_cli.mosaic.pairwise import PairRequest, PairResult, corner_disagreement_px, estimate_pairs
@@ -124,6 +124,22 @@ def check_output(output: Path) -> None:
         raise UdhError(f"{output}: is a folder; give a file name such as mosaic.png")
 
 
+def check_config(config: MosaicConfig) -> None:
+    """Fail before any work on a setting that could only fail later (a typo in --blend, a zero size)."""
+    if config.blend not in compositing.BLENDS:
+        raise UdhError(f"unknown blend '{config.blend}'; choose one of: {', '.join(compositing.BLENDS)}")
+    if config.order not in ORDERS:
+        raise UdhError(f"unknown order '{config.order}'; choose one of: {', '.join(ORDERS)}")
+    if config.work_size < 32:
+        raise UdhError(f"--work-size {config.work_size}: give at least 32 pixels")
+    if config.max_size is not None and config.max_size < 16:
+        raise UdhError(f"--max-size {config.max_size}: give at least 16 pixels")
+    if not 0.0 <= config.min_confidence <= 1.0:
+        raise UdhError(f"--min-confidence {config.min_confidence}: give a value in [0, 1]")
+    if config.every < 1 or config.overlap_per_frame < 0:
+        raise UdhError("--every must be at least 1 and --overlap-pairs at least 0")
+
+
 def run_mosaic(
     source: str | Path,
     output: str | Path,
@@ -142,6 +158,7 @@ def run_mosaic(
     reporter = reporter or Reporter(quiet=True)
     source, output = Path(source), Path(output)
     check_output(output)
+    check_config(config)
     started = time.perf_counter()
     truth = _load_truth(source, ground_truth)
     estimator = estimator or create_estimator(config.method)

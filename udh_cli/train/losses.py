@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 from udh_cli import geometry
 
 
-def warp_context(offsets: torch.Tensor, context_a: torch.Tensor, origin: torch.Tensor, patch_size: int) -> torch.Tensor:
+def _shift(origin: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """(N, 3, 3) translations by ``origin`` (N, 2) pixels."""
+    shift = torch.eye(3, dtype=like.dtype, device=like.device).repeat(len(origin), 1, 1)
+    shift[:, :2, 2] = origin.to(like.dtype)
+    return shift
+
+
+def warp_context(offsets: torch.Tensor, context_a: torch.Tensor, origin: torch.Tensor, patch_size: int, scale: int = 1) -> torch.Tensor:
     """Render A in B's patch frame with the predicted homography: the spatial-transformer layer.
 
     Args:
@@ -16,31 +24,50 @@ def warp_context(offsets: torch.Tensor, context_a: torch.Tensor, origin: torch.T
         context_a: (N, C, H, W) A's full frame (and any extra channels, e.g. a validity mask).
         origin: (N, 2) where the patch's top-left pixel sits in ``context_a``, pixels (x, y).
         patch_size: P.
+        scale: render at 1/scale resolution from a box-downsampled context (``avg_pool2d`` with stride
+            ``scale`` keeps pixel centres where the resize convention of :mod:`udh_cli.geometry` puts them).
 
     Returns:
-        (N, C, P, P): ``context_a`` sampled at ``a_from_b(y) + origin`` for every pixel ``y`` of B's patch.
+        (N, C, P/scale, P/scale): ``context_a`` sampled at ``a_from_b(y) + origin`` for every pixel ``y`` of B.
     """
     corners = geometry.image_corners(patch_size, patch_size, like=offsets)
     # Tensor DLT with the correspondences swapped gives a_from_b directly, without inverting a matrix.
     a_from_b = geometry.homography_from_points(corners + offsets, corners.expand_as(offsets))  # N, 3, 3
-    shift = torch.eye(3, dtype=offsets.dtype, device=offsets.device).repeat(len(offsets), 1, 1)
-    shift[:, :2, 2] = origin
-    context_from_b = shift @ a_from_b
+    context_from_b = _shift(origin, a_from_b) @ a_from_b
     height, width = context_a.shape[-2:]
-    grid = geometry.sampling_grid(context_from_b, (width, height), (patch_size, patch_size))  # N, P, P, 2
+    size_b, size_context = (patch_size, patch_size), (width, height)
+    if scale > 1:
+        context_a = F.avg_pool2d(context_a, scale)
+        small_b = (patch_size // scale, patch_size // scale)
+        small_context = (context_a.shape[-1], context_a.shape[-2])
+        to_small_context = torch.as_tensor(geometry.resize_matrix(size_context, small_context), dtype=offsets.dtype)
+        from_small_b = torch.as_tensor(np.linalg.inv(geometry.resize_matrix(size_b, small_b)), dtype=offsets.dtype)
+        context_from_b = to_small_context @ context_from_b @ from_small_b
+        size_b, size_context = small_b, small_context
+    grid = geometry.sampling_grid(context_from_b, size_context, size_b)  # N, h_b, w_b, 2
     return F.grid_sample(context_a, grid.to(context_a.dtype), mode="bilinear", padding_mode="zeros", align_corners=False)
 
 
-def photometric_loss(offsets: torch.Tensor, context_a: torch.Tensor, origin: torch.Tensor, clean_b: torch.Tensor) -> torch.Tensor:
-    """The paper's unsupervised loss: mean L1 between warped A and B over the valid pixels.
+PHOTOMETRIC_SCALES = (1, 2, 4, 8)
+
+
+def photometric_loss(offsets: torch.Tensor, context_a: torch.Tensor, origin: torch.Tensor, clean_b: torch.Tensor,
+                     scales: tuple[int, ...] = PHOTOMETRIC_SCALES) -> torch.Tensor:
+    """The paper's unsupervised loss, over a pyramid: mean L1 between warped A and B over valid pixels.
 
     ``context_a`` is (N, 2, H, W): the image in A's frame and its validity mask (1 where real pixels).
     ``clean_b`` is (N, P, P). Pixels whose sample falls outside A's real pixels do not count.
+    The paper uses full resolution only (``scales=(1,)``). The coarser levels widen the basin of the
+    L1 error, so large displacements get a useful gradient from the first step; level 1 keeps it precise.
     """
-    warped = warp_context(offsets, context_a, origin, clean_b.shape[-1])
-    valid = (warped[:, 1] > 0.999).to(clean_b.dtype).detach()
-    error = (warped[:, 0] - clean_b).abs() * valid
-    return error.sum() / valid.sum().clamp_min(1.0)
+    total = clean_b.new_zeros(())
+    for scale in scales:
+        warped = warp_context(offsets, context_a, origin, clean_b.shape[-1], scale)
+        target = clean_b if scale == 1 else F.avg_pool2d(clean_b[:, None], scale)[:, 0]
+        valid = (warped[:, 1] > 0.999).to(clean_b.dtype).detach()
+        error = (warped[:, 0] - target).abs() * valid
+        total = total + error.sum() / valid.sum().clamp_min(1.0)
+    return total / len(scales)
 
 
 def supervised_loss(offsets: torch.Tensor, true_offsets: torch.Tensor) -> torch.Tensor:

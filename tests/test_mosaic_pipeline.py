@@ -138,3 +138,27 @@ def test_compositing_memory_is_the_canvas_plus_one_frame(small_flight, blend):
     assert out.shape == (300, size[0], 4) and out[..., 3].mean() > 100
     frame_bytes = 320 * 240 * 3 * 4  # one frame as float32 colour
     assert peak < BYTES_PER_PIXEL[blend] * size[0] * size[1] + 12 * frame_bytes
+
+
+@pytest.mark.parametrize("blend", ["feather", "multiband", "none"])
+def test_every_blend_reproduces_the_ground_with_true_homographies(small_flight, blend):
+    from udh_cli.simulate import simulate_flight
+
+    frames = open_frames(small_flight, 800)
+    truth = load_ground_truth(small_flight / "ground_truth.json")
+    ground = simulate_flight(SMALL, seed=4)[1]
+    to_ground = {f.index: truth["ground_from_frame"][f.name] for f in frames.frames}
+    size = (ground.shape[1], ground.shape[0])
+    out = composite(frames, to_ground, size, np.ones(len(frames.frames)), blend, Reporter(quiet=True))
+    covered = cv2.erode(out[..., 3], np.ones((9, 9), np.uint8)) > 0
+    assert covered.mean() > 0.3
+    mosaic_grey = cv2.cvtColor(out[..., :3], cv2.COLOR_BGR2GRAY)[covered].astype(np.float32)
+    ground_grey = cv2.cvtColor(ground, cv2.COLOR_BGR2GRAY)[covered].astype(np.float32)
+    assert np.corrcoef(mosaic_grey, ground_grey)[0, 1] > 0.9
+    # The alpha channel is exactly the union of the frames' footprints (up to a pixel of edge).
+    union = np.zeros(out.shape[:2], np.uint8)
+    for f in frames.frames:
+        union |= cv2.warpPerspective(np.full((f.size[1], f.size[0]), 255, np.uint8), to_ground[f.index], size, flags=cv2.INTER_NEAREST)
+    kernel = np.ones((5, 5), np.uint8)
+    assert (out[..., 3][cv2.erode(union, kernel) > 0] == 255).all()
+    assert (out[..., 3][cv2.dilate(union, kernel) == 0] == 0).all()

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 
 from udh_cli import geometry
 from udh_cli.simulate import FlightConfig, load_ground_truth, make_ground, simulate_flight, write_flight

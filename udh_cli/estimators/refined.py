@@ -62,7 +62,7 @@ class RefinedEstimator(Estimator):
     network_iterations: int = 2
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     fallback: str | None = None
-    min_score: float = 0.5
+    min_score: float = 0.7
     _first: Estimator = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

@@ -1,0 +1,111 @@
+"""Learned estimators on onnxruntime: export parity, estimator geometry, bad model files, shipped models."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import textured_image, warped_pair
+from udh_cli import geometry
+from udh_cli.errors import UdhError
+from udh_cli.estimators import create_estimator
+from udh_cli.models_catalog import SHIPPED_MODELS, models_dir
+
+
+@pytest.fixture(scope="module")
+def tiny_onnx(tmp_path_factory) -> Path:
+    """An untrained 32-pixel network, saved as a checkpoint and exported like a real one."""
+    torch = pytest.importorskip("torch")
+    from udh_cli.train.archs import create_model
+    from udh_cli.train.checkpoint import save_checkpoint
+    from udh_cli.train.export import export_onnx
+    from udh_cli.train.loop import TrainConfig
+    from dataclasses import asdict
+
+    folder = tmp_path_factory.mktemp("tiny")
+    torch.manual_seed(0)
+    model = create_model("corr", 32)
+    config = asdict(TrainConfig(patch_size=32, data=["synthetic"], rho=8.0))
+    save_checkpoint(folder / "tiny.pt", {"model": model.state_dict(), "config": config, "step": 0,
+                                        "normalization": {"mean": 0.5, "std": 0.25}})
+    real = np.stack([textured_image(32, 32, seed=1), textured_image(32, 32, seed=2)])[None].astype(np.float32) / 255
+    result = export_onnx(folder / "tiny.pt", folder / "tiny.onnx", check_inputs=real)
+    assert result["max_abs_diff"] < 1e-4
+    assert result["metadata"]["input_size"] == "32" and result["metadata"]["arch"] == "corr"
+    return folder / "tiny.onnx"
+
+
+def test_estimate_and_batch_agree_and_return_full_resolution_pixels(tiny_onnx):
+    estimator = create_estimator("unsupervised", model=str(tiny_onnx), device="cpu")
+    a = textured_image(400, 300, seed=3)
+    b = textured_image(320, 240, seed=4)
+    single = estimator.estimate(a, b)
+    batch = estimator.estimate_many([(a, b), (b, a)])
+    np.testing.assert_allclose(single.homography, batch[0].homography, atol=1e-9)
+    # The network works on 32x32 versions; the answer must be that estimate rescaled exactly.
+    small = estimator.predict_small(estimator._small(a)[None], estimator._small(b)[None])[0]
+    expected = geometry.rescale_homography(small, (32, 32), (400, 300), (32, 32), (320, 240))
+    np.testing.assert_allclose(single.homography, expected / expected[2, 2], atol=1e-9)
+    assert 0.0 <= single.confidence <= 1.0 and single.elapsed_ms > 0
+
+
+def test_iterations_compose_residuals(tiny_onnx):
+    one = create_estimator("unsupervised", model=str(tiny_onnx), device="cpu", iterations=1)
+    two = create_estimator("unsupervised", model=str(tiny_onnx), device="cpu", iterations=2)
+    a, b = textured_image(64, 64, seed=5), textured_image(64, 64, seed=6)
+    assert not np.allclose(one.estimate(a, b).homography, two.estimate(a, b).homography)
+
+
+def test_bad_model_files_are_refused(tmp_path, tiny_onnx):
+    text = tmp_path / "model.onnx"
+    text.write_text("not a model")
+    with pytest.raises(UdhError, match="not a loadable ONNX"):
+        create_estimator("unsupervised", model=str(text))
+    with pytest.raises(UdhError, match="no such model"):
+        create_estimator("unsupervised", model=str(tmp_path / "missing.onnx"))
+    onnx = pytest.importorskip("onnx")
+    proto = onnx.load(str(tiny_onnx))
+    del proto.metadata_props[:]
+    foreign = tmp_path / "foreign.onnx"
+    foreign.write_bytes(proto.SerializeToString())
+    with pytest.raises(UdhError, match="without udh metadata"):
+        create_estimator("unsupervised", model=str(foreign))
+    proto = onnx.load(str(tiny_onnx))
+    for entry in proto.metadata_props:
+        if entry.key == "input_size":
+            entry.value = "64"
+    mismatched = tmp_path / "mismatched.onnx"
+    mismatched.write_bytes(proto.SerializeToString())
+    with pytest.raises(UdhError, match="do not fit its metadata"):
+        create_estimator("unsupervised", model=str(mismatched))
+
+
+def test_cuda_request_without_cuda_is_a_clear_error(tiny_onnx):
+    import onnxruntime
+
+    if "CUDAExecutionProvider" in onnxruntime.get_available_providers():
+        pytest.skip("this machine has CUDA")
+    with pytest.raises(UdhError, match="no CUDA provider"):
+        create_estimator("unsupervised", model=str(tiny_onnx), device="cuda")
+
+
+@pytest.mark.parametrize("name", list(SHIPPED_MODELS))
+def test_shipped_model_recovers_a_pair_it_never_saw(name):
+    """The shipped networks on a test-made textured pair with corners moved by up to 12 px at 128x128."""
+    if not (models_dir() / f"{SHIPPED_MODELS[name]}.onnx").is_file():
+        pytest.skip(f"shipped {name} model not built yet")
+    rng = np.random.default_rng(7)
+    errors = []
+    identity_errors = []
+    for seed in range(6):
+        offsets_small = rng.uniform(-12, 12, (4, 2))
+        small = geometry.homography_from_offsets(offsets_small, 128, 128)
+        truth = geometry.rescale_homography(small, (128, 128), (320, 240))
+        a, b = warped_pair(truth, 320, 240, seed=seed)
+        estimate = create_estimator(name, device="cpu").estimate(a, b)
+        assert estimate.ok
+        errors.append(geometry.mace(estimate.homography, truth, 320, 240))
+        identity_errors.append(geometry.mace(np.eye(3), truth, 320, 240))
+    assert np.median(errors) < 0.5 * np.median(identity_errors)

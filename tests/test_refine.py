@@ -1,0 +1,82 @@
+"""Photometric refinement, verification scores, and the auto method's fallback."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import pytest
+
+from conftest import warped_pair
+from udh_cli import geometry
+from udh_cli.errors import EstimationFailed
+from udh_cli.estimators.base import Estimator
+from udh_cli.estimators.refined import AutoEstimator, RefinedEstimator, verification_score
+from udh_cli.refine import PyramidEcc
+
+
+def known_pair(seed: int, spread: float = 10.0):
+    rng = np.random.default_rng(seed)
+    truth = geometry.homography_from_offsets(rng.uniform(-spread, spread, (4, 2)), 320, 240)
+    a, b = warped_pair(truth, 320, 240, seed=seed)
+    return a, b, truth
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_refinement_improves_a_perturbed_estimate(seed):
+    a, b, truth = known_pair(seed)
+    rng = np.random.default_rng(100 + seed)
+    start = geometry.homography_from_points(geometry.image_corners(320, 240),
+                                            geometry.transform_points(truth, geometry.image_corners(320, 240)) + rng.uniform(-6, 6, (4, 2)))
+    refined, correlation = PyramidEcc().refine(a, b, start)
+    assert geometry.mace(start, truth, 320, 240) > 2.0
+    assert geometry.mace(refined, truth, 320, 240) < 0.3
+    assert correlation > 0.9
+
+
+def test_verification_score_separates_right_from_wrong():
+    right, wrong = [], []
+    for seed in range(8):
+        a, b, truth = known_pair(seed)
+        right.append(verification_score(a, b, truth))
+        off = geometry.homography_from_offsets(np.random.default_rng(seed).uniform(-25, 25, (4, 2)), 320, 240) @ truth
+        wrong.append(verification_score(a, b, off))
+    assert min(right) > 0.9
+    assert max(wrong) < 0.7  # the auto method doubts answers below min_score = 0.7
+    assert verification_score(a, b, None) == 0.0
+
+
+@dataclass
+class AlwaysFails(Estimator):
+    name: ClassVar[str] = "always-fails"
+
+    def _estimate(self, image_a, image_b):
+        raise EstimationFailed("made to fail")
+
+
+def test_auto_falls_back_when_the_first_estimate_fails():
+    a, b, truth = known_pair(3)
+    auto = AutoEstimator(initial="identity")
+    auto._first = AlwaysFails()
+    estimate = auto.estimate(a, b)
+    assert estimate.ok and estimate.details["used"] == "sift"
+    assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
+
+
+def test_auto_keeps_a_verified_answer_and_refined_alone_does_not_fall_back():
+    a, b, truth = known_pair(5, spread=3.0)
+    auto = AutoEstimator(initial="identity")  # identity + ECC converges for a 3 px motion
+    estimate = auto.estimate(a, b)
+    assert "fallback" not in estimate.details
+    assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
+    plain = RefinedEstimator(initial="identity")
+    plain._first = AlwaysFails()
+    failed = plain.estimate(a, b)
+    assert not failed.ok and failed.confidence == 0.0
+
+
+def test_textureless_images_give_no_confident_answer():
+    flat = np.full((240, 320), 128, np.uint8)
+    estimate = AutoEstimator(initial="identity").estimate(flat, flat)
+    assert estimate.confidence == 0.0

@@ -164,6 +164,7 @@ def mosaic(
     output: Annotated[Path, typer.Option("--output", "-o", help="Mosaic image (.png or .tif keep the alpha channel). Split runs write NAME.partK.png.")] = Path("mosaic.png"),
     method: Annotated[str, typer.Option("--method", "-m", help="Any registered estimator: sift, orb, ecc, ... and the learned methods.")] = _MOSAIC.method,
     fallback: Annotated[Optional[str], typer.Option("--fallback", help="Method for the pairs --method fails or doubts (e.g. sift).")] = _MOSAIC.fallback,
+    method_option: Annotated[Optional[list[str]], typer.Option("--method-option", "-O", help="KEY=VALUE option for --method, repeatable (e.g. model=my.onnx); VALUE is read as JSON when it parses.")] = None,
     work_size: Annotated[int, typer.Option("--work-size", help="Longest side, pixels, of the copies the estimators see; homographies are rescaled exactly.")] = _MOSAIC.work_size,
     order: Annotated[str, typer.Option("--order", help="Frame order in a folder: name or time (EXIF capture time).")] = _MOSAIC.order,
     every: Annotated[int, typer.Option("--every", help="Video: keep every N-th frame.")] = _MOSAIC.every,
@@ -179,12 +180,26 @@ def mosaic(
     from udh_cli.mosaic import Reporter, run_mosaic
 
     config = _MosaicConfig(
-        method=method, fallback=fallback, work_size=work_size, order=order, every=every, min_confidence=min_confidence,
+        method=method, fallback=fallback, method_options=_key_values(method_option or []), work_size=work_size, order=order, every=every, min_confidence=min_confidence,
         blend=blend, max_size=max_size, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
     report = run_mosaic(source, output, config, reporter, ground_truth=gt)
     _print_mosaic(report)
+
+
+def _key_values(items: list[str]) -> dict:
+    """["k=v", ...] -> {k: v}, with v parsed as JSON when it parses (numbers, booleans), else kept as text."""
+    options = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise UdhError(f"--method-option '{item}': write KEY=VALUE, e.g. model=my.onnx")
+        try:
+            options[key] = json.loads(value)
+        except ValueError:
+            options[key] = value
+    return options
 
 
 def _print_mosaic(report: dict) -> None:

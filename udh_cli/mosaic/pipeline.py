@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +42,7 @@ class MosaicConfig:
     Attributes:
         method: registered estimator name for every pair.
         fallback: registered estimator name for pairs ``method`` fails or doubts; ``None`` for none.
+        method_options: keyword options for ``create_estimator(method, ...)``, e.g. ``{"model": "x.onnx"}``.
         work_size: longest side, pixels, of the copies the estimators see.
         order: frame order in a folder: ``"name"`` or ``"time"`` (EXIF capture time).
         every: for a video, keep every N-th frame.
@@ -64,6 +65,7 @@ class MosaicConfig:
 
     method: str = DEFAULT_METHOD
     fallback: str | None = None
+    method_options: dict[str, Any] = field(default_factory=dict)
     work_size: int = 800
     order: str = "name"
     every: int = 1
@@ -161,7 +163,7 @@ def run_mosaic(
     check_config(config)
     started = time.perf_counter()
     truth = _load_truth(source, ground_truth)
-    estimator = estimator or create_estimator(config.method)
+    estimator = estimator or create_estimator(config.method, **config.method_options)
     fallback = fallback or (create_estimator(config.fallback) if config.fallback else None)
 
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter)

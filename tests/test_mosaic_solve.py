@@ -7,7 +7,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates
 from udh_cli.mosaic.pairwise import PairResult
-from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_part
+from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_part, solve_with_rejection
 
 SIZE = (320, 240)
 
@@ -75,3 +75,27 @@ def test_exact_pairs_give_the_exact_solution_from_any_reference():
     solved = solve_part(4, start, sizes, [pair_points(p, SIZE, SIZE) for p in pairs])
     assert _max_error(solved, truth_4) < 1e-3
     np.testing.assert_allclose(solved[4], np.eye(3), atol=1e-12)
+
+
+def test_a_wrong_loop_closure_is_found_and_dropped():
+    truth = _truth()
+    sizes = [SIZE] * len(truth)
+    rng = np.random.default_rng(1)
+    noise = lambda: geometry.homography_from_offsets(rng.normal(0, 0.15, (4, 2)), *SIZE)  # noqa: E731 - honest 0.15 px errors
+    pairs = [_pair(truth, i, i + 1, "consecutive", noise()) for i in range(len(truth) - 1)]
+    pairs += [_pair(truth, a, b, "overlap", noise()) for a, b in ((1, 8), (2, 7), (0, 2), (5, 7))]
+    wrong = len(pairs)
+    pairs.append(_pair(truth, 3, 6, "overlap", geometry.translation(30.0, -20.0)))  # matched the wrong place
+    chained, _ = chain_to_reference(list(range(len(truth))), 4, pairs)
+    points = [pair_points(p, SIZE, SIZE) for p in pairs]
+    truth_4 = {i: (geometry.invert(truth[4]) @ h) / (geometry.invert(truth[4]) @ h)[2, 2] for i, h in truth.items()}
+    # Huber alone lets the wrong pair bend the chain by many pixels...
+    assert _max_error(solve_part(4, chained, sizes, points), truth_4) > 10
+    # ...the rejection step finds it, and only it, and the rest solves to sub-pixel accuracy.
+    solved, dropped = solve_with_rejection(4, chained, sizes, points, [p.kind == "overlap" for p in pairs])
+    assert list(dropped) == [wrong]
+    assert _max_error(solved, truth_4) < 1.0
+    # With honest pairs only, nothing is dropped.
+    honest = points[:wrong]
+    _, none_dropped = solve_with_rejection(4, chained, sizes, honest, [p.kind == "overlap" for p in pairs[:wrong]])
+    assert none_dropped == {}

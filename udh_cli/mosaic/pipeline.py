@@ -24,7 +24,7 @@ from udh_cli.mosaic.gains import solve_gains
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
 from udh_cli.mosaic.pairwise import PairRequest, PairResult, corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
-from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_part, summarise
+from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_with_rejection, summarise
 from udh_cli.mosaic.truth import corner_errors_vs_truth, summarise_truth
 from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
 
@@ -53,8 +53,8 @@ class MosaicConfig:
         max_disagreement: a loop-closure estimate is rejected when it moves the corners more than this
             share of the frame diagonal away from the chained prediction (a wrong match, not drift).
         huber_px: the global solve counts residuals beyond this (reference pixels) linearly.
-        outlier_px: after the solve, a loop-closure pair whose residual exceeds this and 3x the median is
-            rejected and the solve is run again without it.
+        outlier_px: after the solve, pairs whose residual exceeds this and 3x the median are strained; the
+            loop-closure pair whose removal relieves them most is rejected (see ``solve_with_rejection``).
         blend: ``"feather"``, ``"multiband"`` or ``"none"``.
         gain_compensation: equalise exposure between frames.
         max_size: longest side of the mosaic in pixels; larger canvases are downscaled. ``None``: full size.
@@ -260,19 +260,15 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
             members = set(part.frames)
             inside = [p for p in pairs if p.ok and p.a in members and p.b in members]
             points = [pair_points(p, sizes[p.a], sizes[p.b]) for p in inside]
-            part.solved = solve_part(part.reference, part.chained, sizes, points, config.huber_px)
-            # A loop-closure pair far off the joint solution is a wrong or parallax-ridden match: drop it, solve again.
-            residuals = [pair_rms_px(part.solved, pts) for pts in points]
-            limit = max(config.outlier_px, 3.0 * float(np.median(residuals))) if residuals else 0.0
-            outliers = [i for i, (p, r) in enumerate(zip(inside, residuals)) if p.kind == "overlap" and r > limit]
-            if outliers:
-                for i in outliers:
-                    inside[i].consistency_px = {"before": pair_rms_px(part.chained, points[i]), "after": residuals[i], "loop": True}
-                    inside[i].status, inside[i].b_from_a = "rejected", None
-                    inside[i].reason = f"{residuals[i]:.1f} px from the joint solution (limit {limit:.1f} px)"
-                inside = [p for i, p in enumerate(inside) if i not in outliers]
-                points = [p for i, p in enumerate(points) if i not in outliers]
-                part.solved = solve_part(part.reference, part.chained, sizes, points, config.huber_px)
+            part.solved, dropped = solve_with_rejection(
+                part.reference, part.chained, sizes, points, [p.kind == "overlap" for p in inside], config.huber_px, config.outlier_px
+            )
+            for i, residual in dropped.items():  # loop pairs the other pairs contradict
+                inside[i].consistency_px = {"before": pair_rms_px(part.chained, points[i]), "after": residual, "loop": True}
+                inside[i].status, inside[i].b_from_a = "rejected", None
+                inside[i].reason = f"contradicted by the other pairs: {residual:.1f} px from the joint solution, which improved without it"
+            inside = [p for i, p in enumerate(inside) if i not in dropped]
+            points = [p for i, p in enumerate(points) if i not in dropped]
             for pair, pts in zip(inside, points):
                 before, after = pair_rms_px(part.chained, pts), pair_rms_px(part.solved, pts)
                 pair.consistency_px = {"before": before, "after": after, "loop": id(pair) not in part.tree}

@@ -177,6 +177,57 @@ def solve_part(
     return out
 
 
+def solve_with_rejection(
+    reference: int,
+    initial: dict[int, np.ndarray],
+    sizes: Sequence[tuple[int, int]],
+    points: Sequence[PairPoints],
+    removable: Sequence[bool],
+    huber_px: float = 2.0,
+    outlier_px: float = 5.0,
+    max_rounds: int = 3,
+    max_candidates: int = 12,
+) -> tuple[dict[int, np.ndarray], dict[int, float]]:
+    """:func:`solve_part`, then find and drop the loop-closure pairs that the other pairs contradict.
+
+    A pair is strained when its residual after the solve exceeds ``outlier_px`` and 3x the median. The Huber
+    loss alone cannot always tell a wrong loop pair from the chain it bends: the chain then carries the error.
+    So, while pairs are strained, each ``removable`` (loop-closure) pair that spans a strained one in the
+    sequence is left out in turn, the solve is re-run from the current solution, and the pair whose absence
+    lowers the others' squared residuals the most is dropped, if that at least halves them.
+
+    Returns the solution and ``{index into points: residual px}`` of the dropped pairs.
+    """
+    active = list(range(len(points)))
+    dropped: dict[int, float] = {}
+    solved = solve_part(reference, initial, sizes, points, huber_px)
+    for _ in range(max_rounds):
+        residuals = {i: pair_rms_px(solved, points[i]) for i in active}
+        if not residuals:
+            break
+        limit = max(outlier_px, 3.0 * float(np.median(list(residuals.values()))))
+        strained = [i for i in active if residuals[i] > limit]
+        if not strained:
+            break
+        spans = [(min(points[i].a, points[i].b), max(points[i].a, points[i].b)) for i in strained]
+        candidates = [i for i in active if removable[i] and any(max(lo, min(points[i].a, points[i].b)) <= min(hi, max(points[i].a, points[i].b)) for lo, hi in spans)]
+        candidates = sorted(candidates, key=lambda i: -residuals[i])[:max_candidates]
+        best, best_ratio, best_solution = None, 0.5, None
+        for candidate in candidates:
+            rest = [i for i in active if i != candidate]
+            before = sum(residuals[i] ** 2 for i in rest)
+            trial = solve_part(reference, solved, sizes, [points[i] for i in rest], huber_px, iterations=20)
+            ratio = sum(pair_rms_px(trial, points[i]) ** 2 for i in rest) / max(before, 1e-12)
+            if ratio < best_ratio:
+                best, best_ratio, best_solution = candidate, ratio, trial
+        if best is None:
+            break
+        dropped[best] = residuals[best]
+        active.remove(best)
+        solved = solve_part(reference, best_solution, sizes, [points[i] for i in active], huber_px)
+    return solved, dropped
+
+
 def summarise(values: Sequence[float]) -> dict[str, float | int | None]:
     """count, mean, median and max of a list of pixel figures (``None`` when empty)."""
     if not values:

@@ -46,16 +46,20 @@ def _root(
 def estimate(
     image_a: Annotated[Path, typer.Argument(help="Image A (any size; colour or grey; 8 or 16 bit).")],
     image_b: Annotated[Path, typer.Argument(help="Image B.")],
-    method: Annotated[str, typer.Option("--method", "-m", help="sift, orb, ecc, identity (and the learned methods).")] = "sift",
+    method: Annotated[str, typer.Option("--method", "-m", help="sift, orb, ecc, identity, unsupervised, supervised, unsupervised+ecc or auto.")] = "sift",
     json_output: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of tables.")] = False,
     viz: Annotated[Optional[Path], typer.Option("--viz", help="Write a picture: A's border warped onto B.")] = None,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Ground-truth homography file (A to B) to report the corner error.")] = None,
     best_features: Annotated[Optional[int], typer.Option(help="sift/orb: keep only the N strongest keypoints.")] = None,
+    model: Annotated[Optional[Path], typer.Option(help="Learned methods: an ONNX file instead of the shipped model.")] = None,
+    device: Annotated[Optional[str], typer.Option(help="Learned methods: auto (CUDA if onnxruntime has it), cpu or cuda.")] = None,
+    iterations: Annotated[Optional[int], typer.Option(help="Learned methods: network rounds; ecc: ECC iterations.")] = None,
 ) -> None:
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold])."""
     from udh_cli.api import estimate_report
 
-    options = {} if best_features is None else {"best_features": best_features}
+    given = {"best_features": best_features, "model": None if model is None else str(model), "device": device, "iterations": iterations}
+    options = {key: value for key, value in given.items() if value is not None}
     report = estimate_report(image_a, image_b, method, gt=gt, viz=viz, **options)
     if json_output:
         sys.stdout.write(json.dumps(report) + "\n")

@@ -49,7 +49,7 @@ class RefinedEstimator(Estimator):
         initial: the registry name of the first estimator (the unsupervised network by default).
         model: ONNX path for a learned ``initial``; None takes the shipped model.
         device: onnxruntime device for a learned ``initial``.
-        network_iterations: rounds of the network (each predicts the residual of the last).
+        iterations: rounds of the network (each predicts the residual of the last).
         refiner: the ECC pyramid and its iteration budget.
         fallback: registry name tried when the score is below ``min_score`` (None: never).
         min_score: the verification NCC below which an answer is doubted.
@@ -59,7 +59,7 @@ class RefinedEstimator(Estimator):
     initial: str = "unsupervised"
     model: str | None = None
     device: str = "auto"
-    network_iterations: int = 2
+    iterations: int = 2
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     fallback: str | None = None
     min_score: float = 0.7
@@ -68,7 +68,7 @@ class RefinedEstimator(Estimator):
     def __post_init__(self) -> None:
         options = {}
         if self.initial in ("unsupervised", "supervised"):
-            options = {"model": self.model, "device": self.device, "iterations": self.network_iterations}
+            options = {"model": self.model, "device": self.device, "iterations": self.iterations}
         self._first = create_estimator(self.initial, **options)
         self._fallback = create_estimator(self.fallback) if self.fallback else None
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from typing import Any
 
@@ -36,7 +37,8 @@ def create_estimator(name: str, **options: Any) -> Estimator:
         raise UdhError(f"unknown method '{name}'; choose one of: {', '.join(ESTIMATORS)}")
     module_name, class_name, _ = ESTIMATORS[name]
     cls = getattr(importlib.import_module(module_name), class_name)
-    try:
-        return cls(**options)
-    except TypeError as exc:
-        raise UdhError(f"method '{name}' does not take these options: {exc}") from None
+    accepted = [f.name for f in dataclasses.fields(cls) if f.init] if dataclasses.is_dataclass(cls) else []
+    unknown = sorted(set(options) - set(accepted))
+    if unknown:
+        raise UdhError(f"method '{name}' does not take {', '.join(unknown)}; it takes: {', '.join(accepted) or 'no options'}")
+    return cls(**options)

@@ -185,16 +185,17 @@ def solve_with_rejection(
     removable: Sequence[bool],
     huber_px: float = 2.0,
     outlier_px: float = 5.0,
-    max_rounds: int = 3,
+    max_rounds: int = 4,
     max_candidates: int = 12,
 ) -> tuple[dict[int, np.ndarray], dict[int, float]]:
     """:func:`solve_part`, then find and drop the loop-closure pairs that the other pairs contradict.
 
-    A pair is strained when its residual after the solve exceeds ``outlier_px`` and 3x the median. The Huber
-    loss alone cannot always tell a wrong loop pair from the chain it bends: the chain then carries the error.
-    So, while pairs are strained, each ``removable`` (loop-closure) pair that spans a strained one in the
-    sequence is left out in turn, the solve is re-run from the current solution, and the pair whose absence
-    lowers the others' squared residuals the most is dropped, if that at least halves them.
+    A pair is strained when its residual after the solve exceeds ``outlier_px`` and 3x the median. Strained
+    ``removable`` (loop-closure) pairs are dropped. But the Huber loss cannot always tell a wrong loop pair
+    from the chain it bends, and then the chain carries the error instead. So, while sequential pairs are
+    strained, each loop pair that spans a strained one in the sequence is left out in turn, the solve is
+    re-run from the current solution, and the pair whose absence lowers the others' squared residuals the
+    most is dropped, if that at least halves them.
 
     Returns the solution and ``{index into points: residual px}`` of the dropped pairs.
     """
@@ -209,6 +210,13 @@ def solve_with_rejection(
         strained = [i for i in active if residuals[i] > limit]
         if not strained:
             break
+        strained_loops = [i for i in strained if removable[i]]
+        if strained_loops:  # loop pairs far off the joint solution: wrong or parallax-ridden matches
+            for i in strained_loops:
+                dropped[i] = residuals[i]
+                active.remove(i)
+            solved = solve_part(reference, solved, sizes, [points[i] for i in active], huber_px)
+            continue
         spans = [(min(points[i].a, points[i].b), max(points[i].a, points[i].b)) for i in strained]
         candidates = [i for i in active if removable[i] and any(max(lo, min(points[i].a, points[i].b)) <= min(hi, max(points[i].a, points[i].b)) for lo, hi in spans)]
         candidates = sorted(candidates, key=lambda i: -residuals[i])[:max_candidates]

@@ -117,11 +117,20 @@ def write_outputs(result: BenchResult, out_dir: str | Path, plots: bool = True) 
     ]
     if plots:
         from udh_cli.bench.plots import percentile_plot, speed_accuracy_plot
-        from udh_cli.images import write_image
 
-        written.append(write_image(out_dir / "percentiles.png", percentile_plot(result.runs)))
-        written.append(write_image(out_dir / "speed_accuracy.png", speed_accuracy_plot(result.runs)))
+        written.append(atomic_write_bytes(out_dir / "percentiles.png", _png_bytes(percentile_plot(result.runs))))
+        written.append(atomic_write_bytes(out_dir / "speed_accuracy.png", _png_bytes(speed_accuracy_plot(result.runs))))
     return written
+
+
+def _png_bytes(image) -> bytes:
+    """PNG at the strongest compression: the plots are flat colours, and the README keeps copies."""
+    import cv2
+
+    ok, encoded = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    if not ok:
+        raise RuntimeError("OpenCV could not encode a plot as PNG")
+    return encoded.tobytes()
 
 
 def _per_pair_rows(result: BenchResult) -> list[dict[str, Any]]:

@@ -7,7 +7,7 @@ only through :meth:`Estimator.estimate_many`, so a newly registered method needs
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -62,7 +62,6 @@ class MethodRun:
     wall_ms_per_pair: float
     summary: metrics.Summary
     sift_ratio: float | None = None
-    options: dict[str, Any] = field(default_factory=dict)
 
     @property
     def label(self) -> str:

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from udh_cli.errors import UdhError
 from udh_cli.estimators import create_estimator
 from udh_cli.mosaic import MosaicConfig, run_mosaic
 
-from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
+from mosaic_flights import SMALL, FailOn, fingerprint, make_flight, work_fingerprints
 
 FAST = MosaicConfig(overlap_per_frame=1, batch_size=4)
 
@@ -75,3 +76,26 @@ def test_nothing_matches_is_an_error_not_a_crash(flight, tmp_path):
     with pytest.raises(UdhError, match="no pair of frames could be matched"):
         run_mosaic(folder, tmp_path / "m.png", FAST, estimator=FailOn(prints, lambda a, b: True))
     assert list(tmp_path.iterdir()) == []
+
+
+class PastTheHorizon(FailOn):
+    """Real estimates, except pair 6 -> 7, whose (valid) homography has so much perspective that frame 7,
+    chained back to the reference, falls past the horizon."""
+
+    name = "past-the-horizon"
+
+    def _estimate(self, image_a, image_b):
+        a, b = self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))
+        if (a, b) == (6, 7):
+            return np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.004, 0.0, 1.0]]), 0.9, {}
+        return self.inner._estimate(image_a, image_b)
+
+
+def test_a_frame_chained_past_the_horizon_is_reported_not_fatal(flight, tmp_path):
+    folder, prints = flight
+    estimator = PastTheHorizon(prints, lambda a, b: False)
+    report = run_mosaic(folder, tmp_path / "m.png", MosaicConfig(overlap_per_frame=0), estimator=estimator)
+    frames = report["frames"]
+    assert frames[7]["status"] == "unplaced" and "degenerate" in frames[7]["reason"]
+    assert [f["status"] for f in frames[:7]] == ["placed"] * 7
+    assert report["parts"][0]["frames"] == list(range(7)) and (tmp_path / "m.png").is_file()

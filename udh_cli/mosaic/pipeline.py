@@ -33,6 +33,7 @@ from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
 DEFAULT_METHOD = "sift"
 OUTPUT_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 SIDECAR_FORMAT = "udh-mosaic/1"
+MAX_FRAME_SCALE = 10.0  # a frame drawn more than 10x larger or smaller than it is has drifted beyond use
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,7 @@ class Part:
     canvas: compositing.Canvas | None = None
     file: Path | None = None
     preview: Path | None = None
+    dropped: dict[int, str] = field(default_factory=dict)  # frame -> why it was taken out of the part
 
 
 def output_paths(output: Path, n_parts: int) -> list[Path]:
@@ -297,12 +299,19 @@ def _gains(frameset: FrameSet, pairs: list[PairResult], config: MosaicConfig, re
 
 def _plan_canvases(frameset: FrameSet, parts: list[Part], output: Path, config: MosaicConfig) -> None:
     """Every canvas is planned (and a too-big one refused) before any pixel is written."""
+    sizes = [f.size for f in frameset.frames]
+    for part in parts:
+        # A long chain can carry a frame past the horizon of the reference's plane: report it, do not draw it.
+        for i in list(part.frames):
+            if not geometry.is_valid_homography(part.solved[i], *sizes[i], max_scale=MAX_FRAME_SCALE):
+                part.dropped[i] = f"its homography to the reference frame {frameset.frames[part.reference].name} is degenerate (folded, past the horizon or scaled over {MAX_FRAME_SCALE:g}x)"
+                part.frames.remove(i)
     multi = [p for p in parts if len(p.frames) > 1]
     if not multi:
         raise UdhError("no pair of frames could be matched, so nothing can be mosaicked; try --fallback sift or a larger --work-size")
-    sizes = [f.size for f in frameset.frames]
-    for part, path in zip(multi, output_paths(output, len(multi))):
-        part.canvas = compositing.plan_canvas(part.solved, sizes, config.blend, config.max_size, config.max_canvas_bytes)
+    for number, (part, path) in enumerate(zip(multi, output_paths(output, len(multi))), start=1):
+        part.number = number
+        part.canvas = compositing.plan_canvas({i: part.solved[i] for i in part.frames}, sizes, config.blend, config.max_size, config.max_canvas_bytes)
         part.file = path
 
 
@@ -327,12 +336,13 @@ def _composite_part(frameset: FrameSet, part: Part, gains: np.ndarray, config: M
 def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter: Reporter) -> dict[str, Any]:
     frames = frameset.frames
     part_of = {i: part for part in parts for i in part.frames}
+    dropped = {i: reason for part in parts for i, reason in part.dropped.items()}
     records = []
     for frame in frames:
-        part = part_of[frame.index]
-        placed = part.canvas is not None
+        part = part_of.get(frame.index)
+        placed = part is not None and part.canvas is not None
         mosaic_from_frame = part.canvas.mosaic_from_ref @ part.solved[frame.index] if placed else None
-        reason = None if placed else _unplaced_reason(frame.index, pairs, frames)
+        reason = None if placed else dropped.get(frame.index) or _unplaced_reason(frame.index, pairs, frames)
         if not placed:
             reporter.warn(f"{frame.name} is not in any mosaic: {reason}")
         records.append(
@@ -391,8 +401,8 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, esti
     if truth is not None:
         before, after = {}, {}
         for p in multi:
-            before.update(corner_errors_vs_truth(frames, p.reference, p.chained, truth))
-            after.update(corner_errors_vs_truth(frames, p.reference, p.solved, truth))
+            before.update(corner_errors_vs_truth(frames, p.reference, {i: p.chained[i] for i in p.frames}, truth))
+            after.update(corner_errors_vs_truth(frames, p.reference, {i: p.solved[i] for i in p.frames}, truth))
         report["ground_truth_error"] = {
             "measure": "corner distance of frame->reference homographies vs the truth, reference-frame pixels",
             "chained": summarise_truth(before),

@@ -99,3 +99,22 @@ def test_a_frame_chained_past_the_horizon_is_reported_not_fatal(flight, tmp_path
     assert frames[7]["status"] == "unplaced" and "degenerate" in frames[7]["reason"]
     assert [f["status"] for f in frames[:7]] == ["placed"] * 7
     assert report["parts"][0]["frames"] == list(range(7)) and (tmp_path / "m.png").is_file()
+
+
+class Crashes(FailOn):
+    """Breaks the never-raise contract on pair 2 -> 3 (as a buggy estimator would)."""
+
+    name = "crashes"
+
+    def _estimate(self, image_a, image_b):
+        if (self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))) == (2, 3):
+            raise RuntimeError("boom")
+        return self.inner._estimate(image_a, image_b)
+
+
+def test_an_estimator_that_raises_fails_only_its_pair(flight, tmp_path):
+    folder, prints = flight
+    report = run_mosaic(folder, tmp_path / "m.png", FAST, estimator=Crashes(prints, lambda a, b: False), fallback=create_estimator("sift"))
+    pair = next(p for p in report["pairs"] if (p["a"], p["b"]) == (2, 3))
+    assert "RuntimeError: boom" in pair["estimates"][0]["failure"] and pair["method"] == "sift"
+    assert report["summary"]["placed"] == 8

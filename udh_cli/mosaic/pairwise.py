@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
+from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.mosaic.frames import Frame
 from udh_cli.mosaic.report import Reporter
@@ -124,7 +125,7 @@ def estimate_pairs(
             for start in range(0, len(pending), batch_size):
                 batch = pending[start : start + batch_size]
                 inputs = [_work_inputs(requests[i], frames) for i in batch]
-                estimates = method.estimate_many([(a, b) for a, b, _ in inputs])
+                estimates = _estimate_many_safely(method, [(a, b) for a, b, _ in inputs])
                 for i, (_, _, prior_work), estimate in zip(batch, inputs, estimates):
                     result = results[i]
                     result.estimates.append(estimate)
@@ -139,6 +140,28 @@ def estimate_pairs(
                         advance(1)
             pending = still_pending
     return results
+
+
+def _estimate_many_safely(method: Estimator, pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
+    """``estimate_many``, but an estimator that raises (a bug, a runtime error) fails only its own pairs.
+
+    Estimators report failures as estimates and never raise by contract; this keeps one broken pair from
+    stopping a run of hundreds.
+    """
+    try:
+        return method.estimate_many(pairs)
+    except UdhError:
+        raise  # a problem the user must fix (a missing model...): stop with its message
+    except Exception:  # noqa: BLE001 - retry one by one so that only the offending pairs fail
+        out = []
+        for a, b in pairs:
+            try:
+                out.append(method.estimate(a, b))
+            except UdhError:
+                raise
+            except Exception as exc:  # noqa: BLE001
+                out.append(Estimate(method.name, None, 0.0, 0.0, f"the estimator raised {type(exc).__name__}: {exc}"))
+        return out
 
 
 def corner_disagreement_px(b_from_a: np.ndarray, other_b_from_a: np.ndarray, size_a: tuple[int, int]) -> float:

@@ -76,7 +76,7 @@ class MosaicConfig:
     max_disagreement: float = 0.1
     huber_px: float = 2.0
     outlier_px: float = 5.0
-    blend: str = "feather"
+    blend: str = "multiband"  # hard seams blended band by band: no ghosts where parallax defeats the homographies
     gain_compensation: bool = True
     max_size: int | None = None
     max_canvas_bytes: int = compositing.DEFAULT_MAX_CANVAS_BYTES

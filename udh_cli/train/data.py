@@ -82,7 +82,7 @@ class FlightData:
         self.train_pairs: list[tuple[np.ndarray, np.ndarray]] = []
         self.val_pairs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         for folder in folders:
-            frames = list_images([folder])
+            frames = flight_frames(folder)
             images, sizes = [], []
             for path in frames:
                 try:
@@ -134,8 +134,16 @@ class FlightData:
         return Batch(patches, offsets, patches[:, :1], np.zeros((len(chosen), 2), np.float32), patches[:, 1])
 
 
+def flight_frames(folder: Path) -> list[Path]:
+    """The frames of a flight in order: its ``images/`` subfolder when there is one (the shared-data layout,
+    whose top level also holds previews that are not frames), else the images directly in ``folder``."""
+    frames_folder = folder / "images" if (folder / "images").is_dir() else folder
+    return [p for p in list_images([frames_folder]) if p.parent == frames_folder]
+
+
 def _reference_homographies(folder: Path) -> dict[tuple[str, str], np.ndarray]:
-    table = folder / "consecutive_pairs_sift_reference.csv"
+    candidates = [folder / "consecutive_pairs_sift_reference.csv", folder.parent / "consecutive_pairs_sift_reference.csv"]
+    table = next((c for c in candidates if c.is_file()), candidates[0])
     found: dict[tuple[str, str], np.ndarray] = {}
     if not table.is_file():
         return found

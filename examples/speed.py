@@ -1,0 +1,68 @@
+"""Inference speed on this machine: the network alone, and the whole `estimate` against SIFT and ORB.
+
+    python examples/speed.py [--images DIR] [--pairs 50]
+
+Runs every method on the same 320x240 pairs in one process (after a warm-up) and prints median times.
+"Whole estimate" = decode the two JPEGs from memory, convert, resize, run the method, and for the learned
+methods the DLT and the exact rescale to the original pixels. Times are medians over the pairs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from udh_cli.estimators import create_estimator
+from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs, split_holdout
+
+DEFAULT_IMAGES = Path("../shared/data/pools/rsscn7-aerial/images")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--images", type=Path, default=DEFAULT_IMAGES)
+    parser.add_argument("--pairs", type=int, default=50)
+    parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    _, held_out = split_holdout(list_images(args.images))
+    sources = load_sources(held_out[:40])
+    # Whole 320x240 frames: A is the source warped by a rho-32 perturbation, B is the source.
+    batch = make_pairs(sources, args.pairs, PairConfig(rho=32), np.random.default_rng(0))
+    frames = [(cv2.imencode(".jpg", (batch.context_a[i, 0] * 255).astype(np.uint8))[1],
+               cv2.imencode(".jpg", sources[batch.source_index[i]])[1]) for i in range(args.pairs)]
+
+    network = create_estimator("unsupervised", device="cpu", threads=args.threads).network
+    patch = np.random.default_rng(0).random((1, 2, network.input_size, network.input_size), dtype=np.float32)
+    for _ in range(20):
+        network.predict_offsets(patch)
+    times = []
+    for _ in range(200):
+        start = time.perf_counter()
+        network.predict_offsets(patch)
+        times.append((time.perf_counter() - start) * 1e3)
+    print(f"network alone (onnxruntime CPU, batch 1, {args.threads} thread): median {np.median(times):.2f} ms")
+
+    methods = {"unsupervised": {"device": "cpu", "threads": args.threads}, "orb": {}, "sift": {}}
+    results = {}
+    for name, options in methods.items():
+        estimator = create_estimator(name, **options)
+        whole = []
+        for i, (jpeg_a, jpeg_b) in enumerate(frames):
+            start = time.perf_counter()
+            a = cv2.imdecode(jpeg_a, cv2.IMREAD_GRAYSCALE)
+            b = cv2.imdecode(jpeg_b, cv2.IMREAD_GRAYSCALE)
+            estimator.estimate(a, b)
+            if i >= 3:  # warm-up
+                whole.append((time.perf_counter() - start) * 1e3)
+        results[name] = float(np.median(whole))
+    for name, ms in results.items():
+        print(f"whole estimate, {name:>12}: median {ms:7.2f} ms per 320x240 pair  ({ms / results['sift']:.3f} x SIFT)")
+
+
+if __name__ == "__main__":
+    main()

@@ -244,6 +244,7 @@ def bench_synthetic(
     n: Annotated[int, typer.Option("--n", help="Pairs per rho.")] = 500,
     seed: Annotated[int, typer.Option("--seed", help="Seed: the same seed gives the same pairs.")] = 0,
     illumination: Annotated[bool, typer.Option("--illumination/--no-illumination", help="Random brightness, contrast and gamma per image, as in the paper.")] = True,
+    occluders: Annotated[bool, typer.Option("--occluders/--no-occluders", help="Random textured blobs on the patches (the paper's future work).")] = False,
     methods: Annotated[Optional[str], typer.Option("--methods", "-m", help=_METHODS_HELP)] = None,
     mode: Annotated[str, typer.Option("--mode", help="What sift/orb/ecc see: patch (128x128), full (320x240 frames, as the paper) or both. Other methods always get patches.")] = "both",
     out: Annotated[Path, typer.Option("--out", help="Folder for results.md/.csv/.json, per_pair.csv and the two PNG plots.")] = Path("bench-results"),
@@ -258,7 +259,7 @@ def bench_synthetic(
     from udh_cli.bench.suite import parse_options, parse_rhos
 
     result = run_synthetic_bench(
-        images=images, rhos=parse_rhos(rho), count=n, seed=seed, illumination=illumination,
+        images=images, rhos=parse_rhos(rho), count=n, seed=seed, illumination=illumination, occluders=occluders,
         methods=parse_methods(methods) if methods else None, mode=mode, options=parse_options(option),
         save_pairs=save_pairs, load_pairs=load_pairs,
     )

@@ -134,18 +134,19 @@ def held_out_sources(
 
 def synthetic_set(
     sources: list[np.ndarray], rho: float, count: int, seed: int, illumination: bool = True,
-    with_full: bool = False, patch_size: int = 128,
+    with_full: bool = False, patch_size: int = 128, occluders: bool = False,
 ) -> PairSet:
     """Draw ``count`` synthetic pairs at corner perturbation ``rho`` (pixels), deterministically from ``seed``.
 
     Pairs are drawn ``CHUNK`` at a time, chunk ``k`` from ``np.random.default_rng([seed, k])``, so memory
     stays bounded and the first pairs of a larger set equal a smaller set's. With ``illumination``, the
     full frames get their own brightness/contrast/gamma draw from the generator's distribution (the
-    generator keeps the patch draws to itself), seeded from ``[seed, k, 1]``.
+    generator keeps the patch draws to itself), seeded from ``[seed, k, 1]``. ``occluders`` pastes the
+    generator's random blobs on the patches (the full frames get none).
     """
     if count < 1:
         raise UdhError(f"--n {count}: need at least one pair")
-    config = synthetic.PairConfig(patch_size=patch_size, rho=float(rho), illumination=illumination)
+    config = synthetic.PairConfig(patch_size=patch_size, rho=float(rho), illumination=illumination, occluders=occluders)
     patch_a, patch_b, truths, origin, full_a, full_b, windows = [], [], [], [], [], [], []
     for chunk, start in enumerate(range(0, count, CHUNK)):
         size = min(CHUNK, count - start)
@@ -167,7 +168,7 @@ def synthetic_set(
                 full_a.append(_to_u8(frame_a))
                 full_b.append(_to_u8(frame_b))
     return PairSet(
-        name=f"rho {rho:g}", images_a=patch_a, images_b=patch_b, truths=np.concatenate(truths), rho=float(rho),
+        name=f"rho {rho:g}" + (" occluded" if occluders else ""), images_a=patch_a, images_b=patch_b, truths=np.concatenate(truths), rho=float(rho),
         full_a=full_a if with_full else None, full_b=full_b if with_full else None,
         origin=np.concatenate(origin), full_window=np.array(windows, np.int64) if with_full else None,
         labels=[str(i) for i in range(count)],

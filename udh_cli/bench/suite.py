@@ -74,6 +74,7 @@ def run_synthetic_bench(
     count: int = 500,
     seed: int = 0,
     illumination: bool = True,
+    occluders: bool = False,
     methods: list[str] | None = None,
     mode: str = "both",
     full_methods: list[str] = list(FULL_METHODS),
@@ -98,8 +99,9 @@ def run_synthetic_bench(
             raise UdhError(f"--n {count}: need at least one pair")
         sources, where = held_out_sources(images)
         meta = {"images": where, "rhos": rhos, "n": count, "seed": seed, "illumination": illumination,
-                "generator": "udh_cli.synthetic.make_pairs, chunks of 64 pairs from default_rng([seed, chunk])"}
-        sets = [synthetic_set(sources, rho, count, seed, illumination, with_full=with_full) for rho in rhos]
+                "occluders": occluders, "generator": "udh_cli.synthetic.make_pairs, chunks of 64 pairs from default_rng([seed, chunk])"}
+        sets = [synthetic_set(sources, rho, count, seed, illumination, with_full=with_full, occluders=occluders)
+                for rho in rhos]
         if save_pairs is not None:
             save_sets(save_pairs, sets, meta)
         config = dict(meta)
@@ -107,7 +109,8 @@ def run_synthetic_bench(
                    "options": options or {}})
     runs = runner.run_jobs(jobs, sets, show_progress=show_progress)
     notes = [f"Pairs: {config.get('images', config.get('pairs_loaded_from'))}; illumination "
-             f"{'on' if config.get('illumination', True) else 'off'}; seed {config.get('seed', 'n/a')}."]
+             f"{'on' if config.get('illumination', True) else 'off'}; occluders {'on' if config.get('occluders') else 'off'}; "
+             f"seed {config.get('seed', 'n/a')}."]
     if with_full:
         cropped = ", ".join(f"{s.name}: {100 * np.mean(np.any(s.full_window != FULL_FRAME, axis=1)):.0f} %" for s in sets)
         notes.append(f"Full input: A's frame is cropped around the patch where the true homography would put the "

@@ -148,10 +148,21 @@ def test_atomic_write_leaves_no_temp_files_and_keeps_the_old_file_on_failure(tmp
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(images.os, "replace", failing_replace)
-    with pytest.raises(OSError):
+    with pytest.raises(UdhError, match="out.bin: writing it failed \\(No space left on device\\)"):
         atomic_write_bytes(target, b"second")
     assert target.read_bytes() == b"first"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.bin"]
+
+
+def test_atomic_write_where_no_file_can_be_created(tmp_path, monkeypatch):
+    # A read-only file system passes the os.access check for root; the failure must still be one UdhError.
+    def read_only(*args, **kwargs):
+        raise OSError(30, "Read-only file system")
+
+    monkeypatch.setattr(images.tempfile, "mkstemp", read_only)
+    with pytest.raises(UdhError, match="out.bin: cannot create a file in .*Read-only file system"):
+        atomic_write_bytes(tmp_path / "out.bin", b"x")
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_atomic_write_to_a_missing_folder(tmp_path):

@@ -149,11 +149,15 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary file in the same folder and a rename.
 
     A reader never sees a half-written file, and an interrupted write leaves the old file (if any).
+    Raises :class:`UdhError` when the file cannot be written (read-only or full file system...).
     """
     path = check_output_path(path)
     folder = path.parent
     mode = _new_file_mode(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
+    except OSError as exc:
+        raise UdhError(f"{path}: cannot create a file in {folder} ({exc.strerror}); choose another output path") from None
     try:
         if hasattr(os, "fchmod"):  # mkstemp makes the file owner-only; give it the usual permissions
             os.fchmod(fd, mode)
@@ -162,8 +166,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError):  # e.g. the disk filled up: one line for the user, no partial file
+            raise UdhError(f"{path}: writing it failed ({exc.strerror}); check the free space and permissions") from None
         raise
     return path
 

@@ -123,3 +123,33 @@ def test_bad_options_fail_before_any_work(option, message, flight, tmp_path, mon
     code, _, err = run_main(monkeypatch, capfd, "mosaic", str(flight), "-o", str(tmp_path / "m.png"), *option, *FAST)
     assert code == 1 and message in err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("damage", ["no_keys", "bad_matrix"])
+def test_damaged_ground_truth_fails_before_any_work(damage, flight, tmp_path, monkeypatch, capfd):
+    truth = json.loads((flight / "ground_truth.json").read_text())
+    if damage == "no_keys":
+        truth = {"format": truth["format"]}
+    else:
+        truth["frames"][0]["ground_from_frame"] = [[1.0, 0.0], [0.0, 1.0]]
+    gt = tmp_path / "gt.json"
+    gt.write_text(json.dumps(truth))
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    code, _, err = run_main(monkeypatch, capfd, "mosaic", str(flight), "-o", str(out_dir / "m.png"), "--gt", str(gt), *FAST)
+    assert code == 1 and "gt.json: the ground truth is damaged" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert list(out_dir.iterdir()) == []
+
+
+def test_ground_truth_of_other_frames_is_reported_as_nothing_to_compare(flight, tmp_path, monkeypatch, capfd):
+    truth = json.loads((flight / "ground_truth.json").read_text())
+    for record in truth["frames"]:
+        record["file"] = "other_" + record["file"]
+    gt = tmp_path / "gt.json"
+    gt.write_text(json.dumps(truth))
+    code, out, err = run_main(monkeypatch, capfd, "mosaic", str(flight), "-o", str(tmp_path / "m.png"), "--gt", str(gt), *FAST)
+    assert code == 0, err
+    assert "names no placed frame" in out
+    report = json.loads((tmp_path / "m.json").read_text())
+    assert report["ground_truth_error"]["solved"] == {"frames": 0, "mean_corner_px": None, "max_corner_px": None}

@@ -218,7 +218,10 @@ def _print_mosaic(report: dict) -> None:
     table.add_row("loop consistency (px)", f"before {px(loops['loops_before'])} mean / {px(loops['loops_before'], 'max_px')} max, after {px(loops['loops_after'])} / {px(loops['loops_after'], 'max_px')} ({loops['loops_after']['count']} loops)")
     if "ground_truth_error" in report:
         solved, chained = report["ground_truth_error"]["solved"], report["ground_truth_error"]["chained"]
-        table.add_row("error vs ground truth (px)", f"{solved['mean_corner_px']:.3f} mean, {solved['max_corner_px']:.3f} max corner (chained only: {chained['mean_corner_px']:.3f} / {chained['max_corner_px']:.3f})")
+        if solved["frames"]:
+            table.add_row("error vs ground truth (px)", f"{solved['mean_corner_px']:.3f} mean, {solved['max_corner_px']:.3f} max corner (chained only: {chained['mean_corner_px']:.3f} / {chained['max_corner_px']:.3f})")
+        else:  # the truth names none of these frames (or not the reference): nothing to compare
+            table.add_row("error vs ground truth (px)", "- (the ground truth names no placed frame with its reference)")
     for part in report["parts"]:
         table.add_row(f"mosaic part {part['part']}" if len(report["parts"]) > 1 else "mosaic", f"{part['file']} ({part['width']}x{part['height']}, {len(part['frames'])} frames)")
     table.add_row("sidecar", report["sidecar"])

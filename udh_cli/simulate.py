@@ -308,11 +308,25 @@ def load_ground_truth(path: str | Path) -> dict:
         raise UdhError(f"{path}: cannot read the ground truth ({exc})") from None
     if not isinstance(data, dict) or data.get("format") != GROUND_TRUTH_FORMAT:
         raise UdhError(f"{path}: not a udh simulated-flight ground truth (format {GROUND_TRUTH_FORMAT})")
-    return {
-        "frame_size": tuple(data["frame_size"]),
-        "ground_from_frame": {r["file"]: np.asarray(r["ground_from_frame"], np.float64) for r in data["frames"]},
-        "consecutive_pairs": [(p["a"], p["b"], np.asarray(p["b_from_a"], np.float64)) for p in data["consecutive_pairs"]],
-    }
+    try:
+        truth = {
+            "frame_size": tuple(int(v) for v in data["frame_size"]),
+            "ground_from_frame": {str(r["file"]): _homography(r["ground_from_frame"]) for r in data["frames"]},
+            "consecutive_pairs": [(str(p["a"]), str(p["b"]), _homography(p["b_from_a"])) for p in data["consecutive_pairs"]],
+        }
+    except (KeyError, TypeError, ValueError):
+        raise UdhError(f"{path}: the ground truth is damaged (missing keys, or homographies that are not finite 3x3 matrices)") from None
+    if len(truth["frame_size"]) != 2:
+        raise UdhError(f"{path}: the ground truth's frame_size is not [width, height]")
+    return truth
+
+
+def _homography(values) -> np.ndarray:
+    """A stored 3x3 homography; ValueError unless it is a finite 3x3 matrix."""
+    matrix = np.asarray(values, np.float64)
+    if matrix.shape != (3, 3) or not np.isfinite(matrix).all():
+        raise ValueError("not a finite 3x3 matrix")
+    return matrix
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -82,6 +82,13 @@ def test_bad_model_files_are_refused(tmp_path, tiny_onnx):
         create_estimator("unsupervised", model=str(mismatched))
 
 
+def test_zero_rounds_or_batch_are_refused(tiny_onnx):
+    # iterations=0 used to answer the identity with a confidence, as if the network had run.
+    for options in ({"iterations": 0}, {"batch_size": 0}):
+        with pytest.raises(UdhError, match="must be at least 1"):
+            create_estimator("unsupervised", model=str(tiny_onnx), device="cpu", **options)
+
+
 def test_cuda_request_without_cuda_is_a_clear_error(tiny_onnx):
     import onnxruntime
 

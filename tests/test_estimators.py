@@ -139,6 +139,30 @@ def test_registry():
         create_estimator("sift", no_such_option=3)
 
 
+@pytest.mark.parametrize(
+    ("method", "options", "message"),
+    [
+        ("sift", {"ratio": "abc"}, "option ratio takes float, not 'abc'"),
+        ("orb", {"best_features": 2.5}, "option best_features takes int or none"),
+        ("ecc", {"iterations": "200"}, "option iterations takes int"),
+        ("sift", {"lmeds_refit": "yes"}, "option lmeds_refit takes bool"),
+        ("sift", {"best_features": -3}, "best_features -3 must be at least 1"),
+        ("orb", {"ratio": 0.0}, r"ratio 0.0 must be in \(0, 1\]"),
+        ("ecc", {"iterations": 0}, "iterations 0 must be at least 1"),
+    ],
+)
+def test_bad_option_values_fail_when_the_estimator_is_made(method, options, message):
+    # Options come from the command line (-O, --option): a bad one must stop the run at once, not fail
+    # every pair later or (best_features=-3) silently drop the three strongest keypoints.
+    with pytest.raises(UdhError, match=message):
+        create_estimator(method, **options)
+
+
+def test_option_values_of_a_kin_type_are_accepted():
+    assert create_estimator("sift", ratio=1, best_features=np.int64(50)).best_features == 50
+    assert create_estimator("ecc", iterations=np.int32(20), eps=0).eps == 0
+
+
 @pytest.mark.parametrize("method", ["sift", "identity"])
 def test_estimate_many_and_json(method):
     image_a, image_b, _ = known_pair("sift", seed=2)

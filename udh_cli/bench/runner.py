@@ -100,7 +100,8 @@ def make_jobs(
         except UdhError as exc:
             if str(exc).startswith("unknown method"):
                 raise
-            raise UdhError(f"method '{name}': {exc} (in udh bench, options reach a method as --option "
+            about = str(exc) if str(exc).startswith(f"method '{name}'") else f"method '{name}': {exc}"
+            raise UdhError(f"{about} (in udh bench, options reach a method as --option "
                            f"{name}.NAME=VALUE, e.g. --option {name}.model=PATH; or leave it out of --methods)") from None
         for kind in inputs:
             if kind == "full" and name not in full_methods:

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
+from udh_cli.errors import UdhError
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.images import check_image, to_gray_float
 from udh_cli.onnx_model import OnnxHomographyModel
@@ -41,6 +42,9 @@ class DeepEstimator(Estimator):
 
     def __post_init__(self) -> None:
         from udh_cli.models_catalog import shipped_onnx
+
+        if self.iterations < 1 or self.batch_size < 1:  # 0 rounds would answer the identity as if estimated
+            raise UdhError(f"method '{self.name}': iterations ({self.iterations}) and batch_size ({self.batch_size}) must be at least 1")
 
         path = self.model if self.model is not None else shipped_onnx(self.name)
         self.network = OnnxHomographyModel.load(path, self.device, self.threads)

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
-from udh_cli.errors import EstimationFailed
+from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
 from udh_cli.images import to_gray_float
 
@@ -35,6 +35,10 @@ class EccEstimator(Estimator):
     init: np.ndarray | None = None
     gauss_filt_size: int = 5
     min_correlation: float = 0.3
+
+    def __post_init__(self) -> None:
+        if self.iterations < 1:  # OpenCV would stop at once and report a meaningless correlation
+            raise UdhError(f"method '{self.name}': iterations {self.iterations} must be at least 1")
 
     def _estimate(self, image_a, image_b):
         return self.refine(image_a, image_b, self.init)

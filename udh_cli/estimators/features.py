@@ -8,7 +8,7 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from udh_cli.errors import EstimationFailed
+from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
 from udh_cli.images import to_gray_u8
 
@@ -35,6 +35,14 @@ class FeatureRansacEstimator(Estimator):
     lmeds_refit: bool = True
 
     norm: ClassVar[int] = cv2.NORM_L2
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.ratio <= 1.0:
+            raise UdhError(f"method '{self.name}': ratio {self.ratio} must be in (0, 1]")
+        if not self.ransac_px > 0.0:
+            raise UdhError(f"method '{self.name}': ransac_px {self.ransac_px} must be positive")
+        if self.best_features is not None and self.best_features < 1:  # a negative N would slice off the best ones
+            raise UdhError(f"method '{self.name}': best_features {self.best_features} must be at least 1 (or unset for all)")
 
     def _detector(self):
         raise NotImplementedError

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import numbers
+import os
+import types
+import typing
 from typing import Any
 
 from udh_cli.errors import UdhError
@@ -31,7 +35,7 @@ def estimator_names() -> list[str]:
 def create_estimator(name: str, **options: Any) -> Estimator:
     """Build the estimator registered as ``name`` with keyword ``options`` (its dataclass fields).
 
-    Raises :class:`UdhError` for an unknown name or option.
+    Raises :class:`UdhError` for an unknown name or option, or an option value of the wrong type.
     """
     if name not in ESTIMATORS:
         raise UdhError(f"unknown method '{name}'; choose one of: {', '.join(ESTIMATORS)}")
@@ -41,4 +45,42 @@ def create_estimator(name: str, **options: Any) -> Estimator:
     unknown = sorted(set(options) - set(accepted))
     if unknown:
         raise UdhError(f"method '{name}' does not take {', '.join(unknown)}; it takes: {', '.join(accepted) or 'no options'}")
+    _check_option_types(name, cls, options)
     return cls(**options)
+
+
+_SIMPLE_TYPES = (bool, int, float, str, type(None))
+
+
+def _check_option_types(name: str, cls: type, options: dict[str, Any]) -> None:
+    """Raise :class:`UdhError` when an option of a plain type (number, flag, text) gets a value of another.
+
+    Options arrive from the command line as parsed JSON or text, e.g. ``ratio=abc``; a wrong type would
+    otherwise fail every pair later, one by one. Options of other types (arrays, nested settings) are left
+    to the estimator.
+    """
+    if not options or not dataclasses.is_dataclass(cls):
+        return
+    hints = typing.get_type_hints(cls)
+    for key, value in options.items():
+        hint = hints.get(key)
+        union = isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union
+        allowed = typing.get_args(hint) if union else (hint,)
+        if not all(t in _SIMPLE_TYPES for t in allowed):
+            continue
+        if not any(_fits(value, t) for t in allowed):
+            wanted = " or ".join("none" if t is type(None) else t.__name__ for t in allowed)
+            raise UdhError(f"method '{name}': option {key} takes {wanted}, not {value!r}")
+
+
+def _fits(value: Any, kind: type) -> bool:
+    """Whether ``value`` can stand for a ``kind`` option: ints (numpy's too) for floats, paths for text."""
+    if kind is type(None):
+        return value is None
+    if kind is bool or isinstance(value, bool):
+        return kind is bool and isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, numbers.Integral)
+    if kind is float:
+        return isinstance(value, numbers.Real)
+    return isinstance(value, (str, os.PathLike))

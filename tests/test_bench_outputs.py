@@ -155,6 +155,18 @@ def test_cli_prints_the_table_and_writes_the_files(image_folder, tmp_path):
     assert (out / "results.csv").is_file() and not (out / "percentiles.png").exists()
 
 
+def test_cli_refuses_a_bad_out_folder_before_running(image_folder, tmp_path, monkeypatch):
+    (tmp_path / "taken").write_text("a file, not a folder")
+    ran = []
+    monkeypatch.setattr(bench_runner, "run_jobs", lambda *args, **kwargs: ran.append(1))
+    for out in (tmp_path / "taken", tmp_path / "taken" / "sub"):
+        result = CliRunner().invoke(cli.app, ["bench", "synthetic", "--images", str(image_folder), "--rho", "16", "--n", "2",
+                                              "-m", "identity", "--out", str(out)])
+        assert result.exit_code != 0 and isinstance(result.exception, UdhError)
+        assert "is a file, not a folder" in str(result.exception)
+    assert ran == []  # refused before any pair was estimated
+
+
 def test_graf_pair_from_the_shared_data(shared_data, tmp_path):
     result = run_pairs_bench(shared_data / "pairs" / "opencv-samples", methods=["sift"], prefix="graf", show_progress=False)
     assert result.runs[0].summary.mace_mean < 3.0

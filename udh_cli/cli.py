@@ -257,10 +257,11 @@ def bench_synthetic(
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.")] = True,
 ) -> None:
     """Benchmark on synthetic pairs from held-out images, drawn with the training generator."""
-    from udh_cli.bench import run_synthetic_bench
+    from udh_cli.bench import check_output_folder, run_synthetic_bench
     from udh_cli.bench.runner import parse_methods
     from udh_cli.bench.suite import parse_options, parse_rhos
 
+    check_output_folder(out)
     result = run_synthetic_bench(
         images=images, rhos=parse_rhos(rho), count=n, seed=seed, illumination=illumination, occluders=occluders,
         methods=parse_methods(methods) if methods else None, mode=mode, options=parse_options(option),
@@ -280,10 +281,11 @@ def bench_pairs(
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.")] = True,
 ) -> None:
     """Benchmark on real image pairs with known homographies."""
-    from udh_cli.bench import run_pairs_bench
+    from udh_cli.bench import check_output_folder, run_pairs_bench
     from udh_cli.bench.runner import parse_methods
     from udh_cli.bench.suite import parse_options
 
+    check_output_folder(out)
     result = run_pairs_bench(source, methods=parse_methods(methods) if methods else None, h_column=h_column,
                              prefix=prefix, options=parse_options(option))
     _finish_bench(result, out, plots)

@@ -15,6 +15,7 @@ from typing import Any
 
 from udh_cli.bench import metrics
 from udh_cli.bench.runner import WARMUP_PAIRS, MethodRun
+from udh_cli.errors import UdhError
 from udh_cli.images import atomic_write_bytes
 
 RULES = (
@@ -100,11 +101,29 @@ def environment() -> dict[str, Any]:
     }
 
 
+def check_output_folder(out_dir: str | Path) -> Path:
+    """Raise :class:`UdhError` unless ``out_dir`` is a folder, or can be created as one, that udh may write
+    into. Call it before the benchmark runs, so that a bad ``--out`` fails at once, not after the work."""
+    out_dir = Path(out_dir)
+    existing = out_dir
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        where = "" if existing == out_dir else f" {existing}"
+        raise UdhError(f"{out_dir}:{where} is a file, not a folder; give --out a folder for the results")
+    if not os.access(existing, os.W_OK):
+        raise UdhError(f"{out_dir}: the folder {existing} is not writable; choose another --out")
+    return out_dir
+
+
 def write_outputs(result: BenchResult, out_dir: str | Path, plots: bool = True) -> list[Path]:
     """Write ``results.md``, ``results.csv``, ``results.json``, ``per_pair.csv`` and (with ``plots``)
     ``percentiles.png`` and ``speed_accuracy.png`` into ``out_dir`` (created if needed); returns the paths."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = check_output_folder(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UdhError(f"{out_dir}: cannot create the results folder ({exc.strerror}); choose another --out") from None
     rows = table_rows(result)
     written = [
         atomic_write_bytes(out_dir / "results.md", markdown_table(result).encode()),

@@ -19,6 +19,7 @@ from udh_cli.bench.real_pairs import load_real_pairs
 from udh_cli.bench.report import BenchResult
 from udh_cli.errors import UdhError
 from udh_cli.estimators import estimator_names
+from udh_cli.images import check_output_path
 from udh_cli.synthetic import SOURCE_SIZE
 
 MODES = ("patch", "full", "both")  # what the classical methods are shown on synthetic pairs
@@ -91,6 +92,8 @@ def run_synthetic_bench(
     methods = methods or runner.parse_methods(default_methods())
     jobs = runner.make_jobs(methods, _inputs_for(mode), full_methods, options)
     with_full = any(job.input == "full" for job in jobs)
+    if save_pairs is not None and load_pairs is None:
+        check_output_path(save_pairs)  # before the pairs are drawn
     if load_pairs is not None:
         sets, meta = load_sets(load_pairs)
         config = {"pairs_loaded_from": str(load_pairs), **meta}

@@ -37,6 +37,16 @@ def tiny_onnx(tmp_path_factory) -> Path:
     return folder / "tiny.onnx"
 
 
+def test_export_takes_check_patches_of_another_size(tiny_onnx, tmp_path):
+    # `udh export-onnx --check-images` draws 128-px patches whatever the network's input size.
+    pytest.importorskip("torch")
+    from udh_cli.train.export import export_onnx
+
+    real = np.stack([textured_image(128, 128, seed=1), textured_image(128, 128, seed=2)])[None].astype(np.float32) / 255
+    result = export_onnx(tiny_onnx.with_name("tiny.pt"), tmp_path / "again.onnx", check_inputs=real)
+    assert result["max_abs_diff"] < 1e-4 and (tmp_path / "again.onnx").is_file()
+
+
 def test_estimate_and_batch_agree_and_return_full_resolution_pixels(tiny_onnx):
     estimator = create_estimator("unsupervised", model=str(tiny_onnx), device="cpu")
     a = textured_image(400, 300, seed=3)

@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
@@ -46,7 +47,8 @@ def model_metadata(state: dict[str, Any]) -> dict[str, str]:
 def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.ndarray | None = None) -> dict[str, Any]:
     """Export ``checkpoint`` to ``output`` (written atomically) and verify it against torch.
 
-    ``check_inputs`` (N, 2, S, S) in [0, 1] adds real patches to the random ones used for the parity check.
+    ``check_inputs`` (N, 2, P, P) in [0, 1] adds real patches to the random ones used for the parity check;
+    they are resized to the network's S x S input when P differs (``udh export-onnx --check-images`` draws 128).
     Returns ``{"path", "max_abs_diff", "metadata"}``; raises :class:`UdhError` when parity fails (> 1e-3 px).
     """
     import onnx
@@ -78,7 +80,7 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
     rng = np.random.default_rng(0)
     inputs = rng.random((8, 2, size, size), dtype=np.float32)
     if check_inputs is not None:
-        inputs = np.concatenate([inputs, check_inputs.astype(np.float32)])
+        inputs = np.concatenate([inputs, _at_input_size(np.asarray(check_inputs, np.float32), size)])
     mean, std = state["normalization"]["mean"], state["normalization"]["std"]
     standardised = ((inputs - mean) / std).astype(np.float32)
     with torch.no_grad():
@@ -90,6 +92,15 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
         raise UdhError(f"ONNX and torch disagree by {max_diff:.3g} px; the export is not trustworthy")
     atomic_write_bytes(output, data)
     return {"path": str(output), "max_abs_diff": max_diff, "metadata": metadata}
+
+
+def _at_input_size(patches: np.ndarray, size: int) -> np.ndarray:
+    """(N, 2, P, P) check patches -> (N, 2, S, S), resized whole as the estimator resizes its images."""
+    if patches.ndim != 4 or patches.shape[1] != 2:
+        raise UdhError(f"parity-check patches must be (N, 2, P, P), got {patches.shape}")
+    if patches.shape[2:] == (size, size):
+        return patches
+    return np.stack([[cv2.resize(p, (size, size), interpolation=cv2.INTER_AREA) for p in pair] for pair in patches])
 
 
 def export_weights(checkpoint: str | Path, output: str | Path) -> None:

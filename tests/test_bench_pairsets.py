@@ -11,6 +11,7 @@ import pytest
 from udh_cli import geometry
 from udh_cli.bench import pairsets
 from udh_cli.bench.runner import make_jobs, run_jobs
+from udh_cli.errors import UdhError
 
 from conftest import textured_image
 
@@ -78,3 +79,39 @@ def test_identity_mace_matches_the_uniform_expectation(sources):
     assert expected == pytest.approx(0.7652 * rho, rel=1e-4)
     assert run.summary.mace_mean == pytest.approx(expected, rel=0.02)
     assert run.summary.failure_rate == pytest.approx(1.0, abs=0.01)  # 24 px on average: nearly all over 10 px
+
+
+def _arrays(n: int = 2, size: int = 128) -> dict:
+    return {"patch_a": np.zeros((n, size, size), np.float32), "patch_b": np.zeros((n, size, size), np.float32),
+            "offsets": np.zeros((n, 4, 2), np.float32), "origin": np.zeros((n, 2), np.float32), "source_index": np.zeros(n, np.int64)}
+
+
+@pytest.mark.parametrize(("case", "message"), [
+    ("npy", "a single array, not an .npz"),
+    ("truncated", "BadZipFile"),
+    ("empty_set", "inconsistent shapes"),
+    ("not_square", "inconsistent shapes"),
+    ("origin", "inconsistent shapes"),
+    ("meta", "'meta' entry is not a JSON object"),
+    ("window", "windows do not fit"),
+])
+def test_damaged_pair_set_files_are_one_clear_error(tmp_path, case, message):
+    path = tmp_path / "set.npz"
+    if case == "npy":
+        path = tmp_path / "set.npy"
+        np.save(path, np.zeros(3))
+    elif case == "truncated":
+        path.write_bytes(b"PK\x03\x04" + b"x" * 100)
+    else:
+        arrays = _arrays(0) if case == "empty_set" else _arrays(2, 64) if case == "not_square" else _arrays()
+        arrays["patch_a"] = arrays["patch_a"][:, :, :32] if case == "not_square" else arrays["patch_a"]
+        if case == "origin":
+            arrays["origin"] = np.zeros(2, np.float32)
+        if case == "meta":
+            arrays.update(rho=np.full(2, 32.0), meta=np.array("{not json"))
+        if case == "window":
+            arrays.update(rho=np.full(2, 32.0), full_a=np.zeros((2, 240, 320), np.uint8), full_b=np.zeros((2, 240, 320), np.uint8),
+                          full_window=np.array([[0, 0, 320, 240], [10, 10, 10, 10]]))
+        np.savez(path, **arrays)
+    with pytest.raises(UdhError, match=message):
+        pairsets.load_sets(path)

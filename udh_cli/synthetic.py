@@ -223,17 +223,35 @@ def save_pairs(path: str | Path, batch: PairBatch) -> None:
 
 
 def load_pairs(path: str | Path) -> PairBatch:
-    """Load a set written by :func:`save_pairs`, checking shapes and finiteness."""
-    try:
-        data = np.load(Path(path), allow_pickle=False)
-        patch_a, patch_b, offsets = data["patch_a"], data["patch_b"], data["offsets"]
-        origin, source_index = data["origin"], data["source_index"]
-    except (OSError, KeyError, ValueError) as exc:
-        raise UdhError(f"{path}: not a udh pair set ({exc})") from None
+    """Load a set written by :func:`save_pairs`, checking shapes, types and finiteness (the file is untrusted)."""
+    arrays = _read_npz(path, ("patch_a", "patch_b", "offsets", "origin", "source_index"))
+    patch_a, patch_b, offsets = arrays["patch_a"], arrays["patch_b"], arrays["offsets"]
+    origin, source_index = arrays["origin"], arrays["source_index"]
     n = len(patch_a)
-    if patch_a.ndim != 3 or patch_b.shape != patch_a.shape or offsets.shape != (n, 4, 2):
-        raise UdhError(f"{path}: inconsistent shapes in the pair set")
-    if not all(np.isfinite(x).all() for x in (patch_a, patch_b, offsets)):
+    if (n < 1 or patch_a.ndim != 3 or patch_a.shape[1] != patch_a.shape[2] or patch_b.shape != patch_a.shape
+            or offsets.shape != (n, 4, 2) or origin.shape != (n, 2) or source_index.shape != (n,)):
+        raise UdhError(f"{path}: inconsistent shapes in the pair set (want N >= 1 square patches, (N, 4, 2) offsets, (N, 2) origins)")
+    if any(x.dtype.kind not in "fiu" for x in (patch_a, patch_b, offsets, origin, source_index)):
+        raise UdhError(f"{path}: the pair set holds non-numeric arrays")
+    if not all(np.isfinite(x).all() for x in (patch_a, patch_b, offsets, origin)):
         raise UdhError(f"{path}: the pair set holds NaN or infinite values")
     empty_context = np.zeros((n, 2, 1, 1), np.float32)
-    return PairBatch(patch_a, patch_b, offsets, empty_context, patch_b, origin, source_index)
+    batch = PairBatch(patch_a, patch_b, offsets, empty_context, patch_b, origin, source_index)
+    try:
+        batch.homographies()
+    except np.linalg.LinAlgError:
+        raise UdhError(f"{path}: some offsets give a degenerate homography (three corners in a line)") from None
+    return batch
+
+
+def _read_npz(path: str | Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The arrays ``keys`` of an ``.npz`` file, loaded without pickles; :class:`UdhError` if it is not one."""
+    try:
+        data = np.load(Path(path), allow_pickle=False)
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise ValueError("a single array, not an .npz archive")
+        with data:
+            return {key: data[key] for key in keys}
+    except Exception as exc:  # noqa: BLE001 - missing, truncated, non-zip, pickled or key-less files alike
+        reason = str(exc) if isinstance(exc, (OSError, ValueError)) else f"{type(exc).__name__}: {exc}"
+        raise UdhError(f"{path}: not a udh pair set ({reason}); give an .npz written by --save-pairs") from None

@@ -31,7 +31,7 @@ import numpy as np
 
 from udh_cli import geometry, synthetic
 from udh_cli.errors import UdhError
-from udh_cli.images import atomic_write_bytes
+from udh_cli.images import MIN_IMAGE_SIDE, atomic_write_bytes
 
 CHUNK = 64  # pairs drawn per generator call; each chunk has its own seeded stream (see synthetic_set)
 MIN_IMAGES = 5  # fewer held-out images than this make a set too narrow to say much about a method
@@ -246,10 +246,23 @@ def load_sets(path: str | Path) -> tuple[list[PairSet], dict]:
         full_a = data["full_a"] if "full_a" in data else None
         full_b = data["full_b"] if "full_b" in data else None
         window = data["full_window"] if "full_window" in data else None
-        meta = json.loads(str(data["meta"])) if "meta" in data else {}
-    if rho.shape != (n,) or (full_a is not None and (len(full_a) != n or full_b is None or full_b.shape != full_a.shape
-                                                     or window is None or window.shape != (n, 4))):
+        meta_text = str(data["meta"]) if "meta" in data else "{}"
+    try:
+        meta = json.loads(meta_text)
+    except ValueError:
+        meta = None
+    if not isinstance(meta, dict):
+        raise UdhError(f"{path}: the pair set's 'meta' entry is not a JSON object")
+    if rho.shape != (n,) or rho.dtype.kind != "f" or (full_a is not None and (
+            len(full_a) != n or full_b is None or full_b.shape != full_a.shape or window is None or window.shape != (n, 4))):
         raise UdhError(f"{path}: inconsistent shapes in the pair set")
+    if full_a is not None:
+        width, height = synthetic.SOURCE_SIZE
+        left, top, right, bottom = window.T
+        if (full_a.dtype != np.uint8 or full_b.dtype != np.uint8 or full_a.shape[1:3] != (height, width) or window.dtype.kind not in "iu"
+                or np.any(left < 0) or np.any(top < 0) or np.any(right > width) or np.any(bottom > height)
+                or np.any(right - left < MIN_IMAGE_SIDE) or np.any(bottom - top < MIN_IMAGE_SIDE)):
+            raise UdhError(f"{path}: the full frames or their windows do not fit {width}x{height} uint8 frames")
     truths = batch.homographies()
     sets = []
     for value in _unique_in_order(rho):

@@ -92,6 +92,21 @@ def test_bad_model_files_are_refused(tmp_path, tiny_onnx):
         create_estimator("unsupervised", model=str(mismatched))
 
 
+def test_the_graph_input_is_fed_by_its_own_name(tiny_onnx, tmp_path):
+    onnx = pytest.importorskip("onnx")
+    proto = onnx.load(str(tiny_onnx))
+    old = proto.graph.input[0].name
+    proto.graph.input[0].name = "x"
+    for node in proto.graph.node:
+        node.input[:] = ["x" if name == old else name for name in node.input]
+    renamed = tmp_path / "renamed.onnx"
+    renamed.write_bytes(proto.SerializeToString())
+    a, b = textured_image(64, 64, seed=5), textured_image(64, 64, seed=6)
+    original = create_estimator("unsupervised", model=str(tiny_onnx), device="cpu").estimate(a, b)
+    again = create_estimator("unsupervised", model=str(renamed), device="cpu").estimate(a, b)
+    np.testing.assert_allclose(again.homography, original.homography, atol=1e-9)
+
+
 def test_zero_rounds_or_batch_are_refused(tiny_onnx):
     # iterations=0 used to answer the identity with a confidence, as if the network had run.
     for options in ({"iterations": 0}, {"batch_size": 0}):

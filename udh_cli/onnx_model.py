@@ -85,5 +85,6 @@ class OnnxHomographyModel:
         if patches.ndim != 4 or patches.shape[1:] != (2, self.input_size, self.input_size):
             raise UdhError(f"expected patches of shape (N, 2, {self.input_size}, {self.input_size}), got {patches.shape}")
         standardised = ((patches - self.mean) / self.std).astype(np.float32)
-        outputs = [self.session.run(None, {"patches": standardised[i : i + batch_size]})[0] for i in range(0, len(patches), batch_size)]
+        name = self.session.get_inputs()[0].name  # "patches" from `udh export-onnx`; load() checked there is one
+        outputs = [self.session.run(None, {name: standardised[i : i + batch_size]})[0] for i in range(0, len(patches), batch_size)]
         return np.concatenate(outputs).astype(np.float64)

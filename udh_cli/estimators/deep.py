@@ -56,15 +56,14 @@ class DeepEstimator(Estimator):
     def predict_small(self, small_a: np.ndarray, small_b: np.ndarray) -> np.ndarray:
         """(N, S, S) x2 grey in [0, 1] -> (N, 3, 3) ``b_from_a`` in pixels of the S x S images."""
         s = self.network.input_size
-        corners = geometry.image_corners(s, s)
         b_from_a = np.repeat(np.eye(3)[None], len(small_a), 0)
         current_a = small_a
         for round_index in range(self.iterations):
             offsets = self.network.predict_offsets(np.stack([current_a, small_b], 1), self.batch_size)
             try:
-                step = geometry.homography_from_points(np.broadcast_to(corners, offsets.shape), corners + offsets)
-            except np.linalg.LinAlgError:
-                step = np.stack([_safe_dlt(corners, o) for o in offsets])
+                step = geometry.homography_from_offsets(offsets, s, s)
+            except np.linalg.LinAlgError:  # one degenerate output fails the batched solve: solve pair by pair
+                step = np.stack([_safe_dlt(o, s) for o in offsets])
             b_from_a = step @ b_from_a
             b_from_a /= b_from_a[:, 2:3, 2:3]
             if round_index + 1 < self.iterations:
@@ -103,9 +102,10 @@ class DeepEstimator(Estimator):
         return self.estimate_many([(image_a, image_b)])[0]
 
 
-def _safe_dlt(corners: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+def _safe_dlt(offsets: np.ndarray, size: int) -> np.ndarray:
+    """(4, 2) offsets -> (3, 3) ``b_from_a`` of the S x S input, NaN when the DLT is singular (then rejected)."""
     try:
-        return geometry.homography_from_points(corners, corners + offsets)
+        return geometry.homography_from_offsets(offsets, size, size)
     except np.linalg.LinAlgError:
         return np.full((3, 3), np.nan)
 

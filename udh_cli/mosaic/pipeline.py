@@ -6,7 +6,6 @@ Each step is one call into a module of this package; this file only wires them a
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -17,7 +16,7 @@ import numpy as np
 from udh_cli import __version__, geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimator, create_estimator
-from udh_cli.images import atomic_write_bytes, write_image
+from udh_cli.images import atomic_write_bytes, check_output_path, write_image
 from udh_cli.mosaic import composite as compositing
 from udh_cli.mosaic.frames import ORDERS, FrameSet, open_frames
 from udh_cli.mosaic.gains import solve_gains
@@ -119,13 +118,7 @@ def check_output(output: Path) -> None:
     """Fail before any work when the mosaic could not be written."""
     if output.suffix.lower() not in OUTPUT_SUFFIXES:
         raise UdhError(f"{output}: unknown image type '{output.suffix}'; use .png or .tif (they keep the alpha channel)")
-    folder = output.parent if str(output.parent) else Path(".")
-    if not folder.is_dir():
-        raise UdhError(f"{output}: the folder {folder} does not exist; create it first")
-    if not os.access(folder, os.W_OK):
-        raise UdhError(f"{output}: the folder {folder} is not writable; choose another output path")
-    if output.is_dir():
-        raise UdhError(f"{output}: is a folder; give a file name such as mosaic.png")
+    check_output_path(output)  # folder exists and is writable, and the name is not a folder
 
 
 def check_config(config: MosaicConfig) -> None:

@@ -128,7 +128,8 @@ def test_pairs_csv_and_oxford_folder(tmp_path):
 
 
 @pytest.mark.parametrize("content, message", [
-    ("img1,img2,H\na.png,b.png,1 0 0 0 1 0 0 0\n", "line 2: column H must hold nine"),
+    ("img1,img2,H\na.png,b.png,1 0 0 0 1 0 0 0\n", "line 2, column H: not a 3x3 homography"),
+    ("img1,img2,H\na.png,b.png,1 2 3 2 4 6 0 0 1\n", "line 2, column H: the homography is singular"),
     ("img1,img2\na.png,b.png\n", "missing column"),
     ("img1,img2,H\n", "no pairs"),
 ])

@@ -33,18 +33,35 @@ def read_homography(path: str | Path) -> np.ndarray:
             data = json.loads(path.read_text())
             values = data.get("homography") if isinstance(data, dict) else data
         else:
-            values = [float(v) for v in re.split(r"[\s,;]+", path.read_text().strip()) if v]
-        matrix = np.asarray(values, dtype=np.float64).reshape(3, 3)
+            values = parse_numbers(path.read_text())
     except OSError as exc:
         raise UdhError(f"{path}: cannot read it ({exc.strerror}); check its permissions") from None
     except (ValueError, TypeError, AttributeError, json.JSONDecodeError, cv2.error):
-        raise UdhError(f"{path}: not a 3x3 homography; write nine numbers, row-major, x_B ~ H x_A") from None
+        values = None
+    return homography_from_values(values, str(path))
+
+
+def parse_numbers(text: str) -> list[float]:
+    """Numbers separated by spaces, commas, semicolons or newlines; ValueError for anything else."""
+    return [float(v) for v in re.split(r"[\s,;]+", text.strip()) if v]
+
+
+def homography_from_values(values, where: str) -> np.ndarray:
+    """Nine numbers (row-major, any nesting) -> (3, 3) ``b_from_a`` with h33 = 1.
+
+    Raises :class:`UdhError`, naming ``where`` (a file, a CSV line...), unless they are nine finite numbers
+    with h33 != 0 that do not flatten the image.
+    """
+    try:
+        matrix = np.asarray(values, dtype=np.float64).reshape(3, 3)
+    except (ValueError, TypeError):
+        raise UdhError(f"{where}: not a 3x3 homography; write nine numbers, row-major, x_B ~ H x_A") from None
     if not np.isfinite(matrix).all() or abs(matrix[2, 2]) < 1e-12 * max(1.0, float(np.abs(matrix).max())):
-        raise UdhError(f"{path}: the homography is not finite or has h33 = 0; give a usable x_B ~ H x_A")
+        raise UdhError(f"{where}: the homography is not finite or has h33 = 0; give a usable x_B ~ H x_A")
     matrix = matrix / matrix[2, 2]
     # Singularity is judged on the normalised matrix, so a scaled identity (1e-6 * I) is not "singular".
     if abs(np.linalg.det(matrix)) < 1e-12 * max(1.0, float(np.abs(matrix).max()) ** 3):
-        raise UdhError(f"{path}: the homography is singular (it flattens the image to a line)")
+        raise UdhError(f"{where}: the homography is singular (it flattens the image to a line)")
     return matrix
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from udh_cli.bench.pairsets import PairSet
 from udh_cli.errors import UdhError
-from udh_cli.homography_files import read_homography
+from udh_cli.homography_files import homography_from_values, parse_numbers, read_homography
 from udh_cli.images import IMAGE_SUFFIXES, read_image
 
 PAIR_IMAGE_SUFFIXES = tuple(IMAGE_SUFFIXES) + (".ppm", ".pgm")  # Oxford's sequences ship as PPM
@@ -56,15 +56,10 @@ def load_csv_pairs(path: Path, h_column: str = "H") -> PairSet:
     images_a, images_b, truths, labels = [], [], [], []
     for line, row in enumerate(rows, start=2):
         try:
-            values = [float(v) for v in re.split(r"[\s,;]+", (row[h_column] or "").strip()) if v]
+            values = parse_numbers(row[h_column] or "")
         except ValueError:
             values = []
-        matrix = np.asarray(values, dtype=np.float64)
-        if matrix.size != 9 or not np.isfinite(matrix).all() or abs(matrix[8]) < 1e-12:
-            raise UdhError(f"{path}, line {line}: column {h_column} must hold nine finite numbers (row-major H, h33 != 0)")
-        matrix = matrix.reshape(3, 3) / matrix[8]
-        if abs(np.linalg.det(matrix)) < 1e-12:
-            raise UdhError(f"{path}, line {line}: the homography is singular")
+        matrix = homography_from_values(values, f"{path}, line {line}, column {h_column}")
         path_a, path_b = (_resolve(path.parent, (row[c] or "").strip()) for c in ("img1", "img2"))
         images_a.append(read_image(path_a))
         images_b.append(read_image(path_b))

@@ -169,6 +169,20 @@ def test_foreign_and_corrupt_checkpoints_are_refused(tmp_path):
         load_checkpoint(foreign)
 
 
+def test_flight_reference_table_skips_damaged_rows(tmp_path):
+    from udh_cli.train.data import _reference_homographies
+
+    (tmp_path / "consecutive_pairs_sift_reference.csv").write_text(
+        "img1,img2,H_sift_ransac_1to2\n"
+        "a.jpg,b.jpg,2 0 10 0 2 0 0 0 2\n"  # kept, normalised to h33 = 1
+        "b.jpg,c.jpg,nan 0 0 0 1 0 0 0 1\n"  # not finite: SIFT is computed for this pair instead
+        "c.jpg,d.jpg,1 0 0 0 1\n"  # not nine numbers
+    )
+    found = _reference_homographies(tmp_path)
+    assert list(found) == [("a.jpg", "b.jpg")]
+    np.testing.assert_allclose(found[("a.jpg", "b.jpg")], [[1, 0, 5], [0, 1, 0], [0, 0, 1]])
+
+
 def test_torchrun_two_processes(pool, tmp_path):
     """`udh train` runs unchanged under torchrun with 2 CPU processes (gloo)."""
     out = tmp_path / "ddp"

@@ -17,6 +17,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
+from udh_cli.homography_files import homography_from_values, parse_numbers
 from udh_cli.images import read_image, to_gray_u8
 from udh_cli.synthetic import PairConfig, _illuminate, list_images, load_sources, make_pairs, split_holdout
 
@@ -149,11 +150,11 @@ def _reference_homographies(folder: Path) -> dict[tuple[str, str], np.ndarray]:
         return found
     with table.open(newline="") as handle:
         for row in csv.DictReader(handle):
-            try:
-                matrix = np.array([float(v) for v in row["H_sift_ransac_1to2"].split()]).reshape(3, 3)
-            except (KeyError, ValueError):
+            try:  # a row without names or with a damaged matrix is skipped: SIFT is computed for that pair instead
+                matrix = homography_from_values(parse_numbers(row["H_sift_ransac_1to2"] or ""), str(table))
+                found[(row["img1"], row["img2"])] = matrix
+            except (KeyError, ValueError, UdhError):
                 continue
-            found[(row["img1"], row["img2"])] = matrix
     return found
 
 

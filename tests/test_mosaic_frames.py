@@ -7,8 +7,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from udh_cli import geometry
+from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimator, create_estimator
 from udh_cli.mosaic import MosaicConfig, run_mosaic
 from udh_cli.mosaic.exif import capture_time
@@ -76,3 +78,24 @@ def test_loop_closures_that_contradict_the_chain_are_rejected(tmp_path):
     assert loops and all(p["status"] == "rejected" and "chained prediction" in p["reason"] for p in loops)
     assert report["summary"]["placed"] == 8
     assert report["ground_truth_error"]["solved"]["max_corner_px"] < 3  # the wrong pairs did not reach the solve
+
+
+
+def test_unlistable_folders_give_a_clear_error(tmp_path, monkeypatch):
+    (tmp_path / "frames" / "locked").mkdir(parents=True)
+    listing = Path.iterdir
+
+    def refuse(names: set[str]) -> None:
+        def iterdir(self):
+            if self.name in names:
+                raise PermissionError(13, "Permission denied")
+            return listing(self)
+
+        monkeypatch.setattr(Path, "iterdir", iterdir)
+
+    refuse({"locked"})  # an unreadable subfolder only loses its "did you mean" hint
+    with pytest.raises(UdhError, match="no image files found"):
+        open_frames(tmp_path / "frames", 800)
+    refuse({"frames"})
+    with pytest.raises(UdhError, match=r"cannot list the folder \(Permission denied\)"):
+        open_frames(tmp_path / "frames", 800)

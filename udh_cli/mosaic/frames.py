@@ -140,7 +140,11 @@ def open_frames(
 
 def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Path], reporter: Reporter) -> FrameSet:
     excluded = {Path(p).resolve() for p in exclude}
-    entries = sorted((p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")), key=lambda p: _natural_key(p.name))
+    try:
+        listing = list(folder.iterdir())
+    except OSError as exc:
+        raise UdhError(f"{folder}: cannot list the folder ({exc.strerror}); check its permissions") from None
+    entries = sorted((p for p in listing if p.is_file() and not p.name.startswith(".")), key=lambda p: _natural_key(p.name))
     entries = [p for p in entries if p.resolve() not in excluded and p.name not in IGNORED_FILES]
     skipped: list[dict] = []
     candidates = []
@@ -179,8 +183,11 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
 def _subfolder_hint(folder: Path) -> str:
     """' (did you mean F/images?)' when a subfolder holds images: flight folders often keep them there."""
     for sub in sorted(p for p in folder.iterdir() if p.is_dir()):
-        if any(f.suffix.lower() in IMAGE_SUFFIXES for f in sub.iterdir()):
-            return f" (did you mean {sub}?)"
+        try:
+            if any(f.suffix.lower() in IMAGE_SUFFIXES for f in sub.iterdir()):
+                return f" (did you mean {sub}?)"
+        except OSError:  # an unreadable subfolder is no hint; the error being reported is about the folder
+            continue
     return ""
 
 

@@ -195,3 +195,15 @@ def test_torchrun_two_processes(pool, tmp_path):
     assert state["step"] == 6
     assert len(state["rng_states"]) == 2  # each process's data stream is saved for an exact resume
     assert [m["step"] for m in read_metrics(out)] == [0, 3, 6]
+
+
+def test_impossible_settings_and_outputs_are_refused_before_any_work(pool, tmp_path):
+    for change in ({"batch": 0}, {"steps": 0}, {"rho": 0.0}):
+        out = tmp_path / f"run_{list(change)[0]}"
+        with pytest.raises(UdhError, match="must be"):
+            Trainer(tiny_config(pool, out, **change), progress=False)
+    a_file = tmp_path / "a.png"
+    a_file.write_bytes(b"x")
+    with pytest.raises(UdhError, match="is a file"):
+        Trainer(tiny_config(pool, a_file), progress=False)
+    assert a_file.read_bytes() == b"x"

@@ -89,6 +89,14 @@ def check_image(image: np.ndarray, name: str = "image") -> None:
         raise UdhError(f"{name}: the image holds NaN or infinite values")
 
 
+def scaled_size(size: tuple[int, int], scale: float) -> tuple[int, int]:
+    """``(width, height)`` times ``scale``, rounded, and never below :data:`MIN_IMAGE_SIDE` on a side.
+
+    Pair it with :func:`udh_cli.geometry.rescale_homography`, which is exact for whatever size this returns.
+    """
+    return max(MIN_IMAGE_SIDE, round(size[0] * scale)), max(MIN_IMAGE_SIDE, round(size[1] * scale))
+
+
 def to_gray_float(image: np.ndarray) -> np.ndarray:
     """Any supported image -> (H, W) float32 grey in [0, 1].
 

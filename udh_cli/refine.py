@@ -14,7 +14,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.ecc import EccEstimator
-from udh_cli.images import to_gray_float
+from udh_cli.images import scaled_size, to_gray_float
 
 
 @dataclass
@@ -47,8 +47,7 @@ class PyramidEcc:
         budgets = list(self.iterations)[-self.levels :]
         for level, budget in zip(range(self.levels - 1, -1, -1), budgets):
             s = scale / (2**level)
-            work_a = (max(8, round(size_a[0] * s)), max(8, round(size_a[1] * s)))
-            work_b = (max(8, round(size_b[0] * s)), max(8, round(size_b[1] * s)))
+            work_a, work_b = scaled_size(size_a, s), scaled_size(size_b, s)
             small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
             small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
             start = geometry.rescale_homography(current, size_a, work_a, size_b, work_b)

@@ -132,7 +132,7 @@ def load_sources(paths: list[Path], min_count: int = 1) -> list[np.ndarray]:
     return sources
 
 
-def _illuminate(patch: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def illuminate(patch: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Random gamma, contrast and brightness; (P, P) float in [0, 1] -> same."""
     gamma = np.exp(rng.uniform(np.log(0.6), np.log(1.6)))
     contrast = rng.uniform(0.6, 1.4)
@@ -201,7 +201,7 @@ def make_pairs(
         clean_b[i] = b
         a_seen, b_seen = a, b
         if config.illumination:
-            a_seen, b_seen = _illuminate(a_seen, rng), _illuminate(b_seen, rng)
+            a_seen, b_seen = illuminate(a_seen, rng), illuminate(b_seen, rng)
         if config.occluders:
             a_seen, b_seen = _occlude(a_seen, rng), _occlude(b_seen, rng)
         patch_a[i], patch_b[i] = a_seen, b_seen

@@ -164,7 +164,7 @@ def synthetic_set(
                 windows.append(valid_window(source_from_patch(batch.offsets[i], x0, y0, patch_size), x0, y0, patch_size))
                 frame_b = sources[batch.source_index[i]].astype(np.float32) / 255.0
                 if illumination:
-                    frame_a, frame_b = synthetic._illuminate(frame_a, light), synthetic._illuminate(frame_b, light)
+                    frame_a, frame_b = synthetic.illuminate(frame_a, light), synthetic.illuminate(frame_b, light)
                 full_a.append(_to_u8(frame_a))
                 full_b.append(_to_u8(frame_b))
     return PairSet(

@@ -18,8 +18,8 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimate, Estimator
-from udh_cli.estimators.registry import create_estimator
-from udh_cli.images import to_gray_float
+from udh_cli.estimators.registry import create_estimator, estimator_options
+from udh_cli.images import scaled_size, to_gray_float
 from udh_cli.refine import PyramidEcc
 from udh_cli.verify import alignment_ncc
 
@@ -33,8 +33,7 @@ def verification_score(image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.nd
     gray_a, gray_b = to_gray_float(image_a), to_gray_float(image_b)
     size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
     scale = min(1.0, VERIFY_SIDE / max(*size_a, *size_b))
-    work_a = (max(8, round(size_a[0] * scale)), max(8, round(size_a[1] * scale)))
-    work_b = (max(8, round(size_b[0] * scale)), max(8, round(size_b[1] * scale)))
+    work_a, work_b = scaled_size(size_a, scale), scaled_size(size_b, scale)
     small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
     small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
     h = geometry.rescale_homography(b_from_a, size_a, work_a, size_b, work_b)
@@ -66,10 +65,10 @@ class RefinedEstimator(Estimator):
     _first: Estimator = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        options = {}
-        if self.initial in ("unsupervised", "supervised"):
-            options = {"model": self.model, "device": self.device, "iterations": self.iterations}
-        self._first = create_estimator(self.initial, **options)
+        # model, device and iterations go to the first estimator when it takes them (the learned ones do).
+        wanted = {"model": self.model, "device": self.device, "iterations": self.iterations}
+        takes = estimator_options(self.initial)
+        self._first = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes})
         self._fallback = create_estimator(self.fallback) if self.fallback else None
 
     def _refine_and_score(self, image_a, image_b, start: Estimate) -> tuple[np.ndarray | None, float, dict]:

@@ -32,16 +32,26 @@ def estimator_names() -> list[str]:
     return list(ESTIMATORS)
 
 
+def _estimator_class(name: str) -> type:
+    if name not in ESTIMATORS:
+        raise UdhError(f"unknown method '{name}'; choose one of: {', '.join(ESTIMATORS)}")
+    module_name, class_name, _ = ESTIMATORS[name]
+    return getattr(importlib.import_module(module_name), class_name)
+
+
+def estimator_options(name: str) -> list[str]:
+    """The option names (dataclass fields) that the estimator registered as ``name`` takes."""
+    cls = _estimator_class(name)
+    return [f.name for f in dataclasses.fields(cls) if f.init] if dataclasses.is_dataclass(cls) else []
+
+
 def create_estimator(name: str, **options: Any) -> Estimator:
     """Build the estimator registered as ``name`` with keyword ``options`` (its dataclass fields).
 
     Raises :class:`UdhError` for an unknown name or option, or an option value of the wrong type.
     """
-    if name not in ESTIMATORS:
-        raise UdhError(f"unknown method '{name}'; choose one of: {', '.join(ESTIMATORS)}")
-    module_name, class_name, _ = ESTIMATORS[name]
-    cls = getattr(importlib.import_module(module_name), class_name)
-    accepted = [f.name for f in dataclasses.fields(cls) if f.init] if dataclasses.is_dataclass(cls) else []
+    cls = _estimator_class(name)
+    accepted = estimator_options(name)
     unknown = sorted(set(options) - set(accepted))
     if unknown:
         raise UdhError(f"method '{name}' does not take {', '.join(unknown)}; it takes: {', '.join(accepted) or 'no options'}")

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import IMAGE_SUFFIXES, read_image, to_bgr_u8, to_gray_u8
+from udh_cli.images import IMAGE_SUFFIXES, read_image, scaled_size, to_bgr_u8, to_gray_u8
 from udh_cli.mosaic.exif import capture_time
 from udh_cli.mosaic.report import Reporter
 
@@ -96,8 +96,7 @@ def work_copy(image: np.ndarray, work_size: int) -> np.ndarray:
     scale = min(1.0, work_size / max(w, h))
     if scale >= 1.0:
         return grey
-    size = (max(8, round(w * scale)), max(8, round(h * scale)))
-    return cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+    return cv2.resize(grey, scaled_size((w, h), scale), interpolation=cv2.INTER_AREA)
 
 
 def _natural_key(name: str) -> list:

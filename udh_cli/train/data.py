@@ -19,7 +19,7 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.homography_files import homography_from_values, parse_numbers
 from udh_cli.images import read_image, to_gray_u8
-from udh_cli.synthetic import PairConfig, _illuminate, list_images, load_sources, make_pairs, split_holdout
+from udh_cli.synthetic import PairConfig, illuminate, list_images, load_sources, make_pairs, split_holdout
 
 FLIGHT_MARKERS = ("manifest.csv", "consecutive_pairs_sift_reference.csv")
 
@@ -122,7 +122,7 @@ class FlightData:
             if flip:
                 a, b = a[:, ::-1], b[:, ::-1]
             context[i, 0], context[i, 1], clean_b[i] = a, 1.0, b
-            seen_a, seen_b = (a, b) if not self.config.illumination else (_illuminate(a, rng), _illuminate(b, rng))
+            seen_a, seen_b = (a, b) if not self.config.illumination else (illuminate(a, rng), illuminate(b, rng))
             patches[i, 0], patches[i, 1] = seen_a, seen_b
         return Batch(patches, None, context, np.zeros((size, 2), np.float32), clean_b)
 

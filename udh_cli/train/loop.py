@@ -131,6 +131,7 @@ class Trainer:
             # The stored run defines everything except how long to train and where the data lies now.
             config = TrainConfig(**{**stored, "steps": max(config.steps, int(saved["step"])), "data": config.data or stored["data"]})
         self.config = config
+        _check_config(config, self.out)
         if threads:
             torch.set_num_threads(threads)
         import cv2
@@ -319,6 +320,23 @@ class Trainer:
     def _model_only_state(self) -> dict[str, Any]:
         return {"model": self._bare_model().state_dict(), "config": asdict(self.config), "normalization": self.normalization,
                 "trained_before": self.trained_before, "data_description": self.data.description, "best_val": self.best_val}
+
+
+def _check_config(config: TrainConfig, out: Path) -> None:
+    """Refuse settings that cannot train, and an output folder that cannot be written, before any work."""
+    for name in ("steps", "batch", "eval_every", "checkpoint_every", "val_pairs", "patch_size"):
+        if getattr(config, name) < 1:
+            raise UdhError(f"--{name.replace('_', '-')} {getattr(config, name)}: must be at least 1")
+    if not config.rho > 0:
+        raise UdhError(f"--rho {config.rho}: must be positive")
+    if out.exists() and not out.is_dir():
+        raise UdhError(f"--out {out}: is a file; give a folder for the run")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UdhError(f"--out {out}: cannot create the folder ({exc.strerror}); choose another path") from None
+    if not os.access(out, os.W_OK):
+        raise UdhError(f"--out {out}: the folder is not writable; choose another path")
 
 
 def _raise_interrupt(signum, frame):  # noqa: ARG001 - signal handler signature

@@ -185,3 +185,15 @@ def test_graf_pair_with_sift_is_within_3_px(shared_data):
     report = json.loads(result.stdout)
     assert report["corner_error_px"] < 3.0  # measured 1.33 px (RMSE 1.39)
     assert report["size_a"] == [800, 640]
+
+
+def test_usage_errors_are_one_line_with_exit_code_2():
+    import subprocess
+    import sys
+
+    for args in (["estimate", "only_one.png"], ["estimate", "a.png", "b.png", "--best-features", "abc"], ["bench", "synthetic", "--n", "x"]):
+        result = subprocess.run([sys.executable, "-m", "udh_cli", *args], capture_output=True, text=True, timeout=60)
+        assert result.returncode == 2, args
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        assert len(lines) == 1 and lines[0].startswith("error:") and "--help" in lines[0], result.stderr
+        assert "Traceback" not in result.stderr

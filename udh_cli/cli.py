@@ -302,20 +302,35 @@ def _finish_bench(result, out: Path, plots: bool) -> None:
 def main() -> None:
     """Console-script entry point: runs the app and turns errors into one line and an exit code."""
     try:
-        app()
+        # standalone_mode=False hands usage errors to us, so that they too come out as one line.
+        code = app(standalone_mode=False)
     except UdhError as exc:
         if _state["debug"]:
             raise
-        err_console.print(f"[bold red]error:[/bold red] {exc}", highlight=False, soft_wrap=True)
-        sys.exit(1)
-    except KeyboardInterrupt:
-        err_console.print("[bold red]interrupted[/bold red]")
-        sys.exit(130)
+        _fail(str(exc), 1)
+    except (KeyboardInterrupt, typer.Abort):
+        _fail("interrupted", 130)
     except Exception as exc:  # noqa: BLE001 - the last line of defence: no traceback without --debug
+        if _is_usage_error(exc):
+            if type(exc).__name__ != "NoArgsIsHelpError":  # that one has printed the help already
+                context = getattr(exc, "ctx", None)
+                hint = f"; see '{context.command_path} --help'" if context is not None else ""
+                _fail(f"{exc.format_message().rstrip('.')}{hint}", exc.exit_code)
+            sys.exit(exc.exit_code)
         if _state["debug"]:
             raise
-        err_console.print(f"[bold red]internal error:[/bold red] {type(exc).__name__}: {exc} (rerun with --debug for details)", highlight=False, soft_wrap=True)
-        sys.exit(1)
+        _fail(f"internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)", 1)
+    sys.exit(code if isinstance(code, int) else 0)
+
+
+def _is_usage_error(exc: Exception) -> bool:
+    """Typer's (Click's) bad-usage exceptions: a missing argument, an option given a wrong value..."""
+    return hasattr(exc, "format_message") and isinstance(getattr(exc, "exit_code", None), int)
+
+
+def _fail(message: str, code: int) -> None:
+    err_console.print(f"[bold red]error:[/bold red] {message}", highlight=False, soft_wrap=True)
+    sys.exit(code)
 
 
 if __name__ == "__main__":

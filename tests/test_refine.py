@@ -43,7 +43,7 @@ def test_verification_score_separates_right_from_wrong():
         off = geometry.homography_from_offsets(np.random.default_rng(seed).uniform(-25, 25, (4, 2)), 320, 240) @ truth
         wrong.append(verification_score(a, b, off))
     assert min(right) > 0.9
-    assert max(wrong) < 0.7  # the auto method doubts answers below min_score = 0.7
+    assert max(wrong) < 0.7  # well below the auto method's min_score (0.9)
     assert verification_score(a, b, None) == 0.0
 
 

@@ -29,7 +29,7 @@ class PyramidEcc:
         eps: ECC's convergence threshold.
     """
 
-    work_side: int = 320
+    work_side: int = 640
     levels: int = 3
     iterations: tuple[int, ...] = (40, 30, 20)
     eps: float = 1e-5

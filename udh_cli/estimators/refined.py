@@ -61,7 +61,7 @@ class RefinedEstimator(Estimator):
     iterations: int = 2
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     fallback: str | None = None
-    min_score: float = 0.7
+    min_score: float = 0.9
     _first: Estimator = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

@@ -119,7 +119,10 @@ def test_too_big_canvas_is_refused_before_writing(small_flight, tmp_path):
     out = tmp_path / "big.png"
     with pytest.raises(UdhError, match="--max-size"):
         run_mosaic(small_flight, out, MosaicConfig(method="orb", overlap_per_frame=0, max_canvas_bytes=100_000))
-    assert list(tmp_path.iterdir()) == []
+    # No image and no sidecar; only the pair cache, so that the fix (--max-size) need not estimate again.
+    assert [p.name for p in tmp_path.iterdir()] == ["big.pairs.json"]
+    report = run_mosaic(small_flight, out, MosaicConfig(method="orb", overlap_per_frame=0, max_size=200), resume=True)
+    assert report["summary"]["pairs_from_cache"] == len(report["pairs"]) == 7
     ref_from = {0: np.eye(3), 1: geometry.translation(1e6, 0.0)}
     with pytest.raises(UdhError, match="would be 1000640x240"):
         plan_canvas(ref_from, [(640, 240), (640, 240)], "feather")

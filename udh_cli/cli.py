@@ -179,6 +179,7 @@ def mosaic(
     overlap_per_frame: Annotated[int, typer.Option("--overlap-pairs", help="Loop-closure pairs per frame at most (0: plain chaining).")] = _MOSAIC.overlap_per_frame,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Simulator ground truth (default: SOURCE/ground_truth.json when present) to report the corner error.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars; warnings and the summary only.")] = False,
+    resume: Annotated[bool, typer.Option("--resume", help="Reuse the pair estimates of an earlier (interrupted) run from NAME.pairs.json where frames, methods and settings match.")] = False,
 ) -> None:
     """Stitch a folder of UAV frames (or a video) into one mosaic, drift-free, with any estimator."""
     from udh_cli.mosaic import Reporter, run_mosaic
@@ -188,7 +189,7 @@ def mosaic(
         blend=blend, max_size=max_size, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
-    report = run_mosaic(source, output, config, reporter, ground_truth=gt)
+    report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume)
     _print_mosaic(report)
 
 

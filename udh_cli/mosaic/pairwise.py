@@ -4,7 +4,7 @@ with a fallback method for pairs the first method fails or doubts, rescaled exac
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import cv2
 import numpy as np
@@ -14,6 +14,9 @@ from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.mosaic.frames import Frame
 from udh_cli.mosaic.report import Reporter
+
+if TYPE_CHECKING:
+    from udh_cli.mosaic.pair_cache import PairCache
 
 PAIR_KINDS = ("consecutive", "bridge", "overlap")  # next frame; skipping a broken link; loop closure
 
@@ -112,34 +115,68 @@ def estimate_pairs(
     reporter: Reporter,
     stage: str,
     batch_size: int = 16,
+    cache: "PairCache | None" = None,
 ) -> list[PairResult]:
     """Estimate every request; a failed or doubtful (confidence < ``min_confidence``) pair is retried with
-    ``fallback``. Batches of ``batch_size`` pairs go to ``estimate_many`` so learned methods batch them."""
+    ``fallback``. Batches of ``batch_size`` pairs go to ``estimate_many`` so learned methods batch them.
+
+    With a ``cache`` (:class:`~udh_cli.mosaic.pair_cache.PairCache`), a request whose key the cache holds is
+    taken from it, and every finished batch is added to it and saved, so an interrupt loses at most one
+    batch. Batches are cut from ``requests`` the same way with or without cached pairs, so a resumed run
+    hands the estimator the same batches as an uninterrupted one.
+    """
     results = [PairResult(r.a, r.b, r.kind, prior=r.prior) for r in requests]
     with reporter.stage(stage, len(requests)) as advance:
-        pending = list(range(len(requests)))
-        for attempt, method in enumerate((estimator, fallback)):
-            if method is None or not pending:
+        for start in range(0, len(requests), batch_size):
+            batch = []
+            for i in range(start, min(start + batch_size, len(requests))):
+                cached = cache.lookup(requests[i]) if cache is not None else None
+                if cached is None:
+                    batch.append(i)
+                else:
+                    results[i] = cached
+                    advance(1)
+            if not batch:
                 continue
-            still_pending = []
-            for start in range(0, len(pending), batch_size):
-                batch = pending[start : start + batch_size]
-                inputs = [_work_inputs(requests[i], frames) for i in batch]
-                estimates = _estimate_many_safely(method, [(a, b) for a, b, _ in inputs])
-                for i, (_, _, prior_work), estimate in zip(batch, inputs, estimates):
-                    result = results[i]
-                    result.estimates.append(estimate)
-                    if estimate.ok and estimate.confidence >= min_confidence:
-                        result.b_from_a = _full_resolution(estimate, requests[i], frames, prior_work)
-                        result.status, result.reason, result.method = "ok", None, estimate.method
-                    else:
-                        result.reason = estimate.failure if not estimate.ok else f"confidence {estimate.confidence:.2f} < {min_confidence}"
-                        result.reason = f"{estimate.method}: {result.reason}"
-                        still_pending.append(i)
-                    if attempt == 0 and result.ok or attempt == 1 or fallback is None:
-                        advance(1)
-            pending = still_pending
+            _estimate_batch(batch, requests, results, frames, estimator, fallback, min_confidence, advance)
+            if cache is not None:
+                for i in batch:
+                    cache.add(requests[i], results[i])
+                cache.save()
     return results
+
+
+def _estimate_batch(
+    batch: list[int],
+    requests: Sequence[PairRequest],
+    results: list[PairResult],
+    frames: Sequence[Frame],
+    estimator: Estimator,
+    fallback: Estimator | None,
+    min_confidence: float,
+    advance,
+) -> None:
+    """Finish the pairs ``batch`` (indices into ``requests``) in place: ``estimator``, then ``fallback``."""
+    pending = batch
+    for attempt, method in enumerate((estimator, fallback)):
+        if method is None or not pending:
+            continue
+        still_pending = []
+        inputs = [_work_inputs(requests[i], frames) for i in pending]
+        estimates = _estimate_many_safely(method, [(a, b) for a, b, _ in inputs])
+        for i, (_, _, undo), estimate in zip(pending, inputs, estimates):
+            result = results[i]
+            result.estimates.append(estimate)
+            if estimate.ok and estimate.confidence >= min_confidence:
+                result.b_from_a = _full_resolution(estimate, requests[i], frames, undo)
+                result.status, result.reason, result.method = "ok", None, estimate.method
+            else:
+                result.reason = estimate.failure if not estimate.ok else f"confidence {estimate.confidence:.2f} < {min_confidence}"
+                result.reason = f"{estimate.method}: {result.reason}"
+                still_pending.append(i)
+            if attempt == 0 and result.ok or attempt == 1 or fallback is None:
+                advance(1)
+        pending = still_pending
 
 
 def _estimate_many_safely(method: Estimator, pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:

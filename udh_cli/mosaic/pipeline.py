@@ -21,6 +21,7 @@ from udh_cli.mosaic import composite as compositing
 from udh_cli.mosaic.frames import ORDERS, FrameSet, open_frames
 from udh_cli.mosaic.gains import solve_gains
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
+from udh_cli.mosaic.pair_cache import PairCache, cache_path
 from udh_cli.mosaic.pairwise import PairRequest, PairResult, corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_with_rejection, summarise
@@ -145,12 +146,18 @@ def run_mosaic(
     estimator: Estimator | None = None,
     fallback: Estimator | None = None,
     ground_truth: str | Path | None = None,
+    resume: bool = False,
 ) -> dict[str, Any]:
     """Mosaic a folder of frames (or a video) into ``output``; returns the sidecar dict (also written).
 
     ``estimator`` / ``fallback`` override ``config.method`` / ``config.fallback`` with ready instances.
     ``ground_truth`` is a simulator ground-truth file; when ``None``, ``FOLDER/ground_truth.json`` is used
     if present. Raises :class:`UdhError` for unusable input; a failing pair never raises, it splits the run.
+
+    Every finished pair estimate is saved to ``cache_path(output)`` (``NAME.pairs.json``) after each batch,
+    and the file is kept after the run. With ``resume`` the pairs whose frames, estimators and settings
+    match that file are taken from it instead of estimated again (see :mod:`.pair_cache`); without it the
+    file is ignored and replaced.
     """
     reporter = reporter or Reporter(quiet=True)
     source, output = Path(source), Path(output)
@@ -163,15 +170,26 @@ def run_mosaic(
 
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter)
     frames = frameset.frames
-    pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter)
-    parts = _chain_parts(frameset, pairs)
-    pairs += _close_loops(frameset, parts, pairs, estimator, fallback, config, reporter)
+    cache = PairCache.open(cache_path(output), frames, estimator, fallback, config.min_confidence, resume, reporter)
+    try:
+        pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter, cache)
+        parts = _chain_parts(frameset, pairs)
+        pairs += _close_loops(frameset, parts, pairs, estimator, fallback, config, reporter, cache)
+    except KeyboardInterrupt:
+        if cache.entries:
+            reporter.warn(f"interrupted: the finished pair estimates are kept in {cache.path}; add --resume to the same command to go on from them")
+        raise
+    cache.save(prune=True)
+    if resume:
+        reporter.info(f"{cache.hits} of {len(pairs)} pair estimates taken from {cache.path}")
     loops = _solve(frameset, parts, pairs, config, reporter)
     gains = _gains(frameset, pairs, config, reporter)
     _plan_canvases(frameset, parts, output, config)
     for part in parts:
         _composite_part(frameset, part, gains, config, reporter)
     report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter)
+    report["pair_cache"] = str(cache.path)
+    report["summary"]["pairs_from_cache"] = cache.hits
     report["timings_s"]["total"] = time.perf_counter() - started
     atomic_write_bytes(sidecar_path(output), (json.dumps(report, indent=1) + "\n").encode())
     report["sidecar"] = str(sidecar_path(output))
@@ -183,7 +201,7 @@ def run_mosaic(
 
 def _own_files(output: Path) -> list[Path]:
     """Outputs of this run (or an earlier one), which must never be read back as frames."""
-    return [output, sidecar_path(output), preview_path(output)] + [p for p in output.parent.glob(f"{output.stem}.part*")]
+    return [output, sidecar_path(output), preview_path(output), cache_path(output)] + [p for p in output.parent.glob(f"{output.stem}.part*")]
 
 
 def _load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:
@@ -193,17 +211,17 @@ def _load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:
     return load_ground_truth(auto) if source.is_dir() and auto.is_file() else None
 
 
-def _estimate_sequence(frameset: FrameSet, estimator, fallback, config: MosaicConfig, reporter: Reporter) -> list[PairResult]:
+def _estimate_sequence(frameset: FrameSet, estimator, fallback, config: MosaicConfig, reporter: Reporter, cache: PairCache) -> list[PairResult]:
     """Consecutive pairs, then a bridge over each broken link (i-1 -> i+1 and i -> i+2)."""
     frames = frameset.frames
     args = (frames, estimator, fallback, config.min_confidence, reporter)
-    pairs = estimate_pairs([PairRequest(i, i + 1, "consecutive") for i in range(len(frames) - 1)], *args, "consecutive pairs", config.batch_size)
+    pairs = estimate_pairs([PairRequest(i, i + 1, "consecutive") for i in range(len(frames) - 1)], *args, "consecutive pairs", config.batch_size, cache)
     broken = [p for p in pairs if not p.ok]
     for pair in broken:
         reporter.warn(f"pair {frames[pair.a].name} -> {frames[pair.b].name} failed ({pair.reason}); trying to bridge it")
     bridges = sorted({(a, b) for p in broken for a, b in ((p.a - 1, p.b), (p.a, p.b + 1)) if a >= 0 and b < len(frames)})
     if bridges:
-        pairs += estimate_pairs([PairRequest(a, b, "bridge") for a, b in bridges], *args, "bridging gaps", config.batch_size)
+        pairs += estimate_pairs([PairRequest(a, b, "bridge") for a, b in bridges], *args, "bridging gaps", config.batch_size, cache)
     return pairs
 
 
@@ -218,7 +236,7 @@ def _chain_parts(frameset: FrameSet, pairs: list[PairResult]) -> list[Part]:
     return parts
 
 
-def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], estimator, fallback, config: MosaicConfig, reporter: Reporter) -> list[PairResult]:
+def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], estimator, fallback, config: MosaicConfig, reporter: Reporter, cache: PairCache) -> list[PairResult]:
     """Estimate non-consecutive overlapping pairs, pre-warped by the chain; reject those that contradict it."""
     frames = frameset.frames
     sizes = [f.size for f in frames]
@@ -232,7 +250,7 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
             requests.append(PairRequest(a, b, "overlap", prior / prior[2, 2]))
     if not requests:
         return []
-    results = estimate_pairs(requests, frames, estimator, fallback, config.min_confidence, reporter, "loop-closure pairs", config.batch_size)
+    results = estimate_pairs(requests, frames, estimator, fallback, config.min_confidence, reporter, "loop-closure pairs", config.batch_size, cache)
     for result in results:
         if not result.ok:
             continue

@@ -1,0 +1,173 @@
+"""--resume: an interrupted run keeps its finished pair estimates, and a resumed run estimates only the rest."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from dataclasses import dataclass
+from typing import ClassVar
+
+import cv2
+import numpy as np
+import pytest
+
+from udh_cli import cli
+from udh_cli.estimators import Estimator
+from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
+from udh_cli.mosaic.pair_cache import cache_path, estimator_identity
+
+from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
+
+# Batches of 3: the 7 consecutive pairs go as 3 + 3 + 1, then the loop-closure pairs, 3 at a time.
+CONFIG = MosaicConfig(batch_size=3, overlap_per_frame=2)
+
+
+class Interrupted(FailOn):
+    """Real SIFT estimates, counted; after ``interrupt_after`` of them the next one raises KeyboardInterrupt
+    (as Ctrl-C would). ``calls`` records (a, b) by frame index, ``None`` for a pre-warped image."""
+
+    name: ClassVar[str] = "counted"
+
+    def __init__(self, prints: list[str], interrupt_after: int | None = None) -> None:
+        super().__init__(prints, lambda a, b: False)
+        self.interrupt_after = interrupt_after
+
+    def _estimate(self, image_a, image_b):
+        if self.interrupt_after is not None and len(self.calls) >= self.interrupt_after:
+            raise KeyboardInterrupt
+        return super()._estimate(image_a, image_b)
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("flight")
+    paths = make_flight(folder, SMALL, seed=4)
+    return folder, work_fingerprints(paths)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(flight, tmp_path_factory):
+    folder, prints = flight
+    estimator = Interrupted(prints)
+    report = run_mosaic(folder, tmp_path_factory.mktemp("whole") / "m.png", CONFIG, estimator=estimator)
+    assert len(estimator.calls) == len(report["pairs"]) >= 10  # one estimate per pair: no fallback here
+    return report
+
+
+def cached_pairs(output) -> list[dict]:
+    return json.loads(cache_path(output).read_text())["pairs"]
+
+
+def assert_same_geometry(report: dict, reference: dict) -> None:
+    for frame, expected in zip(report["frames"], reference["frames"], strict=True):
+        np.testing.assert_allclose(frame["mosaic_from_frame"], expected["mosaic_from_frame"], rtol=0, atol=1e-9)
+    for pair, expected in zip(report["pairs"], reference["pairs"], strict=True):
+        assert (pair["a"], pair["b"], pair["kind"], pair["status"]) == (expected["a"], expected["b"], expected["kind"], expected["status"])
+        if expected["b_from_a"] is not None:
+            np.testing.assert_allclose(pair["b_from_a"], expected["b_from_a"], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("interrupt_after", "finished"),
+    [(5, 3), (11, 10)],  # in the second batch of consecutive pairs; in the second batch of loop pairs (7 + 3 done)
+)
+def test_resume_estimates_only_the_pairs_the_interrupt_lost(flight, uninterrupted, tmp_path, interrupt_after, finished):
+    folder, prints = flight
+    out = tmp_path / "m.png"
+    reporter = Reporter(quiet=True)
+    with pytest.raises(KeyboardInterrupt):
+        run_mosaic(folder, out, CONFIG, reporter, estimator=Interrupted(prints, interrupt_after))
+    assert [p.name for p in tmp_path.iterdir()] == ["m.pairs.json"]  # no mosaic, no sidecar
+    assert len(cached_pairs(out)) == finished  # every finished batch, none of the interrupted one
+    assert any("--resume" in w for w in reporter.warnings)
+
+    counted = Interrupted(prints)
+    report = run_mosaic(folder, out, CONFIG, estimator=counted, resume=True)
+    total = len(uninterrupted["pairs"])
+    assert len(counted.calls) == total - finished
+    assert report["summary"]["pairs_from_cache"] == finished
+    assert_same_geometry(report, uninterrupted)
+    assert len(cached_pairs(out)) == total  # kept after a successful run, complete
+
+    # Resuming a finished run estimates nothing; without --resume the cache is ignored and replaced.
+    again = Interrupted(prints)
+    assert run_mosaic(folder, out, CONFIG, estimator=again, resume=True)["summary"]["pairs_from_cache"] == total
+    assert again.calls == []
+    fresh = Interrupted(prints)
+    assert run_mosaic(folder, out, CONFIG, estimator=fresh)["summary"]["pairs_from_cache"] == 0
+    assert len(fresh.calls) == total
+
+
+def test_a_second_interrupt_loses_nothing_either(flight, uninterrupted, tmp_path):
+    folder, prints = flight
+    out = tmp_path / "m.png"
+    with pytest.raises(KeyboardInterrupt):
+        run_mosaic(folder, out, CONFIG, estimator=Interrupted(prints, 5))  # 3 pairs finished
+    with pytest.raises(KeyboardInterrupt):
+        run_mosaic(folder, out, CONFIG, estimator=Interrupted(prints, 6), resume=True)  # 3 + 1 consecutive, 2 of a loop batch
+    assert len(cached_pairs(out)) == 7
+    counted = Interrupted(prints)
+    report = run_mosaic(folder, out, CONFIG, estimator=counted, resume=True)
+    assert len(counted.calls) == len(uninterrupted["pairs"]) - 7
+    assert_same_geometry(report, uninterrupted)
+
+
+def test_pairs_that_no_longer_match_are_estimated_again(flight, uninterrupted, tmp_path):
+    folder, prints = flight
+    work = tmp_path / "frames"
+    work.mkdir()
+    for path in folder.iterdir():
+        (work / path.name).write_bytes(path.read_bytes())
+    out = tmp_path / "m.png"
+    run_mosaic(work, out, CONFIG, estimator=Interrupted(prints))
+
+    # Another confidence threshold changes every key.
+    counted = Interrupted(prints)
+    run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, min_confidence=0.25), estimator=counted, resume=True)
+    assert len(counted.calls) == len(uninterrupted["pairs"])
+
+    # A changed frame: its two consecutive pairs are estimated again, the other five come from the cache.
+    frame = work / "frame_006.jpg"
+    cv2.imwrite(str(frame), cv2.imread(str(frame)), [cv2.IMWRITE_JPEG_QUALITY, 80])
+    new_prints = work_fingerprints(sorted(work.glob("frame_*.jpg")))
+    assert new_prints[6] != prints[6] and new_prints[:6] == prints[:6]
+    counted = Interrupted(new_prints)
+    report = run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, min_confidence=0.25), estimator=counted, resume=True)
+    assert [c for c in counted.calls if None not in c] == [(5, 6), (6, 7)]
+    assert report["summary"]["pairs_from_cache"] >= 5
+
+
+@dataclass
+class WithModel(Estimator):
+    name: ClassVar[str] = "with-model"
+    model: str = ""
+    device: str = "cpu"
+
+
+def test_estimator_identity_follows_settings_and_model_files(tmp_path):
+    model = tmp_path / "net.onnx"
+    model.write_bytes(b"first")
+    before = estimator_identity(WithModel(str(model)))
+    assert before["name"] == "with-model" and before["settings"] == {"model": str(model), "device": "cpu"}
+    assert estimator_identity(WithModel(str(model))) == before
+    assert estimator_identity(WithModel(str(model), device="cuda")) != before
+    model.write_bytes(b"retrained")  # same path, new weights: a different method
+    assert estimator_identity(WithModel(str(model))) != before
+
+
+def test_cli_resume_with_the_output_inside_the_frames_folder(flight, tmp_path, monkeypatch, capfd):
+    folder = tmp_path / "frames"
+    shutil.copytree(flight[0], folder)
+    out = folder / "m.png"
+    args = ["udh", "mosaic", str(folder), "-o", str(out), "--overlap-pairs", "1", "--quiet"]
+    for extra in ([], ["--resume"]):
+        monkeypatch.setattr(sys, "argv", args + extra)
+        with pytest.raises(SystemExit) as stop:
+            cli.main()
+        assert stop.value.code == 0
+    err = capfd.readouterr().err
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["summary"]["pairs_from_cache"] == len(sidecar["pairs"]) > 7
+    assert sidecar["skipped_files"] == []  # the cache (and the other outputs) are never read as frames
+    assert f"{len(sidecar['pairs'])} of {len(sidecar['pairs'])} pair estimates taken from" in err

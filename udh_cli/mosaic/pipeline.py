@@ -21,6 +21,7 @@ from udh_cli.mosaic import composite as compositing
 from udh_cli.mosaic.frames import ORDERS, FrameSet, open_frames
 from udh_cli.mosaic.gains import solve_gains
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
+from udh_cli.mosaic.outputs import StagedFiles, output_paths, preview_path, sidecar_path, stale_part_files
 from udh_cli.mosaic.pair_cache import PairCache, cache_path
 from udh_cli.mosaic.pairwise import PairRequest, PairResult, corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
@@ -100,21 +101,6 @@ class Part:
     dropped: dict[int, str] = field(default_factory=dict)  # frame -> why it was taken out of the part
 
 
-def output_paths(output: Path, n_parts: int) -> list[Path]:
-    """The mosaic file of each part: ``output`` itself for one part, ``stem.partK.suffix`` for several."""
-    if n_parts == 1:
-        return [output]
-    return [output.with_name(f"{output.stem}.part{k}{output.suffix}") for k in range(1, n_parts + 1)]
-
-
-def sidecar_path(output: Path) -> Path:
-    return output.with_suffix(".json")
-
-
-def preview_path(mosaic_file: Path) -> Path:
-    return mosaic_file.with_name(f"{mosaic_file.stem}.preview.jpg")
-
-
 def check_output(output: Path) -> None:
     """Fail before any work when the mosaic could not be written."""
     if output.suffix.lower() not in OUTPUT_SUFFIXES:
@@ -185,13 +171,20 @@ def run_mosaic(
     loops = _solve(frameset, parts, pairs, config, reporter)
     gains = _gains(frameset, pairs, config, reporter)
     _plan_canvases(frameset, parts, output, config)
-    for part in parts:
-        _composite_part(frameset, part, gains, config, reporter)
-    report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter)
+    staged = StagedFiles()  # the images of every part appear together, or none of them does
+    try:
+        for part in parts:
+            _composite_part(frameset, part, gains, config, reporter, staged)
+        _warn_about_earlier_output(output, parts, reporter)
+        report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter)
+        staged.publish()
+    finally:
+        staged.discard()  # after a failure; nothing is left to discard after publish()
+    _remove_stale_parts(output, parts, reporter)
     report["pair_cache"] = str(cache.path)
     report["summary"]["pairs_from_cache"] = cache.hits
     report["timings_s"]["total"] = time.perf_counter() - started
-    atomic_write_bytes(sidecar_path(output), (json.dumps(report, indent=1) + "\n").encode())
+    atomic_write_bytes(sidecar_path(output), (json.dumps(report, indent=1) + "\n").encode())  # last: the run is complete
     report["sidecar"] = str(sidecar_path(output))
     return report
 
@@ -326,7 +319,8 @@ def _plan_canvases(frameset: FrameSet, parts: list[Part], output: Path, config: 
         part.file = path
 
 
-def _composite_part(frameset: FrameSet, part: Part, gains: np.ndarray, config: MosaicConfig, reporter: Reporter) -> None:
+def _composite_part(frameset: FrameSet, part: Part, gains: np.ndarray, config: MosaicConfig, reporter: Reporter, staged: StagedFiles) -> None:
+    """Composite one part and write its image and preview under the temporary names of ``staged``."""
     if part.canvas is None:
         return
     to_mosaic = {i: part.canvas.mosaic_from_ref @ part.solved[i] for i in part.frames}
@@ -335,13 +329,33 @@ def _composite_part(frameset: FrameSet, part: Part, gains: np.ndarray, config: M
     with reporter.stage("writing", 1) as advance:
         if part.file.suffix.lower() in (".jpg", ".jpeg"):
             reporter.warn(f"{part.file.name}: JPEG has no alpha channel; uncovered areas are black (use .png or .tif to keep the mask)")
-            write_image(part.file, mosaic[..., :3])
+            write_image(staged.path_for(part.file), mosaic[..., :3])
         else:
-            write_image(part.file, mosaic)
+            write_image(staged.path_for(part.file), mosaic)
         if config.preview:
             part.preview = preview_path(part.file)
-            write_image(part.preview, compositing.preview(mosaic))
+            write_image(staged.path_for(part.preview), compositing.preview(mosaic))
         advance(1)
+
+
+def _warn_about_earlier_output(output: Path, parts: list[Part], reporter: Reporter) -> None:
+    """A split run does not write ``output`` itself: one there now is an earlier run's and is left alone."""
+    written = [p for p in parts if p.canvas is not None]
+    if len(written) > 1 and output.is_file():
+        reporter.warn(f"{output.name} is left from an earlier run: this run is split into parts, which are written as {written[0].file.name}, ...")
+
+
+def _remove_stale_parts(output: Path, parts: list[Part], reporter: Reporter) -> None:
+    """Remove part files of this output name (an earlier run with more parts) that this run did not write."""
+    produced = [f for p in parts for f in (p.file, p.preview) if f is not None and p.canvas is not None]
+    stale = stale_part_files(output, produced)
+    for path in stale:
+        try:
+            path.unlink()
+        except OSError as exc:
+            reporter.warn(f"{path.name} is left from an earlier run and could not be removed ({exc.strerror})")
+    if stale:
+        reporter.info(f"removed {len(stale)} part files of an earlier run: {', '.join(p.name for p in stale)}")
 
 
 def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter: Reporter) -> dict[str, Any]:

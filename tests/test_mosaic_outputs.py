@@ -1,0 +1,114 @@
+"""Output hygiene of split runs: the parts appear together or not at all, and an earlier run's extra parts go."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from udh_cli.errors import UdhError
+from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
+from udh_cli.mosaic import composite as compositing
+from udh_cli.mosaic.outputs import StagedFiles, stale_part_files
+
+from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
+
+FAST = MosaicConfig(overlap_per_frame=1, batch_size=4)
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    """8 frames on two lines; ``split`` fails every pair across the lines, so a run makes two parts."""
+    folder = tmp_path_factory.mktemp("flight")
+    prints = work_fingerprints(make_flight(folder, SMALL, seed=4))
+    return folder, prints
+
+
+def split(prints):
+    return FailOn(prints, lambda a, b: a is not None and b is not None and (a < 4) != (b < 4))
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def fail_in_part(monkeypatch, number: int) -> None:
+    """Make the compositing of part ``number`` (1-based, in order) fail, as a full disk or a bug would."""
+    real, calls = compositing.composite, []
+
+    def composite(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == number:
+            raise UdhError("made to fail by the test")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(compositing, "composite", composite)
+
+
+def test_a_failing_later_part_leaves_no_part_behind(flight, tmp_path, monkeypatch):
+    folder, prints = flight
+    fail_in_part(monkeypatch, 2)
+    with pytest.raises(UdhError, match="made to fail"):
+        run_mosaic(folder, tmp_path / "m.png", FAST, estimator=split(prints), fallback=split(prints))
+    assert [p.name for p in tmp_path.iterdir()] == ["m.pairs.json"]  # no part 1, no preview, no temporary file
+
+
+def test_a_failing_later_part_leaves_the_earlier_run_whole(flight, tmp_path, monkeypatch):
+    folder, prints = flight
+    out = tmp_path / "m.png"
+    run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))
+    before = snapshot(tmp_path)
+    assert sorted(before) == ["m.json", "m.pairs.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg"]
+    fail_in_part(monkeypatch, 2)
+    with pytest.raises(UdhError, match="made to fail"):  # another blend: part 1 would differ from the earlier one
+        run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, blend="none"), estimator=split(prints), fallback=split(prints), resume=True)
+    assert snapshot(tmp_path) == before  # byte for byte: images, previews, sidecar and pair cache
+
+
+def test_stale_parts_of_an_earlier_run_are_removed_and_nothing_else(flight, tmp_path):
+    folder, prints = flight
+    out = tmp_path / "m.png"
+    others = ["m.part3.tif", "m.partial.png", "mm.part3.png", "m.part3.png.bak", "other.part3.png", "m.part0.png", "m.part3.jpg", "notes.txt"]
+    for name in ["m.part3.png", "m.part3.preview.jpg", "m.part12.png", *others]:
+        (tmp_path / name).write_bytes(b"earlier")
+    report = run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))
+    assert report["summary"]["parts"] == 2
+    expected = ["m.json", "m.pairs.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(expected + others)
+
+    # Now in one part, without previews: every part file goes, and the single mosaic takes their place.
+    reporter = Reporter(quiet=True)
+    report = run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, preview=False), reporter, estimator=FailOn(prints, lambda a, b: False))
+    assert report["summary"]["parts"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.pairs.json", "m.png", *others])
+    assert json.loads((tmp_path / "m.json").read_text())["parts"][0]["file"] == str(out)
+
+    # Split again: the single mosaic of the run before is not a part file; it stays, with a warning.
+    reporter = Reporter(quiet=True)
+    run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, preview=False), reporter, estimator=split(prints), fallback=split(prints))
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.pairs.json", "m.png", "m.part1.png", "m.part2.png", *others])
+    assert any("m.png is left from an earlier run" in w for w in reporter.warnings)
+
+
+def test_stale_part_files_matches_only_this_outputs_part_names(tmp_path):
+    out = tmp_path / "run.v2.tif"
+    names = ["run.v2.part1.tif", "run.v2.part2.preview.jpg", "run.v2.part7.tif", "run.v2.part1.png", "run.v2.tif", "run.v2.preview.jpg", "runXv2.part1.tif", "run.v2.part1.tif.json"]
+    for name in names:
+        (tmp_path / name).write_bytes(b"x")
+    (tmp_path / "run.v2.part9.tif").mkdir()  # a folder is never removed
+    stale = stale_part_files(out, [tmp_path / "run.v2.part1.tif"])
+    assert [p.name for p in stale] == ["run.v2.part2.preview.jpg", "run.v2.part7.tif"]
+
+
+def test_staged_files_keep_the_permissions_of_the_file_they_replace(tmp_path):
+    final = tmp_path / "m.png"
+    final.write_bytes(b"old")
+    final.chmod(0o640)
+    staged = StagedFiles()
+    temporary = staged.path_for(final)
+    assert temporary.parent == tmp_path and temporary.name.startswith(".") and temporary.suffix == ".png"
+    temporary.write_bytes(b"new")
+    staged.publish()
+    assert final.read_bytes() == b"new" and final.stat().st_mode & 0o777 == 0o640
+    assert [p.name for p in tmp_path.iterdir()] == ["m.png"]

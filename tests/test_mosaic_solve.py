@@ -99,3 +99,19 @@ def test_a_wrong_loop_closure_is_found_and_dropped():
     honest = points[:wrong]
     _, none_dropped = solve_with_rejection(4, chained, sizes, honest, [p.kind == "overlap" for p in pairs[:wrong]])
     assert none_dropped == {}
+
+
+def test_loop_pair_inputs_are_cropped_to_the_covered_window():
+    """A pre-warped B is cut to a window that is at least 98 % real pixels, so no method sees its empty border."""
+    import cv2
+
+    from udh_cli.mosaic.pairwise import _covered_window
+
+    covered = np.zeros((480, 640), np.uint8)
+    quad = np.array([[200, 40], [630, 90], [600, 470], [150, 420]], np.int32)
+    cv2.fillPoly(covered, [quad], 1)
+    x0, y0, x1, y1 = _covered_window(covered > 0)
+    window = covered[y0:y1, x0:x1]
+    assert window.mean() >= 0.98
+    assert (x1 - x0) * (y1 - y0) > 0.5 * covered.sum()  # shrunk only as far as needed
+    assert _covered_window(np.zeros((100, 100), bool)) is None

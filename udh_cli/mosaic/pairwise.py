@@ -88,21 +88,64 @@ class PairResult:
         }
 
 
-def _work_inputs(request: PairRequest, frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """The two working images for a request and, when pre-warping, the working-size prior ``b_from_a``."""
+def _work_inputs(request: PairRequest, frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """The two working images for a request, and how to undo what was done to them.
+
+    Returns ``(image_a, image_b, (after, before))``: an estimate ``H`` between the returned images becomes
+    the working-size ``b_from_a = after @ H @ before``. With a ``prior``, B is warped into A's frame and
+    both are cropped to the window where the warped B has real pixels: the empty border of a pre-warped
+    image would otherwise mislead photometric methods (ECC, NCC verification) and the networks.
+    """
     fa, fb = frames[request.a], frames[request.b]
+    identity = np.eye(3)
     if request.prior is None:
-        return fa.work, fb.work, None
+        return fa.work, fb.work, (identity, identity)
     prior_work = geometry.rescale_homography(request.prior, fa.size, fa.work_size, fb.size, fb.work_size)
     # B rendered in A's frame: pixel x of the warped image shows B at prior_work(x).
-    warped_b = cv2.warpPerspective(fb.work, prior_work, fa.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    return fa.work, warped_b, prior_work
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    warped_b = cv2.warpPerspective(fb.work, prior_work, fa.work_size, flags=flags)
+    covered = cv2.warpPerspective(np.ones_like(fb.work), prior_work, fa.work_size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
+    window = _covered_window(covered > 0)
+    if window is None:
+        return fa.work, warped_b, (prior_work, identity)
+    x0, y0, x1, y1 = window
+    after = prior_work @ geometry.translation(x0, y0)
+    return fa.work[y0:y1, x0:x1], warped_b[y0:y1, x0:x1], (after, geometry.translation(-x0, -y0))
 
 
-def _full_resolution(estimate: Estimate, request: PairRequest, frames: Sequence[Frame], prior_work: np.ndarray | None) -> np.ndarray:
-    """The estimate as a full-resolution ``b_from_a`` (undoing the pre-warp and the working scale)."""
+MIN_WINDOW = 48  # px; a smaller overlap window is not worth estimating on its own
+
+
+def _covered_window(covered: np.ndarray, max_uncovered: float = 0.02) -> tuple[int, int, int, int] | None:
+    """An axis-aligned window ``(x0, y0, x1, y1)`` of ``covered`` (H, W) bool with at most ``max_uncovered``
+    of its pixels uncovered: the bounding box, shrunk from its emptiest side until it is nearly full."""
+    ys, xs = np.nonzero(covered)
+    if len(xs) == 0:
+        return None
+    x0, x1, y0, y1 = int(xs.min()), int(xs.max()) + 1, int(ys.min()), int(ys.max()) + 1
+    while x1 - x0 >= MIN_WINDOW and y1 - y0 >= MIN_WINDOW:
+        window = covered[y0:y1, x0:x1]
+        if 1.0 - window.mean() <= max_uncovered:
+            return x0, y0, x1, y1
+        step_x, step_y = max(1, (x1 - x0) // 50), max(1, (y1 - y0) // 50)
+        empty = {"top": 1 - window[0].mean(), "bottom": 1 - window[-1].mean(), "left": 1 - window[:, 0].mean(), "right": 1 - window[:, -1].mean()}
+        side = max(empty, key=empty.get)
+        if side == "top":
+            y0 += step_y
+        elif side == "bottom":
+            y1 -= step_y
+        elif side == "left":
+            x0 += step_x
+        else:
+            x1 -= step_x
+    return None
+
+
+def _full_resolution(estimate: Estimate, request: PairRequest, frames: Sequence[Frame], undo: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """The estimate as a full-resolution ``b_from_a`` (undoing the pre-warp, the crop and the working scale)."""
     fa, fb = frames[request.a], frames[request.b]
-    work_b_from_a = estimate.homography if prior_work is None else prior_work @ estimate.homography
+    after, before = undo
+    work_b_from_a = after @ estimate.homography @ before
     return geometry.rescale_homography(work_b_from_a, fa.work_size, fa.size, fb.work_size, fb.size)
 
 

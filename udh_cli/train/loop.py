@@ -149,6 +149,8 @@ class Trainer:
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.learning_rate(), betas=config.betas, eps=config.eps)
         self.rng = np.random.default_rng([config.seed, self.rank])
         self.step = 0
+        self.elapsed_before = 0.0  # seconds of training before the checkpoint we resume from
+        self._clock_start: float | None = None
         self.best_val = math.inf
         if saved is not None:
             self._restore(saved)
@@ -192,9 +194,14 @@ class Trainer:
             "rng_states": [json.dumps(s) for s in rng_states],
             "torch_rng": torch.get_rng_state(),
             "best_val": self.best_val,
+            "elapsed_s": self._elapsed(),
             "trained_before": self.trained_before,
             "data_description": self.data.description,
         }
+
+    def _elapsed(self) -> float:
+        """Wall seconds of training so far, including the runs this one resumed."""
+        return self.elapsed_before if self._clock_start is None else time.perf_counter() - self._clock_start
 
     def _restore(self, saved: dict[str, Any]) -> None:
         self.model.load_state_dict(saved["model"])
@@ -206,6 +213,7 @@ class Trainer:
             self.rng.bit_generator.state = json.loads(states[self.rank])
         torch.set_rng_state(saved["torch_rng"])
         self.best_val = float(saved.get("best_val", math.inf))
+        self.elapsed_before = float(saved.get("elapsed_s", 0.0))
         self.trained_before = dict(saved.get("trained_before", {}))
         self._truncate_metrics(self.step)
 
@@ -284,7 +292,8 @@ class Trainer:
         c = self.config
         from udh_cli.train.progress import TrainProgress
 
-        started = time.perf_counter()
+        # time_s in the log is wall time spent training this run, summed over every resume.
+        self._clock_start = time.perf_counter() - self.elapsed_before
         running_loss, seen = 0.0, 0
         self.model.train()
         with TrainProgress(c.steps, self.step, enabled=self.progress) as bar:
@@ -306,7 +315,7 @@ class Trainer:
                 seen += 1
                 if self.step % c.eval_every == 0 or self.step == c.steps:
                     last = {"step": self.step, "loss": running_loss / seen, "lr": self._learning_rate(), **self.evaluate(),
-                            "time_s": round(time.perf_counter() - started, 1)}
+                            "time_s": round(self._elapsed(), 1)}
                     running_loss, seen = 0.0, 0
                     self._log(last)
                     if last.get("val_mace_mean", math.inf) < self.best_val and self.rank == 0:

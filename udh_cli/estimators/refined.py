@@ -72,18 +72,24 @@ class RefinedEstimator(Estimator):
         self._fallback = create_estimator(self.fallback) if self.fallback else None
 
     def _refine_and_score(self, image_a, image_b, start: Estimate) -> tuple[np.ndarray | None, float, dict]:
+        """Refine ``start`` photometrically and keep whichever of the two verifies better."""
         if not start.ok:
             return None, 0.0, {"start_failure": start.failure}
-        details = {"start_method": start.method}
+        start_score = verification_score(image_a, image_b, start.homography)
+        details = {"start_method": start.method, "start_score": start_score}
         try:
             refined, correlation = self.refiner.refine(image_a, image_b, start.homography)
             if not geometry.is_valid_homography(refined, image_a.shape[1], image_a.shape[0]):
                 raise EstimationFailed("refinement left a degenerate homography")
             details["ecc_correlation"] = correlation
         except EstimationFailed as exc:
-            refined = start.homography  # keep the unrefined answer; verification judges it
             details["refine_failure"] = str(exc)
-        return refined, verification_score(image_a, image_b, refined), details
+            return start.homography, start_score, details
+        refined_score = verification_score(image_a, image_b, refined)
+        if refined_score < start_score:  # ECC wandered off: the unrefined answer aligns the images better
+            details["refinement_kept"] = False
+            return start.homography, start_score, details
+        return refined, refined_score, details
 
     def estimate_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
         if not pairs:

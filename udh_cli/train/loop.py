@@ -255,8 +255,9 @@ class Trainer:
         predicted = torch.cat([model(_standardise(chunk, self.normalization)) for chunk in tensors["patches"].split(128)])
         model.train()
         errors = losses.corner_error(predicted, tensors["offsets"]).cpu().numpy()
+        identity = losses.corner_error(torch.zeros_like(tensors["offsets"]), tensors["offsets"]).cpu().numpy()
         return {"val_mace_mean": float(errors.mean()), "val_mace_median": float(np.median(errors)),
-                "val_mace_p95": float(np.percentile(errors, 95))}
+                "val_mace_p95": float(np.percentile(errors, 95)), "val_identity_median": float(np.median(identity))}
 
     def _log(self, record: dict[str, Any]) -> None:
         if self.rank != 0:

@@ -123,7 +123,8 @@ def test_resume_after_kill_matches_an_uninterrupted_run(pool, tmp_path):
     interrupted_at = load_checkpoint(killed / "checkpoint.pt")["step"]
     assert 20 <= interrupted_at < 60
 
-    train(tiny_config(pool, killed, steps=60), resume=True, threads=1, progress=False)
+    # No steps given on resume: the run goes on to its own planned total (60), into the --out given now.
+    train(tiny_config(pool, killed, steps=None), resume=True, threads=1, progress=False)
     a = load_checkpoint(straight / "checkpoint.pt")
     b = load_checkpoint(killed / "checkpoint.pt")
     assert a["step"] == b["step"] == 60

@@ -98,7 +98,7 @@ def train(
     mode: Annotated[str, typer.Option(help="unsupervised (photometric L1, no labels) or supervised (L2 on synthetic labels).")] = "unsupervised",
     arch: Annotated[str, typer.Option(help="Network: corr (CPU-friendly default) or vgg-paper (the paper's 34 M network).")] = "corr",
     rho: Annotated[float, typer.Option(help="Largest corner perturbation of synthetic pairs, px (paper: 16/32/45 for 85/75/65 % overlap).")] = 32.0,
-    steps: Annotated[int, typer.Option(help="Total optimiser steps.")] = 20000,
+    steps: Annotated[Optional[int], typer.Option(help="Total optimiser steps [default: 20000; with --resume, the run's own].")] = None,
     batch: Annotated[int, typer.Option(help="Pairs per step (per process under torchrun).")] = 32,
     lr: Annotated[Optional[float], typer.Option(help="Adam learning rate [default: the paper's, 1e-4 unsupervised, 5e-4 supervised].")] = None,
     init: Annotated[Optional[str], typer.Option(help="Fine-tune from a checkpoint file or a shipped model (unsupervised, supervised).")] = None,

@@ -7,7 +7,7 @@ import math
 import os
 import signal
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +22,7 @@ from udh_cli.train.checkpoint import load_checkpoint, save_checkpoint
 from udh_cli.train.data import Batch, open_data
 
 PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learning rates
+DEFAULT_STEPS = 20000
 
 
 @dataclass
@@ -37,7 +38,8 @@ class TrainConfig:
         rho: largest corner perturbation of synthetic pairs, pixels.
         small_motion_fraction: share of synthetic pairs with a smaller, random rho.
         illumination / occluders: input augmentations (the losses see clean images).
-        steps: total optimiser steps; batch: pairs per step and per process.
+        steps: total optimiser steps (None: :data:`DEFAULT_STEPS`, or on resume the run's own total);
+            batch: pairs per step and per process.
         lr: Adam learning rate (None: the paper's, 1e-4 unsupervised, 5e-4 supervised).
         betas, eps: Adam's, as in the paper.
         lr_final_fraction: the learning rate decays along a cosine to this fraction of ``lr``.
@@ -56,7 +58,7 @@ class TrainConfig:
     small_motion_fraction: float = 0.3
     illumination: bool = True
     occluders: bool = False
-    steps: int = 20000
+    steps: int | None = None
     batch: int = 32
     lr: float | None = None
     betas: tuple[float, float] = (0.9, 0.999)
@@ -129,7 +131,10 @@ class Trainer:
             stored = saved["config"]
             stored["betas"] = tuple(stored["betas"])
             # The stored run defines everything except how long to train and where the data lies now.
-            config = TrainConfig(**{**stored, "steps": max(config.steps, int(saved["step"])), "data": config.data or stored["data"]})
+            steps = config.steps if config.steps is not None else stored["steps"]
+            config = TrainConfig(**{**stored, "steps": max(steps, int(saved["step"])), "data": config.data or stored["data"], "out": config.out})
+        elif config.steps is None:
+            config = replace(config, steps=DEFAULT_STEPS)
         self.config = config
         _check_config(config, self.out)
         if threads:

@@ -27,12 +27,15 @@ class PyramidEcc:
         levels: pyramid levels, each half the size of the next.
         iterations: ECC iterations per level, coarsest first (a bounded budget).
         eps: ECC's convergence threshold.
+        max_move: the largest corner move from the start, as a share of A's diagonal, that counts as
+            refining; ECC that goes further has diverged (a refinement corrects a close guess).
     """
 
     work_side: int = 640
     levels: int = 3
     iterations: tuple[int, ...] = (40, 30, 20)
     eps: float = 1e-5
+    max_move: float = 0.1
 
     def refine(self, image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.ndarray) -> tuple[np.ndarray, float]:
         """Returns the refined ``b_from_a`` (pixels of the given images) and the final correlation.
@@ -59,4 +62,8 @@ class PyramidEcc:
                     raise
                 continue  # a coarse level may lack texture; the finer ones still get their chance
             current = geometry.rescale_homography(refined, work_a, size_a, work_b, size_b)
+        start = np.asarray(b_from_a, dtype=np.float64)
+        moved = float(geometry.corner_errors(current, start, *size_a).max())
+        if not moved <= self.max_move * float(np.hypot(*size_a)):
+            raise EstimationFailed(f"ECC moved a corner {moved:.0f} px from its start: it diverged")
         return current, correlation

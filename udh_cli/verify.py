@@ -6,13 +6,14 @@ import cv2
 import numpy as np
 
 
-def alignment_ncc(gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray, min_overlap: float = 0.1) -> float:
+def alignment_ncc(gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray, min_overlap: float = 0.3) -> float:
     """Normalised cross-correlation between B and A warped into B's frame, over their overlap.
 
     Args:
         gray_a, gray_b: (H, W) float32 grey images.
         b_from_a: (3, 3) homography between them, pixels.
-        min_overlap: below this share of B covered by A, the answer is 0 (nothing to verify).
+        min_overlap: below this share of B covered by A, the answer is 0: a small overlap can correlate
+            well by chance (a diverged ECC on occluded patches scored high on slivers of overlap).
 
     Returns:
         NCC in [-1, 1]; gain and bias changes do not lower it. 0 for a non-finite H or too little overlap.

@@ -35,7 +35,7 @@ class PyramidEcc:
     levels: int = 3
     iterations: tuple[int, ...] = (40, 30, 20)
     eps: float = 1e-5
-    max_move: float = 0.1
+    max_move: float = 0.25
 
     def refine(self, image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.ndarray) -> tuple[np.ndarray, float]:
         """Returns the refined ``b_from_a`` (pixels of the given images) and the final correlation.

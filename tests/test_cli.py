@@ -197,3 +197,14 @@ def test_usage_errors_are_one_line_with_exit_code_2():
         lines = [line for line in result.stderr.splitlines() if line.strip()]
         assert len(lines) == 1 and lines[0].startswith("error:") and "--help" in lines[0], result.stderr
         assert "Traceback" not in result.stderr
+
+
+def test_error_messages_are_printed_as_text_not_markup(tmp_path):
+    import subprocess
+    import sys
+
+    missing = tmp_path / "flight[train].png"
+    result = subprocess.run([sys.executable, "-m", "udh_cli", "estimate", str(missing), str(missing)],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1
+    assert "flight[train].png" in result.stderr

@@ -10,6 +10,7 @@ from typing import Annotated, Optional
 import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from udh_cli import __version__, geometry
@@ -330,7 +331,8 @@ def _is_usage_error(exc: Exception) -> bool:
 
 
 def _fail(message: str, code: int) -> None:
-    err_console.print(f"[bold red]error:[/bold red] {message}", highlight=False, soft_wrap=True)
+    # Messages hold paths and hints like 'udh[train]': print them as text, not as rich markup.
+    err_console.print(f"[bold red]error:[/bold red] {escape(message)}", highlight=False, soft_wrap=True)
     sys.exit(code)
 
 

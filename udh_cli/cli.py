@@ -196,15 +196,14 @@ def mosaic(
 
 def _key_values(items: list[str]) -> dict:
     """["k=v", ...] -> {k: v}, with v parsed as JSON when it parses (numbers, booleans), else kept as text."""
+    from udh_cli.estimators.registry import parse_key_value
+
     options = {}
     for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
+        parsed = parse_key_value(item)
+        if parsed is None:
             raise UdhError(f"--method-option '{item}': write KEY=VALUE, e.g. model=my.onnx")
-        try:
-            options[key] = json.loads(value)
-        except ValueError:
-            options[key] = value
+        options[parsed[0]] = parsed[1]
     return options
 
 

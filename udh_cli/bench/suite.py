@@ -7,7 +7,6 @@ then builds the pairs, runs every method on them and returns a :class:`BenchResu
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +17,7 @@ from udh_cli.bench.pairsets import held_out_sources, load_sets, save_sets, synth
 from udh_cli.bench.real_pairs import load_real_pairs
 from udh_cli.bench.report import BenchResult
 from udh_cli.errors import UdhError
+from udh_cli.estimators.registry import parse_key_value
 from udh_cli.estimators import estimator_names
 from udh_cli.images import check_output_path
 from udh_cli.synthetic import SOURCE_SIZE
@@ -51,15 +51,11 @@ def parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
     """
     options: dict[str, dict[str, Any]] = {}
     for item in items or []:
-        key, sep, value = item.partition("=")
-        method, dot, name = key.partition(".")
-        if not sep or not dot or not method or not name:
+        parsed = parse_key_value(item)
+        method, dot, name = (parsed[0] if parsed else "").partition(".")
+        if parsed is None or not dot or not method or not name:
             raise UdhError(f"--option {item!r}: write METHOD.NAME=VALUE, e.g. ecc.iterations=200")
-        try:
-            parsed = json.loads(value)
-        except json.JSONDecodeError:
-            parsed = value
-        options.setdefault(method.strip(), {})[name.strip()] = parsed
+        options.setdefault(method.strip(), {})[name.strip()] = parsed[1]
     return options
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import json
 import numbers
 import os
 import types
@@ -25,6 +26,18 @@ ESTIMATORS: dict[str, tuple[str, str, str]] = {
     "unsupervised+ecc": ("udh_cli.estimators.refined", "RefinedEstimator", "unsupervised network, then coarse-to-fine ECC"),
     "auto": ("udh_cli.estimators.refined", "AutoEstimator", "unsupervised+ecc, verified; SIFT+ECC when it does not verify"),
 }
+
+
+def parse_key_value(item: str) -> tuple[str, Any] | None:
+    """``"KEY=VALUE"`` from a command line -> ``(KEY, value)``, the value read as JSON when it parses
+    (numbers, true/false, null) and kept as text otherwise (paths, names); ``None`` if it is not KEY=VALUE."""
+    key, sep, text = item.partition("=")
+    if not sep or not key.strip():
+        return None
+    try:
+        return key.strip(), json.loads(text)
+    except ValueError:
+        return key.strip(), text
 
 
 def estimator_names() -> list[str]:

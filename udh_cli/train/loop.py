@@ -164,7 +164,10 @@ class Trainer:
             if init["config"]["arch"] != config.arch or int(init["config"]["patch_size"]) != config.patch_size:
                 raise UdhError(f"--init {config.init} is a {init['config']['arch']} network for {init['config']['patch_size']}px patches; "
                                f"pass --arch {init['config']['arch']}")
-            self.model.load_state_dict(init["model"])
+            try:
+                self.model.load_state_dict(init["model"])
+            except RuntimeError as exc:
+                raise UdhError(f"--init {config.init}: its weights do not fit the {config.arch} network ({str(exc).splitlines()[0]})") from None
             # The network's weights only make sense with the normalisation they were trained with.
             self.normalization = dict(init["normalization"])
             self.trained_before = {"init": str(config.init), "init_steps": int(init["step"]), "init_data": init["config"]["data"]}
@@ -346,12 +349,10 @@ def _check_config(config: TrainConfig, out: Path) -> None:
         raise UdhError(f"--rho {config.rho}: must be positive")
     if out.exists() and not out.is_dir():
         raise UdhError(f"--out {out}: is a file; give a folder for the run")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UdhError(f"--out {out}: cannot create the folder ({exc.strerror}); choose another path") from None
-    if not os.access(out, os.W_OK):
-        raise UdhError(f"--out {out}: the folder is not writable; choose another path")
+    # Nothing is created until training starts, so a bad --data leaves no empty run folder behind.
+    existing = next(p for p in [out, *out.absolute().parents] if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK):
+        raise UdhError(f"--out {out}: {existing} is not a writable folder; choose another path")
 
 
 def _raise_interrupt(signum, frame):  # noqa: ARG001 - signal handler signature

@@ -27,6 +27,7 @@ app = typer.Typer(
 console = Console()
 err_console = Console(stderr=True)
 _state = {"debug": False}
+INTERRUPTED = 130  # the shell's exit code for Ctrl-C
 
 
 def _version(value: bool) -> None:
@@ -310,7 +311,7 @@ def main() -> None:
             raise
         _fail(str(exc), 1)
     except (KeyboardInterrupt, typer.Abort):
-        _fail("interrupted", 130)
+        _fail("interrupted", INTERRUPTED)
     except Exception as exc:  # noqa: BLE001 - the last line of defence: no traceback without --debug
         if _is_usage_error(exc):
             if type(exc).__name__ != "NoArgsIsHelpError":  # that one has printed the help already
@@ -321,6 +322,8 @@ def main() -> None:
         if _state["debug"]:
             raise
         _fail(f"internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)", 1)
+    if code == INTERRUPTED:  # Typer turns Ctrl-C into a quiet exit code 130; say what happened
+        _fail("interrupted", INTERRUPTED)
     sys.exit(code if isinstance(code, int) else 0)
 
 

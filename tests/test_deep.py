@@ -14,9 +14,8 @@ from udh_cli.estimators import create_estimator
 from udh_cli.models_catalog import SHIPPED_MODELS, models_dir
 
 
-@pytest.fixture(scope="module")
-def tiny_onnx(tmp_path_factory) -> Path:
-    """An untrained 32-pixel network, saved as a checkpoint and exported like a real one."""
+def _export_tiny(folder: Path, arch: str, seed: int) -> Path:
+    """An untrained 32-pixel ``arch`` network, saved as a checkpoint and exported like a real one."""
     torch = pytest.importorskip("torch")
     from udh_cli.train.archs import create_model
     from udh_cli.train.checkpoint import save_checkpoint
@@ -24,17 +23,27 @@ def tiny_onnx(tmp_path_factory) -> Path:
     from udh_cli.train.loop import TrainConfig
     from dataclasses import asdict
 
-    folder = tmp_path_factory.mktemp("tiny")
-    torch.manual_seed(0)
-    model = create_model("corr", 32)
-    config = asdict(TrainConfig(patch_size=32, data=["synthetic"], rho=8.0))
-    save_checkpoint(folder / "tiny.pt", {"model": model.state_dict(), "config": config, "step": 0,
-                                        "normalization": {"mean": 0.5, "std": 0.25}})
+    torch.manual_seed(seed)
+    model = create_model(arch, 32)
+    config = asdict(TrainConfig(patch_size=32, data=["synthetic"], rho=8.0, arch=arch))
+    save_checkpoint(folder / f"{arch}.pt", {"model": model.state_dict(), "config": config, "step": 0,
+                                           "normalization": {"mean": 0.5, "std": 0.25}})
     real = np.stack([textured_image(32, 32, seed=1), textured_image(32, 32, seed=2)])[None].astype(np.float32) / 255
-    result = export_onnx(folder / "tiny.pt", folder / "tiny.onnx", check_inputs=real)
+    result = export_onnx(folder / f"{arch}.pt", folder / f"{arch}.onnx", check_inputs=real)
     assert result["max_abs_diff"] < 1e-4
-    assert result["metadata"]["input_size"] == "32" and result["metadata"]["arch"] == "corr"
-    return folder / "tiny.onnx"
+    assert result["metadata"]["input_size"] == "32" and result["metadata"]["arch"] == arch
+    return folder / f"{arch}.onnx"
+
+
+@pytest.fixture(scope="module")
+def tiny_onnx(tmp_path_factory) -> Path:
+    return _export_tiny(tmp_path_factory.mktemp("tiny"), "corr", seed=0)
+
+
+@pytest.fixture(scope="module")
+def tiny_fine_onnx(tmp_path_factory) -> Path:
+    """The refinement architecture, exported: its strided stem and 4-px cells go through ONNX too."""
+    return _export_tiny(tmp_path_factory.mktemp("tiny_fine"), "corr-fine", seed=1)
 
 
 def test_export_takes_check_patches_of_another_size(tiny_onnx, tmp_path):
@@ -43,7 +52,7 @@ def test_export_takes_check_patches_of_another_size(tiny_onnx, tmp_path):
     from udh_cli.train.export import export_onnx
 
     real = np.stack([textured_image(128, 128, seed=1), textured_image(128, 128, seed=2)])[None].astype(np.float32) / 255
-    result = export_onnx(tiny_onnx.with_name("tiny.pt"), tmp_path / "again.onnx", check_inputs=real)
+    result = export_onnx(tiny_onnx.with_suffix(".pt"), tmp_path / "again.onnx", check_inputs=real)
     assert result["max_abs_diff"] < 1e-4 and (tmp_path / "again.onnx").is_file()
 
 
@@ -66,6 +75,34 @@ def test_iterations_compose_residuals(tiny_onnx):
     two = create_estimator("unsupervised", model=str(tiny_onnx), device="cpu", iterations=2)
     a, b = textured_image(64, 64, seed=5), textured_image(64, 64, seed=6)
     assert not np.allclose(one.estimate(a, b).homography, two.estimate(a, b).homography)
+
+
+def test_refinement_rounds_run_the_second_network_on_the_pre_warped_pair(tiny_onnx, tiny_fine_onnx):
+    import cv2
+
+    cascade = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx),
+                               refine_rounds=1, device="cpu")
+    coarse = create_estimator("unsupervised", model=str(tiny_onnx), device="cpu")
+    fine = create_estimator("unsupervised", model=str(tiny_fine_onnx), device="cpu")
+    assert coarse.refine_rounds == 0  # a model given alone runs alone
+    a, b = textured_image(64, 64, seed=5), textured_image(64, 64, seed=6)
+    small_a, small_b = cascade._small(a)[None], cascade._small(b)[None]
+    first = coarse.predict_small(small_a, small_b)[0]
+    warped_a = cv2.warpPerspective(small_a[0], first, (32, 32), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    residual = fine.predict_small(warped_a[None], small_b)[0]
+    expected = residual @ first
+    got = cascade.predict_small(small_a, small_b)[0]
+    np.testing.assert_allclose(got / got[2, 2], expected / expected[2, 2], atol=1e-9)
+    assert cascade.estimate(a, b).details["refine_rounds"] == 1
+
+
+def test_a_refinement_network_of_another_input_size_is_refused(tiny_onnx):
+    if not (models_dir() / f"{SHIPPED_MODELS['unsupervised-refine']}.onnx").is_file():
+        pytest.skip("shipped refinement model not built yet")
+    with pytest.raises(UdhError, match="takes 128px inputs"):
+        create_estimator("unsupervised", model=str(tiny_onnx), refine_rounds=1, device="cpu")
+    with pytest.raises(UdhError, match="refine_rounds .* must be 0 or more"):
+        create_estimator("unsupervised", model=str(tiny_onnx), refine_rounds=-1, device="cpu")
 
 
 def test_bad_model_files_are_refused(tmp_path, tiny_onnx):
@@ -123,7 +160,7 @@ def test_cuda_request_without_cuda_is_a_clear_error(tiny_onnx):
         create_estimator("unsupervised", model=str(tiny_onnx), device="cuda")
 
 
-@pytest.mark.parametrize("name", list(SHIPPED_MODELS))
+@pytest.mark.parametrize("name", ["unsupervised", "supervised"])
 def test_shipped_model_recovers_a_pair_it_never_saw(name):
     """The shipped networks on a test-made textured pair with corners moved by up to 12 px at 128x128."""
     if not (models_dir() / f"{SHIPPED_MODELS[name]}.onnx").is_file():

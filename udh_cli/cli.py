@@ -55,12 +55,14 @@ def estimate(
     best_features: Annotated[Optional[int], typer.Option(help="sift/orb: keep only the N strongest keypoints.")] = None,
     model: Annotated[Optional[Path], typer.Option(help="Learned methods: an ONNX file instead of the shipped model.")] = None,
     device: Annotated[Optional[str], typer.Option(help="Learned methods: auto (CUDA if onnxruntime has it), cpu or cuda.")] = None,
-    iterations: Annotated[Optional[int], typer.Option(help="Learned methods: network rounds; ecc: ECC iterations.")] = None,
+    iterations: Annotated[Optional[int], typer.Option(help="Learned methods: rounds of the coarse network; ecc: ECC iterations.")] = None,
+    refine_rounds: Annotated[Optional[int], typer.Option(help="Learned methods: rounds of the refinement network after the coarse ones (0: none).")] = None,
 ) -> None:
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold])."""
     from udh_cli.api import estimate_report
 
-    given = {"best_features": best_features, "model": None if model is None else str(model), "device": device, "iterations": iterations}
+    given = {"best_features": best_features, "model": None if model is None else str(model), "device": device, "iterations": iterations,
+             "refine_rounds": refine_rounds}
     options = {key: value for key, value in given.items() if value is not None}
     report = estimate_report(image_a, image_b, method, gt=gt, viz=viz, **options)
     if json_output:

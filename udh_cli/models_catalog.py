@@ -12,7 +12,11 @@ from pathlib import Path
 from udh_cli.errors import UdhError
 
 # method name -> file stem in models/
-SHIPPED_MODELS = {"unsupervised": "udh-unsupervised", "supervised": "udh-supervised"}
+SHIPPED_MODELS = {
+    "unsupervised": "udh-unsupervised",
+    "unsupervised-refine": "udh-unsupervised-refine",  # the fine stage run after the coarse one
+    "supervised": "udh-supervised",
+}
 
 
 def models_dir() -> Path:
@@ -27,6 +31,11 @@ def _shipped(name: str, suffix: str) -> Path:
     if not path.is_file():
         raise UdhError(f"the shipped {name} model is missing ({path}); reinstall udh or pass --model PATH")
     return path
+
+
+def has_shipped(name: str) -> bool:
+    """Whether the shipped ONNX model ``name`` is installed."""
+    return name in SHIPPED_MODELS and (models_dir() / f"{SHIPPED_MODELS[name]}.onnx").is_file()
 
 
 def shipped_onnx(name: str) -> Path:

@@ -17,15 +17,26 @@ from udh_cli.onnx_model import OnnxHomographyModel
 from udh_cli.verify import alignment_ncc
 
 
+DEFAULT_REFINE_ROUNDS = 2  # measured on the held-out rho-32 bench (models/README.md)
+
+
 @dataclass
 class DeepEstimator(Estimator):
     """Resize both images whole to the network's S x S input, predict the 4-point offsets, solve the DLT
     in numpy, and rescale ``b_from_a`` exactly to the original images' pixels.
 
+    A cascade of rounds: ``iterations`` rounds of the coarse network, then ``refine_rounds`` rounds of the
+    refinement network (a finer one trained on small motion). Every round after the first warps A by the
+    current estimate and predicts the residual, which is composed onto it.
+
     Attributes:
         model: path of a udh ONNX model; ``None`` takes the shipped model of this estimator's name.
         device: "auto", "cpu" or "cuda" (onnxruntime providers).
-        iterations: network rounds. Round k > 1 warps A by the current estimate and predicts the residual.
+        iterations: rounds of the coarse network (at least 1).
+        refine_model: path of the refinement network; ``None`` takes the shipped ``<name>-refine`` model.
+        refine_rounds: rounds of the refinement network after the coarse ones (0: no refinement stage).
+            ``None``: :data:`DEFAULT_REFINE_ROUNDS` when both networks are the shipped ones and a shipped
+            refinement network exists, else 0 (a ``model`` given alone runs alone).
         batch_size: pairs per onnxruntime call in :meth:`estimate_many`.
         threads: onnxruntime intra-op threads (None: onnxruntime's default).
 
@@ -36,18 +47,34 @@ class DeepEstimator(Estimator):
     model: str | None = None
     device: str = "auto"
     iterations: int = 1
+    refine_model: str | None = None
+    refine_rounds: int | None = None
     batch_size: int = 64
     threads: int | None = None
     network: OnnxHomographyModel = field(init=False, repr=False)
+    stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        from udh_cli.models_catalog import shipped_onnx
+        from udh_cli.models_catalog import has_shipped, shipped_onnx
 
         if self.iterations < 1 or self.batch_size < 1:  # 0 rounds would answer the identity as if estimated
             raise UdhError(f"method '{self.name}': iterations ({self.iterations}) and batch_size ({self.batch_size}) must be at least 1")
+        if self.refine_rounds is None:
+            shipped_pair = self.model is None and self.refine_model is None and has_shipped(f"{self.name}-refine")
+            self.refine_rounds = DEFAULT_REFINE_ROUNDS if shipped_pair else 0
+        if self.refine_rounds < 0:
+            raise UdhError(f"method '{self.name}': refine_rounds ({self.refine_rounds}) must be 0 or more")
 
         path = self.model if self.model is not None else shipped_onnx(self.name)
         self.network = OnnxHomographyModel.load(path, self.device, self.threads)
+        self.stages = [(self.network, self.iterations)]
+        if self.refine_rounds:
+            refine_path = self.refine_model if self.refine_model is not None else shipped_onnx(f"{self.name}-refine")
+            refiner = OnnxHomographyModel.load(refine_path, self.device, self.threads)
+            if refiner.input_size != self.network.input_size:
+                raise UdhError(f"{refine_path}: the refinement network takes {refiner.input_size}px inputs but "
+                               f"{path} takes {self.network.input_size}px; give two models of the same input size")
+            self.stages.append((refiner, self.refine_rounds))
 
     def _small(self, image: np.ndarray) -> np.ndarray:
         s = self.network.input_size
@@ -58,15 +85,16 @@ class DeepEstimator(Estimator):
         s = self.network.input_size
         b_from_a = np.repeat(np.eye(3)[None], len(small_a), 0)
         current_a = small_a
-        for round_index in range(self.iterations):
-            offsets = self.network.predict_offsets(np.stack([current_a, small_b], 1), self.batch_size)
+        rounds = [network for network, count in self.stages for _ in range(count)]
+        for round_index, network in enumerate(rounds):
+            offsets = network.predict_offsets(np.stack([current_a, small_b], 1), self.batch_size)
             try:
                 step = geometry.homography_from_offsets(offsets, s, s)
             except np.linalg.LinAlgError:  # one degenerate output fails the batched solve: solve pair by pair
                 step = np.stack([_safe_dlt(o, s) for o in offsets])
             b_from_a = step @ b_from_a
             b_from_a /= b_from_a[:, 2:3, 2:3]
-            if round_index + 1 < self.iterations:
+            if round_index + 1 < len(rounds):
                 current_a = np.stack([
                     cv2.warpPerspective(a, h, (s, s), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                     if np.isfinite(h).all() else a
@@ -95,7 +123,8 @@ class DeepEstimator(Estimator):
         out = []
         for (a, _), (full, confidence) in zip(pairs, results):
             failure = None if full is not None else "the network's 4-point output gives a degenerate homography"
-            out.append(self._checked(full, confidence, per_pair_ms, failure, {"iterations": self.iterations}, a.shape))
+            out.append(self._checked(full, confidence, per_pair_ms, failure,
+                                     {"iterations": self.iterations, "refine_rounds": self.refine_rounds}, a.shape))
         return out
 
     def estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> Estimate:

@@ -7,6 +7,7 @@ patch size, 128) and returns ``(N, 4, 2)`` offsets in pixels of the S x S patch,
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Callable
 
 import torch
@@ -16,8 +17,8 @@ import torch.nn.functional as F
 OFFSET_SCALE = 32.0  # the heads predict offsets / 32 px, so initial outputs sit in a sensible range
 
 
-def _conv(cin: int, cout: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
 
 
 class PaperVGG(nn.Module):
@@ -51,23 +52,38 @@ class CorrelationNet(nn.Module):
 
     Why: a plain regressor must discover from scratch that it is comparing two images; a cost volume gives
     it the displacement evidence directly, which is what makes it learn far more per CPU-second.
-    The patches are average-pooled to half resolution first (64x64 for 128 patches); the encoder reaches
-    1/8 of the patch (16x16 cells of 8 px); the correlation compares each cell of A with B's cells up to
-    ``radius`` cells away (radius 4 = 32 px at 128; the regressor extrapolates beyond it); the regressor turns the (2r+1)^2-channel volume into 8 numbers.
+
+    Two settings of the same network:
+
+    - ``corr`` (``fine=False``, radius 4): the patches are average-pooled to half resolution, the encoder
+      reaches 1/8 of the patch (16x16 cells of 8 px at 128) and compares shifts up to 32 px (the regressor
+      extrapolates beyond). The coarse, fast stage: large motion, a few px of precision.
+    - ``corr-fine`` (``fine=True``, radius 3, width 32): full resolution with a stride-2 first layer (a
+      3x3 conv at 128x128 cost more than everything else), 32x32 cells of 4 px, shifts up to 12 px. A
+      refinement stage, run on A pre-warped by the coarse stage, for the residual motion; about 3x the
+      training compute of ``corr``.
+
+    The regressor pools the (2r+1)^2-channel volume down to 4x4 cells, so each corner's evidence stays
+    apart for the head, which turns it into 8 numbers.
     """
 
-    def __init__(self, patch_size: int = 128, radius: int = 4, width: int = 64):
+    def __init__(self, patch_size: int = 128, radius: int = 4, width: int = 64, fine: bool = False):
         super().__init__()
         self.radius = radius
+        self.fine = fine
         self.encoder = nn.Sequential(
-            _conv(1, 16), nn.MaxPool2d(2), _conv(16, 32), nn.MaxPool2d(2), _conv(32, width), _conv(width, width),
+            _conv(1, 16, stride=2 if fine else 1), nn.Identity() if fine else nn.MaxPool2d(2),
+            _conv(16, 32), nn.MaxPool2d(2), _conv(32, width), _conv(width, width),
         )
         shifts = (2 * radius + 1) ** 2
-        self.regressor = nn.Sequential(
-            _conv(shifts, 64), nn.MaxPool2d(2), _conv(64, 128), nn.MaxPool2d(2), _conv(128, 128),
-        )
-        side = patch_size // 32
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(128 * side * side, 256), nn.ReLU(inplace=True), nn.Linear(256, 8))
+        cells = patch_size // (4 if fine else 8)
+        regressor: list[nn.Module] = [_conv(shifts, 64)]
+        channels = 64
+        while cells > 4:
+            regressor += [nn.MaxPool2d(2), _conv(channels, 128)]
+            channels, cells = 128, cells // 2
+        self.regressor = nn.Sequential(*regressor)
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(channels * cells * cells, 256), nn.ReLU(inplace=True), nn.Linear(256, 8))
 
     def _window_index(self, h: int, w: int, device) -> tuple[torch.Tensor, torch.Tensor]:
         """For every A cell and shift: the flat index of the B cell, and whether it lies inside."""
@@ -93,8 +109,8 @@ class CorrelationNet(nn.Module):
 
     def forward(self, patches: torch.Tensor) -> torch.Tensor:
         n = patches.shape[0]
-        half = F.avg_pool2d(patches, 2)
-        both = torch.cat([half[:, 0:1], half[:, 1:2]], 0)  # 2N, 1, S/2, S/2: one pass, shared weights
+        pooled = patches if self.fine else F.avg_pool2d(patches, 2)
+        both = torch.cat([pooled[:, 0:1], pooled[:, 1:2]], 0)  # 2N, 1, S/2, S/2: one pass, shared weights
         features = F.normalize(self.encoder(both), dim=1)
         volume = self.correlation(features[:n], features[n:])
         return self.head(self.regressor(volume)).view(-1, 4, 2) * OFFSET_SCALE
@@ -102,6 +118,7 @@ class CorrelationNet(nn.Module):
 
 ARCHS: dict[str, Callable[..., nn.Module]] = {
     "corr": CorrelationNet,
+    "corr-fine": partial(CorrelationNet, fine=True, radius=3, width=32),
     "vgg-paper": PaperVGG,
 }
 DEFAULT_ARCH = "corr"

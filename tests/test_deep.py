@@ -178,3 +178,21 @@ def test_shipped_model_recovers_a_pair_it_never_saw(name):
         errors.append(geometry.mace(estimate.homography, truth, 320, 240))
         identity_errors.append(geometry.mace(np.eye(3), truth, 320, 240))
     assert np.median(errors) < 0.5 * np.median(identity_errors)
+
+
+def test_search_finds_a_shift_beyond_the_networks_range():
+    """Half a frame of motion: the network alone is lost; the translation search recovers it."""
+    if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
+        pytest.skip("shipped unsupervised model not built yet")
+    scene = textured_image(1000, 700, seed=11)
+    a = scene[100:500, 50:650]
+    dx, dy = 300, 100
+    b = scene[100 + dy:500 + dy, 50 + dx:650 + dx]
+    truth = geometry.translation(-dx, -dy)  # x_B = x_A - shift
+    plain = create_estimator("unsupervised", device="cpu").estimate(a, b)
+    searched = create_estimator("unsupervised", device="cpu", search=2).estimate(a, b)
+    assert geometry.mace(plain.homography, truth, 600, 400) > 50
+    assert searched.details["searched"] and geometry.mace(searched.homography, truth, 600, 400) < 10
+    assert searched.confidence > plain.confidence + 0.3
+    with pytest.raises(UdhError, match="search .* must be 0"):
+        create_estimator("unsupervised", device="cpu", search=-1)

@@ -37,10 +37,15 @@ class DeepEstimator(Estimator):
         refine_rounds: rounds of the refinement network after the coarse ones (0: no refinement stage).
             ``None``: :data:`DEFAULT_REFINE_ROUNDS` when both networks are the shipped ones and a shipped
             refinement network exists, else 0 (a ``model`` given alone runs alone).
+        search: large-motion search for pairs whose score is below ``search_below``: rerun the network
+            from a (2 * search + 1)^2 grid of translations up to half the frame and keep the best-scoring
+            answer (0: off). For sequences that move further between frames than the network was trained
+            for (it saw corners moved by up to 45 px of 128).
+        search_below: the score under which a pair is searched.
         batch_size: pairs per onnxruntime call in :meth:`estimate_many`.
         threads: onnxruntime intra-op threads (None: onnxruntime's default).
 
-    Confidence is the normalised cross-correlation of the aligned S x S images (0 when negative).
+    Confidence is :meth:`score`: the lower of the intensity and gradient NCC of the aligned S x S images.
     """
 
     name: ClassVar[str] = "deep"
@@ -49,6 +54,8 @@ class DeepEstimator(Estimator):
     iterations: int = 1
     refine_model: str | None = None
     refine_rounds: int | None = None
+    search: int = 0
+    search_below: float = 0.5
     batch_size: int = 64
     threads: int | None = None
     network: OnnxHomographyModel = field(init=False, repr=False)
@@ -62,6 +69,8 @@ class DeepEstimator(Estimator):
         if self.refine_rounds is None:
             shipped_pair = self.model is None and self.refine_model is None and has_shipped(f"{self.name}-refine")
             self.refine_rounds = DEFAULT_REFINE_ROUNDS if shipped_pair else 0
+        if self.search < 0:
+            raise UdhError(f"method '{self.name}': search ({self.search}) must be 0 (off) or more")
         if self.refine_rounds < 0:
             raise UdhError(f"method '{self.name}': refine_rounds ({self.refine_rounds}) must be 0 or more")
 
@@ -102,6 +111,15 @@ class DeepEstimator(Estimator):
                 ])
         return b_from_a
 
+    def score(self, small_a: np.ndarray, small_b: np.ndarray, b_from_a: np.ndarray) -> float:
+        """Confidence of ``b_from_a`` between two S x S images: the lower of the intensity and gradient
+        NCC over the overlap (0 for a degenerate H). Both must agree: intensity alone is fooled by smooth
+        scenes under a wrong shift, gradients alone by noise and moving water."""
+        s = self.network.input_size
+        if not geometry.is_valid_homography(b_from_a, s, s):
+            return 0.0
+        return max(0.0, min(alignment_ncc(small_a, small_b, b_from_a), alignment_ncc(small_a, small_b, b_from_a, on="gradient")))
+
     def estimate_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
         if not pairs:
             return []
@@ -112,23 +130,75 @@ class DeepEstimator(Estimator):
         small_a = np.stack([self._small(a) for a, _ in pairs])
         small_b = np.stack([self._small(b) for _, b in pairs])
         small_h = self.predict_small(small_a, small_b)
+        scores = [self.score(sa, sb, h) for sa, sb, h in zip(small_a, small_b, small_h)]
+        searched = [False] * len(pairs)
+        doubtful = [i for i, score in enumerate(scores) if score < self.search_below] if self.search else []
+        if doubtful:
+            found, found_scores = self._search([pairs[i] for i in doubtful], small_a[doubtful], small_b[doubtful])
+            for i, h, score in zip(doubtful, found, found_scores):
+                if score > scores[i]:
+                    small_h[i], scores[i], searched[i] = h, score, True
         s = self.network.input_size
-        results = []
-        for (a, b), h, sa, sb in zip(pairs, small_h, small_a, small_b):
-            valid = geometry.is_valid_homography(h, s, s)
-            confidence = max(0.0, alignment_ncc(sa, sb, h)) if valid else 0.0
-            full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
-            results.append((full, confidence))
         per_pair_ms = (time.perf_counter() - start) * 1e3 / len(pairs)
         out = []
-        for (a, _), (full, confidence) in zip(pairs, results):
-            failure = None if full is not None else "the network's 4-point output gives a degenerate homography"
-            out.append(self._checked(full, confidence, per_pair_ms, failure,
-                                     {"iterations": self.iterations, "refine_rounds": self.refine_rounds}, a.shape))
+        for (a, b), h, confidence, was_searched in zip(pairs, small_h, scores, searched):
+            valid = geometry.is_valid_homography(h, s, s)
+            full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
+            failure = None if valid else "the network's 4-point output gives a degenerate homography"
+            details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched}
+            out.append(self._checked(full, confidence, per_pair_ms, failure, details, a.shape))
         return out
+
+    def _search(self, pairs, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
+        """Large-motion search: for every pair, run the network from each translation hypothesis of a
+        (2 * search + 1)^2 grid of shifts up to half the frame, on the two overlapping windows cropped
+        from the full images and resized to S x S, and keep the best-scoring answer.
+
+        Returns ``(N, 3, 3)`` ``b_from_a`` of the whole S x S images and their scores.
+        """
+        s = self.network.input_size
+        grid = np.linspace(-0.5, 0.5, 2 * self.search + 1)
+        shifts = [(fx, fy) for fy in grid for fx in grid if (fx, fy) != (0.0, 0.0)]
+        crops_a, crops_b, maps = [], [], []
+        for a, b in pairs:
+            whole_a = geometry.resize_matrix((a.shape[1], a.shape[0]), (s, s))
+            whole_b = geometry.resize_matrix((b.shape[1], b.shape[0]), (s, s))
+            for fx, fy in shifts:
+                # B shows A's content moved by -shift: A's window starts where B's ends, and the other way.
+                window_a = _window(a.shape, max(0.0, fx), max(0.0, fy), 1 + min(0.0, fx), 1 + min(0.0, fy))
+                window_b = _window(b.shape, max(0.0, -fx), max(0.0, -fy), 1 - max(0.0, fx), 1 - max(0.0, fy))
+                (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = window_a, window_b
+                crops_a.append(self._small(a[ay0:ay1, ax0:ax1]))
+                crops_b.append(self._small(b[by0:by1, bx0:bx1]))
+                crop_from_a = geometry.resize_matrix((ax1 - ax0, ay1 - ay0), (s, s)) @ geometry.translation(-ax0, -ay0)
+                crop_from_b = geometry.resize_matrix((bx1 - bx0, by1 - by0), (s, s)) @ geometry.translation(-bx0, -by0)
+                # whole-S b_from_a = whole_b . crop_from_b^-1 . H_crop . crop_from_a . whole_a^-1
+                maps.append((whole_b @ np.linalg.inv(crop_from_b), crop_from_a @ np.linalg.inv(whole_a)))
+        crop_h = self.predict_small(np.stack(crops_a), np.stack(crops_b))
+        best_h, best_scores = [], []
+        for p in range(len(pairs)):
+            candidates = []
+            for k in range(len(shifts)):
+                index = p * len(shifts) + k
+                after, before = maps[index]
+                h = after @ crop_h[index] @ before
+                h = h / h[2, 2] if np.isfinite(h).all() and abs(h[2, 2]) > 1e-12 else np.full((3, 3), np.nan)
+                candidates.append((self.score(small_a[p], small_b[p], h), k, h))
+            score, _, h = max(candidates, key=lambda c: (c[0], -c[1]))
+            best_h.append(h)
+            best_scores.append(score)
+        return np.stack(best_h), best_scores
 
     def estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> Estimate:
         return self.estimate_many([(image_a, image_b)])[0]
+
+
+def _window(shape: tuple[int, ...], fx0: float, fy0: float, fx1: float, fy1: float) -> tuple[int, int, int, int]:
+    """Pixel window ``(x0, y0, x1, y1)`` of an image of ``shape`` from fractions of its width and height."""
+    height, width = shape[:2]
+    x0, x1 = int(round(fx0 * width)), max(int(round(fx0 * width)) + 1, int(round(fx1 * width)))
+    y0, y1 = int(round(fy0 * height)), max(int(round(fy0 * height)) + 1, int(round(fy1 * height)))
+    return x0, y0, x1, y1
 
 
 def _safe_dlt(offsets: np.ndarray, size: int) -> np.ndarray:

@@ -36,21 +36,26 @@ def main() -> None:
     frames = [(cv2.imencode(".jpg", (batch.context_a[i, 0] * 255).astype(np.uint8))[1],
                cv2.imencode(".jpg", sources[batch.source_index[i]])[1]) for i in range(args.pairs)]
 
-    network = create_estimator("unsupervised", device="cpu", threads=args.threads).network
-    patch = np.random.default_rng(0).random((1, 2, network.input_size, network.input_size), dtype=np.float32)
-    for _ in range(20):
-        network.predict_offsets(patch)
-    times = []
-    for _ in range(200):
-        start = time.perf_counter()
-        network.predict_offsets(patch)
-        times.append((time.perf_counter() - start) * 1e3)
-    print(f"network alone (onnxruntime CPU, batch 1, {args.threads} thread): median {np.median(times):.2f} ms")
+    cascade = create_estimator("unsupervised", device="cpu", threads=args.threads)
+    for stage, (network, rounds) in zip(("coarse network", "refinement network"), cascade.stages):
+        patch = np.random.default_rng(0).random((1, 2, network.input_size, network.input_size), dtype=np.float32)
+        for _ in range(20):
+            network.predict_offsets(patch)
+        times = []
+        for _ in range(200):
+            start = time.perf_counter()
+            network.predict_offsets(patch)
+            times.append((time.perf_counter() - start) * 1e3)
+        print(f"{stage} alone (onnxruntime CPU, batch 1, {args.threads} thread): median {np.median(times):.2f} ms per round, "
+              f"{rounds} round(s) by default")
 
-    methods = {"unsupervised": {"device": "cpu", "threads": args.threads}, "orb": {}, "sift": {}}
+    single = {"device": "cpu", "threads": args.threads, "iterations": 1, "refine_rounds": 0}
+    methods = {"unsupervised, 1 coarse round": ("unsupervised", single),
+               "unsupervised, default cascade": ("unsupervised", {"device": "cpu", "threads": args.threads}),
+               "orb": ("orb", {}), "sift": ("sift", {})}
     results = {}
-    for name, options in methods.items():
-        estimator = create_estimator(name, **options)
+    for name, (method, options) in methods.items():
+        estimator = create_estimator(method, **options)
         whole = []
         for i, (jpeg_a, jpeg_b) in enumerate(frames):
             start = time.perf_counter()
@@ -61,7 +66,7 @@ def main() -> None:
                 whole.append((time.perf_counter() - start) * 1e3)
         results[name] = float(np.median(whole))
     for name, ms in results.items():
-        print(f"whole estimate, {name:>12}: median {ms:7.2f} ms per 320x240 pair  ({ms / results['sift']:.3f} x SIFT)")
+        print(f"whole estimate, {name:>30}: median {ms:7.2f} ms per 320x240 pair  ({ms / results['sift']:.3f} x SIFT)")
 
 
 if __name__ == "__main__":

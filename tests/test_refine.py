@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
+import cv2
 import numpy as np
 import pytest
 
@@ -80,3 +81,19 @@ def test_textureless_images_give_no_confident_answer():
     flat = np.full((240, 320), 128, np.uint8)
     estimate = AutoEstimator(initial="identity").estimate(flat, flat)
     assert estimate.confidence == 0.0
+
+
+def test_gradient_ncc_is_not_fooled_by_a_smooth_scene_under_a_wrong_shift():
+    """A smooth gradient with faint texture: a wrong shift keeps the intensity NCC high, not the gradient NCC."""
+    from udh_cli.verify import alignment_ncc
+
+    rng = np.random.default_rng(3)
+    ys, xs = np.mgrid[0:240, 0:320].astype(np.float32)
+    texture = cv2.GaussianBlur(rng.random((240, 320)).astype(np.float32), (0, 0), 1.5)
+    scene = 0.6 * xs / 320 + 0.3 * ys / 240 + 0.15 * texture
+    right, wrong = np.eye(3), geometry.translation(12, 9)
+    assert alignment_ncc(scene, scene, right, on="gradient") > 0.99
+    assert alignment_ncc(scene, scene, wrong) > 0.9  # the shading alone correlates
+    assert alignment_ncc(scene, scene, wrong, on="gradient") < 0.3
+    with pytest.raises(ValueError, match="intensity"):
+        alignment_ncc(scene, scene, right, on="colour")

@@ -132,14 +132,27 @@ def load_sources(paths: list[Path], min_count: int = 1) -> list[np.ndarray]:
     return sources
 
 
-def illuminate(patch: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Random gamma, contrast and brightness; (P, P) float in [0, 1] -> same."""
-    gamma = np.exp(rng.uniform(np.log(0.6), np.log(1.6)))
-    contrast = rng.uniform(0.6, 1.4)
-    brightness = rng.uniform(-0.2, 0.2)
-    out = np.power(np.clip(patch, 0.0, 1.0), gamma)
-    out = (out - 0.5) * contrast + 0.5 + brightness
-    return np.clip(out, 0.0, 1.0)
+MAX_CLIPPED = 0.1  # share of an image's pixels an illumination shift may push out of [0, 1]
+
+
+def illuminate(patch: np.ndarray, rng: np.random.Generator, max_clipped: float = MAX_CLIPPED) -> np.ndarray:
+    """Random gamma, contrast and brightness; (P, P) float in [0, 1] -> same.
+
+    A draw that would clip more than ``max_clipped`` of the pixels strictly inside (0, 1) is drawn again
+    (up to 20 times, then the patch is returned unchanged). Why: unconstrained, a dark source under low
+    brightness and high contrast came out black; 7 of 200 held-out rho-32 pairs had more than 95 % of one
+    image clipped to 0, and every method failed on them. Lighting changes should change appearance, not
+    erase the content.
+    """
+    inside = (patch > 0.0) & (patch < 1.0)
+    for _ in range(20):
+        gamma = np.exp(rng.uniform(np.log(0.6), np.log(1.6)))
+        contrast = rng.uniform(0.6, 1.4)
+        brightness = rng.uniform(-0.2, 0.2)
+        out = (np.power(np.clip(patch, 0.0, 1.0), gamma) - 0.5) * contrast + 0.5 + brightness
+        if (((out < 0.0) | (out > 1.0)) & inside).mean() <= max_clipped:
+            return np.clip(out, 0.0, 1.0)
+    return patch.copy()
 
 
 def _occlude(patch: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -63,8 +63,8 @@ class CorrelationNet(nn.Module):
       refinement stage, run on A pre-warped by the coarse stage, for the residual motion; about 3x the
       training compute of ``corr``.
 
-    The regressor pools the (2r+1)^2-channel volume down to 4x4 cells, so each corner's evidence stays
-    apart for the head, which turns it into 8 numbers.
+    The regressor pools the (2r+1)^2-channel volume down to 1/32 of the patch (4x4 cells at 128), so each
+    corner's evidence stays apart for the head, which turns it into 8 numbers.
     """
 
     def __init__(self, patch_size: int = 128, radius: int = 4, width: int = 64, fine: bool = False):
@@ -79,7 +79,7 @@ class CorrelationNet(nn.Module):
         cells = patch_size // (4 if fine else 8)
         regressor: list[nn.Module] = [_conv(shifts, 64)]
         channels = 64
-        while cells > 4:
+        while cells > patch_size // 32:  # 4x4 cells at 128
             regressor += [nn.MaxPool2d(2), _conv(channels, 128)]
             channels, cells = 128, cells // 2
         self.regressor = nn.Sequential(*regressor)

@@ -165,3 +165,12 @@ def test_every_blend_reproduces_the_ground_with_true_homographies(small_flight, 
     kernel = np.ones((5, 5), np.uint8)
     assert (out[..., 3][cv2.erode(union, kernel) > 0] == 255).all()
     assert (out[..., 3][cv2.dilate(union, kernel) == 0] == 0).all()
+
+
+def test_learned_methods_search_for_large_motion_in_mosaics_unless_told_otherwise():
+    from udh_cli.mosaic.pipeline import MOSAIC_SEARCH, mosaic_method_options
+
+    assert mosaic_method_options("unsupervised", {}) == {"search": MOSAIC_SEARCH}
+    assert mosaic_method_options("auto", {"model": "m.onnx"}) == {"model": "m.onnx", "search": MOSAIC_SEARCH}
+    assert mosaic_method_options("unsupervised", {"search": 0}) == {"search": 0}
+    assert mosaic_method_options("sift", {"ratio": 0.8}) == {"ratio": 0.8}

@@ -49,7 +49,8 @@ class RefinedEstimator(Estimator):
         initial: the registry name of the first estimator (the unsupervised network by default).
         model: ONNX path for a learned ``initial``; None takes the shipped model.
         device: onnxruntime device for a learned ``initial``.
-        iterations: rounds of the network (each predicts the residual of the last).
+        iterations: rounds of the coarse network (each predicts the residual of the last).
+        search: the network's large-motion search (see :class:`~udh_cli.estimators.deep.DeepEstimator`).
         refiner: the ECC pyramid and its iteration budget.
         fallback: registry name tried when the score is below ``min_score`` (None: never).
         min_score: the verification NCC below which an answer is doubted.
@@ -60,14 +61,15 @@ class RefinedEstimator(Estimator):
     model: str | None = None
     device: str = "auto"
     iterations: int = 2
+    search: int = 0
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     fallback: str | None = None
     min_score: float = 0.9
     _first: Estimator = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        # model, device and iterations go to the first estimator when it takes them (the learned ones do).
-        wanted = {"model": self.model, "device": self.device, "iterations": self.iterations}
+        # model, device, iterations and search go to the first estimator when it takes them (the learned ones do).
+        wanted = {"model": self.model, "device": self.device, "iterations": self.iterations, "search": self.search}
         takes = estimator_options(self.initial)
         self._first = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes})
         self._fallback = create_estimator(self.fallback) if self.fallback else None

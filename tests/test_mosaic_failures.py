@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators import create_estimator
 from udh_cli.mosaic import MosaicConfig, run_mosaic
@@ -94,7 +95,8 @@ class PastTheHorizon(FailOn):
 def test_a_frame_chained_past_the_horizon_is_reported_not_fatal(flight, tmp_path):
     folder, prints = flight
     estimator = PastTheHorizon(prints, lambda a, b: False)
-    report = run_mosaic(folder, tmp_path / "m.png", MosaicConfig(overlap_per_frame=0), estimator=estimator)
+    # The alignment check would reject that pair before it is chained; this test is about the chaining.
+    report = run_mosaic(folder, tmp_path / "m.png", MosaicConfig(overlap_per_frame=0, min_verified=0), estimator=estimator)
     frames = report["frames"]
     assert frames[7]["status"] == "unplaced" and "degenerate" in frames[7]["reason"]
     assert [f["status"] for f in frames[:7]] == ["placed"] * 7
@@ -118,3 +120,26 @@ def test_an_estimator_that_raises_fails_only_its_pair(flight, tmp_path):
     pair = next(p for p in report["pairs"] if (p["a"], p["b"]) == (2, 3))
     assert "RuntimeError: boom" in pair["estimates"][0]["failure"] and pair["method"] == "sift"
     assert report["summary"]["placed"] == 8
+
+
+class ConfidentlyWrong(FailOn):
+    """Real estimates, except pair 3 -> 4, answered 40 px off with a confidence of 0.95."""
+
+    name = "confidently-wrong"
+
+    def _estimate(self, image_a, image_b):
+        a, b = self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))
+        h, confidence, details = self.inner._estimate(image_a, image_b)
+        if (a, b) == (3, 4):
+            return geometry.translation(40.0, -25.0) @ h, 0.95, details
+        return h, confidence, details
+
+
+def test_a_confident_but_wrong_pair_fails_the_alignment_check(flight, tmp_path):
+    folder, prints = flight
+    report = run_mosaic(folder, tmp_path / "m.png", MosaicConfig(overlap_per_frame=0), estimator=ConfidentlyWrong(prints, lambda a, b: False))
+    pairs = {(p["a"], p["b"]): p for p in report["pairs"]}
+    assert pairs[(3, 4)]["status"] == "failed" and "alignment check" in pairs[(3, 4)]["reason"]
+    assert pairs[(3, 4)]["verified"] < 0.3
+    assert all(p["verified"] > 0.5 for key, p in pairs.items() if p["status"] == "ok")
+    assert report["summary"]["placed"] == 8  # bridged over the doubted link (2 -> 4)

@@ -13,7 +13,8 @@ from conftest import warped_pair
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimator
-from udh_cli.estimators.refined import AutoEstimator, RefinedEstimator, verification_score
+from udh_cli.estimators.refined import AutoEstimator, RefinedEstimator
+from udh_cli.verify import verification_score
 from udh_cli.refine import PyramidEcc
 
 

@@ -178,6 +178,7 @@ def mosaic(
     order: Annotated[str, typer.Option("--order", help="Frame order in a folder: name or time (EXIF capture time).")] = _MOSAIC.order,
     every: Annotated[int, typer.Option("--every", help="Video: keep every N-th frame.")] = _MOSAIC.every,
     min_confidence: Annotated[float, typer.Option("--min-confidence", help="Estimates below this confidence count as failed.")] = _MOSAIC.min_confidence,
+    min_verified: Annotated[float, typer.Option("--min-verified", help="Estimates whose alignment check (the lower of intensity and gradient NCC at 256 px) is below this count as failed; 0: no check.")] = _MOSAIC.min_verified,
     blend: Annotated[str, typer.Option("--blend", help="feather, multiband or none.")] = _MOSAIC.blend,
     max_size: Annotated[Optional[int], typer.Option("--max-size", help="Downscale the mosaic so its longest side is at most this many pixels.")] = _MOSAIC.max_size,
     no_gain: Annotated[bool, typer.Option("--no-gain", help="Skip gain (exposure) compensation.")] = False,
@@ -190,7 +191,7 @@ def mosaic(
     from udh_cli.mosaic import Reporter, run_mosaic
 
     config = _MosaicConfig(
-        method=method, fallback=fallback, method_options=_key_values(method_option or []), work_size=work_size, order=order, every=every, min_confidence=min_confidence,
+        method=method, fallback=fallback, method_options=_key_values(method_option or []), work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
         blend=blend, max_size=max_size, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame,
     )
     reporter = Reporter(console=err_console, progress=not quiet)

@@ -5,6 +5,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from udh_cli import geometry
+from udh_cli.images import scaled_size, to_gray_float
+
+VERIFY_SIDE = 256  # longer side (px) of the images a verification score is computed on
+
 
 def gradient_magnitude(gray: np.ndarray) -> np.ndarray:
     """(H, W) float32 -> (H, W) float32 Sobel gradient magnitude: the image's structure without its shading."""
@@ -45,3 +50,25 @@ def alignment_ncc(gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray, 
     x, y = x - x.mean(), y - y.mean()
     denominator = np.sqrt((x * x).sum() * (y * y).sum())
     return float((x * y).sum() / denominator) if denominator > 1e-12 else 0.0
+
+
+def verification_score(image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.ndarray | None,
+                       structure: bool = False) -> float:
+    """How well ``b_from_a`` aligns two images of any size, at :data:`VERIFY_SIDE` px: in [0, 1].
+
+    The intensity NCC over the overlap; with ``structure``, the lower of the intensity and the gradient NCC
+    (both must agree, see :func:`alignment_ncc`). 0 for no or a degenerate estimate, or too little overlap.
+    """
+    if b_from_a is None:
+        return 0.0
+    gray_a, gray_b = to_gray_float(image_a), to_gray_float(image_b)
+    size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
+    scale = min(1.0, VERIFY_SIDE / max(*size_a, *size_b))
+    work_a, work_b = scaled_size(size_a, scale), scaled_size(size_b, scale)
+    small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
+    small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
+    h = geometry.rescale_homography(b_from_a, size_a, work_a, size_b, work_b)
+    score = alignment_ncc(small_a, small_b, h)
+    if structure:
+        score = min(score, alignment_ncc(small_a, small_b, h, on="gradient"))
+    return max(0.0, score)

@@ -12,33 +12,16 @@ import time
 from dataclasses import dataclass, field
 from typing import ClassVar, Sequence
 
-import cv2
 import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.registry import create_estimator, estimator_options
-from udh_cli.images import scaled_size, to_gray_float
 from udh_cli.refine import PyramidEcc
-from udh_cli.verify import alignment_ncc
+from udh_cli.verify import verification_score
 
-VERIFY_SIDE = 256  # longer side (px) of the images the NCC score is computed on
 CLEAR_DROP = 0.05  # a refinement that lowers the score by more than this is discarded
-
-
-def verification_score(image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.ndarray | None) -> float:
-    """NCC of B and the aligned A at a small working size: in [0, 1], 0 for no or a degenerate estimate."""
-    if b_from_a is None:
-        return 0.0
-    gray_a, gray_b = to_gray_float(image_a), to_gray_float(image_b)
-    size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
-    scale = min(1.0, VERIFY_SIDE / max(*size_a, *size_b))
-    work_a, work_b = scaled_size(size_a, scale), scaled_size(size_b, scale)
-    small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
-    small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
-    h = geometry.rescale_homography(b_from_a, size_a, work_a, size_b, work_b)
-    return max(0.0, alignment_ncc(small_a, small_b, h))
 
 
 @dataclass

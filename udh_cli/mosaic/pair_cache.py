@@ -10,7 +10,7 @@ A pair's key covers everything its estimate depends on:
   file's content, EXIF orientation and ``work_size`` are all in it);
 - the method and the fallback: registry name, settings (dataclass fields) and the size and modification
   time of any model file among them, so a retrained model is a different method;
-- ``min_confidence`` (it decides which estimates are accepted and when the fallback runs);
+- the acceptance thresholds (they decide which estimates are accepted and when the fallback runs);
 - for pre-warped loop-closure pairs, the prior (the chained prediction B is warped with), exactly.
 """
 
@@ -29,7 +29,7 @@ from udh_cli import __version__
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.pairwise import PairRequest, PairResult
+from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult
 from udh_cli.mosaic.report import Reporter
 
 CACHE_FORMAT = "udh-mosaic-pairs/1"
@@ -131,7 +131,7 @@ class PairCache:
         frames: Sequence[Frame],
         estimator: Estimator,
         fallback: Estimator | None,
-        min_confidence: float,
+        acceptance: Acceptance,
         resume: bool,
         reporter: Reporter,
     ) -> "PairCache":
@@ -144,7 +144,7 @@ class PairCache:
             "udh_version": __version__,  # a different release may estimate differently
             "method": estimator_identity(estimator),
             "fallback": estimator_identity(fallback),
-            "min_confidence": float(min_confidence),
+            "acceptance": {"min_confidence": float(acceptance.min_confidence), "min_verified": float(acceptance.min_verified)},
         }
         previous: dict[str, dict] = {}
         path = Path(path)
@@ -223,6 +223,7 @@ def _record(result: PairResult, frames: Sequence[Frame]) -> dict[str, Any]:
         "reason": result.reason,
         "method": result.method,
         "confidence": result.confidence,
+        "verified": result.verified,
         "b_from_a": None if result.b_from_a is None else result.b_from_a.tolist(),
         "estimates": [e.to_json() for e in result.estimates],
     }
@@ -244,7 +245,10 @@ def _result_from_record(record: dict[str, Any], request: PairRequest) -> PairRes
     status = record["status"]
     if status not in ("ok", "failed") or (status == "ok") != (b_from_a is not None):
         raise ValueError(f"inconsistent cached pair (status {status!r})")
-    return PairResult(request.a, request.b, request.kind, estimates, b_from_a, status, record["reason"], record["method"], request.prior)
+    verified = record.get("verified")
+    result = PairResult(request.a, request.b, request.kind, estimates, b_from_a, status, record["reason"], record["method"], request.prior)
+    result.verified = None if verified is None else float(verified)
+    return result
 
 
 def _matrix(values: Any) -> np.ndarray:

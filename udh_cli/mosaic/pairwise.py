@@ -14,11 +14,42 @@ from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.mosaic.frames import Frame
 from udh_cli.mosaic.report import Reporter
+from udh_cli.verify import verification_score
 
 if TYPE_CHECKING:
     from udh_cli.mosaic.pair_cache import PairCache
 
 PAIR_KINDS = ("consecutive", "bridge", "overlap")  # next frame; skipping a broken link; loop closure
+
+
+@dataclass(frozen=True)
+class Acceptance:
+    """When a pair estimate is accepted; below either threshold it is doubted (fallback, bridge, split).
+
+    Attributes:
+        min_confidence: the estimator's own confidence (its meaning differs between methods).
+        min_verified: the same photometric check for every method: the lower of the intensity and gradient
+            NCC of the aligned working images at 256 px (:func:`udh_cli.verify.verification_score`).
+            Why both: the networks' confidence stayed at 0.2-0.9 on wrong seneca pairs (smooth infrared
+            fields correlate under a wrong shift); their gradient NCC at 256 px was at most 0.47 (95 % below
+            0.28), while right pairs scored at least about 0.5 on seneca and copr. 0 turns the check off.
+    """
+
+    min_confidence: float = 0.2
+    min_verified: float = 0.3
+
+    def judge(self, estimate: Estimate, image_a: np.ndarray, image_b: np.ndarray) -> tuple[float | None, str | None]:
+        """``(verification score or None when not computed, reason for doubt or None when accepted)``."""
+        if not estimate.ok:
+            return None, estimate.failure
+        if estimate.confidence < self.min_confidence:
+            return None, f"confidence {estimate.confidence:.2f} < {self.min_confidence}"
+        if self.min_verified <= 0:
+            return None, None
+        verified = verification_score(image_a, image_b, estimate.homography, structure=True)
+        if verified < self.min_verified:
+            return verified, f"alignment check {verified:.2f} < {self.min_verified} (intensity/gradient NCC)"
+        return verified, None
 
 
 @dataclass
@@ -51,6 +82,7 @@ class PairResult:
         method: the method whose estimate was accepted.
         prior: the chained prediction that was used, full resolution.
         consistency_px: filled by the solve: {"before": rms px, "after": rms px}.
+        verified: the accepted (or last doubted) estimate's alignment check, see :class:`Acceptance`.
     """
 
     a: int
@@ -63,6 +95,7 @@ class PairResult:
     method: str | None = None
     prior: np.ndarray | None = None
     consistency_px: dict[str, float | None] = field(default_factory=dict)
+    verified: float | None = None
 
     @property
     def ok(self) -> bool:
@@ -81,6 +114,7 @@ class PairResult:
             "reason": self.reason,
             "method": self.method,
             "confidence": self.confidence,
+            "verified": self.verified,
             "b_from_a": None if self.b_from_a is None else self.b_from_a.tolist(),
             "prewarped": self.prior is not None,
             "consistency_px": self.consistency_px,
@@ -154,13 +188,13 @@ def estimate_pairs(
     frames: Sequence[Frame],
     estimator: Estimator,
     fallback: Estimator | None,
-    min_confidence: float,
+    acceptance: Acceptance,
     reporter: Reporter,
     stage: str,
     batch_size: int = 16,
     cache: "PairCache | None" = None,
 ) -> list[PairResult]:
-    """Estimate every request; a failed or doubtful (confidence < ``min_confidence``) pair is retried with
+    """Estimate every request; a failed or doubtful (see :class:`Acceptance`) pair is retried with
     ``fallback``. Batches of ``batch_size`` pairs go to ``estimate_many`` so learned methods batch them.
 
     With a ``cache`` (:class:`~udh_cli.mosaic.pair_cache.PairCache`), a request whose key the cache holds is
@@ -181,7 +215,7 @@ def estimate_pairs(
                     advance(1)
             if not batch:
                 continue
-            _estimate_batch(batch, requests, results, frames, estimator, fallback, min_confidence, advance)
+            _estimate_batch(batch, requests, results, frames, estimator, fallback, acceptance, advance)
             if cache is not None:
                 for i in batch:
                     cache.add(requests[i], results[i])
@@ -196,7 +230,7 @@ def _estimate_batch(
     frames: Sequence[Frame],
     estimator: Estimator,
     fallback: Estimator | None,
-    min_confidence: float,
+    acceptance: Acceptance,
     advance,
 ) -> None:
     """Finish the pairs ``batch`` (indices into ``requests``) in place: ``estimator``, then ``fallback``."""
@@ -207,15 +241,16 @@ def _estimate_batch(
         still_pending = []
         inputs = [_work_inputs(requests[i], frames) for i in pending]
         estimates = _estimate_many_safely(method, [(a, b) for a, b, _ in inputs])
-        for i, (_, _, undo), estimate in zip(pending, inputs, estimates):
+        for i, (image_a, image_b, undo), estimate in zip(pending, inputs, estimates):
             result = results[i]
             result.estimates.append(estimate)
-            if estimate.ok and estimate.confidence >= min_confidence:
+            verified, doubt = acceptance.judge(estimate, image_a, image_b)
+            result.verified = verified
+            if doubt is None:
                 result.b_from_a = _full_resolution(estimate, requests[i], frames, undo)
                 result.status, result.reason, result.method = "ok", None, estimate.method
             else:
-                result.reason = estimate.failure if not estimate.ok else f"confidence {estimate.confidence:.2f} < {min_confidence}"
-                result.reason = f"{estimate.method}: {result.reason}"
+                result.reason = f"{estimate.method}: {doubt}"
                 still_pending.append(i)
             if attempt == 0 and result.ok or attempt == 1 or fallback is None:
                 advance(1)

@@ -24,7 +24,7 @@ from udh_cli.mosaic.gains import solve_gains
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
 from udh_cli.mosaic.outputs import StagedFiles, output_paths, preview_path, sidecar_path, stale_part_files
 from udh_cli.mosaic.pair_cache import PairCache, cache_path
-from udh_cli.mosaic.pairwise import PairRequest, PairResult, corner_disagreement_px, estimate_pairs
+from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_with_rejection, summarise
 from udh_cli.mosaic.truth import corner_errors_vs_truth, summarise_truth
@@ -51,6 +51,8 @@ class MosaicConfig:
         order: frame order in a folder: ``"name"`` or ``"time"`` (EXIF capture time).
         every: for a video, keep every N-th frame.
         min_confidence: estimates below this confidence count as failures (then fallback, then split).
+        min_verified: estimates whose photometric alignment check (see
+            :class:`~udh_cli.mosaic.pairwise.Acceptance`) is below this count as failures too; 0: no check.
         overlap_min: non-consecutive frames whose chained footprints overlap by this share of the smaller
             frame are estimated too (loop closure).
         overlap_per_frame: at most this many loop-closure partners per frame (bounds the work).
@@ -73,7 +75,8 @@ class MosaicConfig:
     work_size: int = 800
     order: str = "name"
     every: int = 1
-    min_confidence: float = 0.2
+    min_confidence: float = Acceptance.min_confidence
+    min_verified: float = Acceptance.min_verified
     overlap_min: float = 0.3
     overlap_per_frame: int = 3
     max_disagreement: float = 0.1
@@ -122,6 +125,8 @@ def check_config(config: MosaicConfig) -> None:
         raise UdhError(f"--max-size {config.max_size}: give at least 16 pixels")
     if not 0.0 <= config.min_confidence <= 1.0:
         raise UdhError(f"--min-confidence {config.min_confidence}: give a value in [0, 1]")
+    if not 0.0 <= config.min_verified <= 1.0:
+        raise UdhError(f"--min-verified {config.min_verified}: give a value in [0, 1]")
     if config.every < 1 or config.overlap_per_frame < 0:
         raise UdhError("--every must be at least 1 and --overlap-pairs at least 0")
 
@@ -141,6 +146,11 @@ def mosaic_method_options(method: str, given: dict[str, Any]) -> dict[str, Any]:
     if "search" in estimator_options(method) and "search" not in options:
         options["search"] = MOSAIC_SEARCH
     return options
+
+
+def acceptance(config: MosaicConfig) -> Acceptance:
+    """The run's pair-acceptance thresholds."""
+    return Acceptance(config.min_confidence, config.min_verified)
 
 
 def run_mosaic(
@@ -175,7 +185,7 @@ def run_mosaic(
 
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter)
     frames = frameset.frames
-    cache = PairCache.open(cache_path(output), frames, estimator, fallback, config.min_confidence, resume, reporter)
+    cache = PairCache.open(cache_path(output), frames, estimator, fallback, acceptance(config), resume, reporter)
     try:
         pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter, cache)
         parts = _chain_parts(frameset, pairs)
@@ -226,7 +236,7 @@ def _load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:
 def _estimate_sequence(frameset: FrameSet, estimator, fallback, config: MosaicConfig, reporter: Reporter, cache: PairCache) -> list[PairResult]:
     """Consecutive pairs, then a bridge over each broken link (i-1 -> i+1 and i -> i+2)."""
     frames = frameset.frames
-    args = (frames, estimator, fallback, config.min_confidence, reporter)
+    args = (frames, estimator, fallback, acceptance(config), reporter)
     pairs = estimate_pairs([PairRequest(i, i + 1, "consecutive") for i in range(len(frames) - 1)], *args, "consecutive pairs", config.batch_size, cache)
     broken = [p for p in pairs if not p.ok]
     for pair in broken:
@@ -262,7 +272,7 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
             requests.append(PairRequest(a, b, "overlap", prior / prior[2, 2]))
     if not requests:
         return []
-    results = estimate_pairs(requests, frames, estimator, fallback, config.min_confidence, reporter, "loop-closure pairs", config.batch_size, cache)
+    results = estimate_pairs(requests, frames, estimator, fallback, acceptance(config), reporter, "loop-closure pairs", config.batch_size, cache)
     for result in results:
         if not result.ok:
             continue

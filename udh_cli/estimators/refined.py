@@ -33,7 +33,8 @@ class RefinedEstimator(Estimator):
         model: ONNX path for a learned ``initial``; None takes the shipped model.
         device: onnxruntime device for a learned ``initial``.
         iterations: rounds of the coarse network (each predicts the residual of the last).
-        search: the network's large-motion search (see :class:`~udh_cli.estimators.deep.DeepEstimator`).
+        refine_model, refine_rounds, search: the network's refinement stage and large-motion search (see
+            :class:`~udh_cli.estimators.deep.DeepEstimator`).
         refiner: the ECC pyramid and its iteration budget.
         fallback: registry name tried when the score is below ``min_score`` (None: never).
         min_score: the verification NCC below which an answer is doubted.
@@ -43,7 +44,11 @@ class RefinedEstimator(Estimator):
     initial: str = "unsupervised"
     model: str | None = None
     device: str = "auto"
-    iterations: int = 2
+    # One round of each network is enough ahead of ECC: two of each cost 25 % more time for no fewer
+    # failures (held-out rho 32, 300 pairs: 0.7 % vs 1.3 % fails, 29 vs 35 ms).
+    iterations: int = 1
+    refine_model: str | None = None
+    refine_rounds: int | None = 1
     search: int = 0
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     fallback: str | None = None
@@ -51,8 +56,11 @@ class RefinedEstimator(Estimator):
     _first: Estimator = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        # model, device, iterations and search go to the first estimator when it takes them (the learned ones do).
-        wanted = {"model": self.model, "device": self.device, "iterations": self.iterations, "search": self.search}
+        # The network's options go to the first estimator when it takes them (the learned ones do).
+        # A model given alone runs alone, as with the network's own method (refine_rounds then defaults to 0).
+        alone = self.model is not None and self.refine_model is None
+        wanted = {"model": self.model, "device": self.device, "iterations": self.iterations, "search": self.search,
+                  "refine_model": self.refine_model, "refine_rounds": None if alone else self.refine_rounds}
         takes = estimator_options(self.initial)
         self._first = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes})
         self._fallback = create_estimator(self.fallback) if self.fallback else None

@@ -62,9 +62,13 @@ class Estimator:
     ``(b_from_a, confidence, details)`` or raises :class:`EstimationFailed`. This class times the call,
     checks the result (a non-finite, singular or folded homography is a failure, never an answer) and
     packs it into an :class:`Estimate`.
+
+    ``verifies_itself`` says whether an answer was already checked against the images (RANSAC's inlier
+    count, a photometric score); callers such as the mosaic add their own check only when it was not.
     """
 
     name: ClassVar[str] = "base"
+    verifies_itself: ClassVar[bool] = False
 
     def estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> Estimate:
         """Estimate the homography from ``image_a`` to ``image_b``. Never raises for a failed estimate."""

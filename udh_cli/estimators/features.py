@@ -35,6 +35,7 @@ class FeatureRansacEstimator(Estimator):
     lmeds_refit: bool = True
 
     norm: ClassVar[int] = cv2.NORM_L2
+    verifies_itself: ClassVar[bool] = True  # an answer needs min_inliers matches that agree on it
 
     def __post_init__(self) -> None:
         if not 0.0 < self.ratio <= 1.0:

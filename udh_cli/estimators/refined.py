@@ -41,6 +41,7 @@ class RefinedEstimator(Estimator):
     """
 
     name: ClassVar[str] = "unsupervised+ecc"
+    verifies_itself: ClassVar[bool] = True  # its confidence is the NCC score of the aligned images
     initial: str = "unsupervised"
     model: str | None = None
     device: str = "auto"

@@ -28,23 +28,26 @@ class Acceptance:
 
     Attributes:
         min_confidence: the estimator's own confidence (its meaning differs between methods).
-        min_verified: the same photometric check for every method: the lower of the intensity and gradient
-            NCC of the aligned working images at 256 px (:func:`udh_cli.verify.verification_score`).
-            Why both: the networks' confidence stayed at 0.2-0.9 on wrong seneca pairs (smooth infrared
-            fields correlate under a wrong shift); their gradient NCC at 256 px was at most 0.47 (95 % below
-            0.28), while right pairs scored at least about 0.5 on seneca and copr. 0 turns the check off.
+        min_verified: a photometric check for the methods that do not verify their answers themselves
+            (the networks, ECC; not SIFT/ORB, whose answers are RANSAC-verified, nor auto): the lower of
+            the intensity and gradient NCC of the aligned working images at 256 px
+            (:func:`udh_cli.verify.verification_score`). Why: the networks' confidence stayed at 0.2-0.9
+            on wrong seneca pairs (smooth infrared fields correlate under a wrong shift); their gradient NCC
+            was at most 0.47 (95 % below 0.28). Not for every method: right SIFT pairs of brighton-beach
+            (surf and sand) scored 0.19-0.30 and were split off. 0 turns the check off.
     """
 
     min_confidence: float = 0.2
     min_verified: float = 0.3
 
-    def judge(self, estimate: Estimate, image_a: np.ndarray, image_b: np.ndarray) -> tuple[float | None, str | None]:
+    def judge(self, estimate: Estimate, image_a: np.ndarray, image_b: np.ndarray,
+              verified_by_method: bool = False) -> tuple[float | None, str | None]:
         """``(verification score or None when not computed, reason for doubt or None when accepted)``."""
         if not estimate.ok:
             return None, estimate.failure
         if estimate.confidence < self.min_confidence:
             return None, f"confidence {estimate.confidence:.2f} < {self.min_confidence}"
-        if self.min_verified <= 0:
+        if self.min_verified <= 0 or verified_by_method:
             return None, None
         verified = verification_score(image_a, image_b, estimate.homography, structure=True)
         if verified < self.min_verified:
@@ -244,7 +247,7 @@ def _estimate_batch(
         for i, (image_a, image_b, undo), estimate in zip(pending, inputs, estimates):
             result = results[i]
             result.estimates.append(estimate)
-            verified, doubt = acceptance.judge(estimate, image_a, image_b)
+            verified, doubt = acceptance.judge(estimate, image_a, image_b, method.verifies_itself)
             result.verified = verified
             if doubt is None:
                 result.b_from_a = _full_resolution(estimate, requests[i], frames, undo)

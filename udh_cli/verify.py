@@ -27,26 +27,35 @@ def alignment_ncc(gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray, 
         b_from_a: (3, 3) homography between them, pixels.
         min_overlap: below this share of B covered by A, the answer is 0: a small overlap can correlate
             well by chance (a diverged ECC on occluded patches scored high on slivers of overlap).
-        on: "intensity" compares the grey values; "gradient" compares gradient magnitudes. Smooth,
-            low-texture scenes (fields, water) keep a high intensity NCC under a wrong shift (wrong pairs of
-            the seneca flight scored up to 0.9), their gradients do not (at most 0.47, right ones at least
-            about 0.6 at 256 px).
+        on: "intensity" compares the grey values; "gradient" compares gradient magnitudes (of the warped A
+            and of B); "both" is the lower of the two, from one warp. Smooth, low-texture scenes (fields,
+            water) keep a high intensity NCC under a wrong shift (wrong pairs of the seneca flight scored up
+            to 0.9), their gradients do not (at most 0.47 at 256 px).
 
     Returns:
         NCC in [-1, 1]; gain and bias changes do not lower it. 0 for a non-finite H or too little overlap.
     """
+    if on not in ("intensity", "gradient", "both"):
+        raise ValueError(f"on={on!r}: use 'intensity', 'gradient' or 'both'")
     if not np.isfinite(b_from_a).all():
         return 0.0
-    if on == "gradient":
-        gray_a, gray_b = gradient_magnitude(gray_a), gradient_magnitude(gray_b)
-    elif on != "intensity":
-        raise ValueError(f"on={on!r}: use 'intensity' or 'gradient'")
     size = (gray_b.shape[1], gray_b.shape[0])
     warped = cv2.warpPerspective(gray_a, b_from_a, size, flags=cv2.INTER_LINEAR)
     mask = cv2.warpPerspective(np.ones_like(gray_a), b_from_a, size, flags=cv2.INTER_NEAREST) > 0.5
     if mask.mean() < min_overlap:
         return 0.0
-    x, y = warped[mask].astype(np.float64), gray_b[mask].astype(np.float64)
+    scores = []
+    if on != "gradient":
+        scores.append(_ncc(warped[mask], gray_b[mask]))
+    if on != "intensity":
+        inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # Sobel reads one pixel around
+        scores.append(_ncc(gradient_magnitude(warped)[inner], gradient_magnitude(gray_b)[inner]))
+    return min(scores)
+
+
+def _ncc(x: np.ndarray, y: np.ndarray) -> float:
+    """NCC of two equal-length 1-D samples; 0 when either is constant."""
+    x, y = x.astype(np.float64), y.astype(np.float64)
     x, y = x - x.mean(), y - y.mean()
     denominator = np.sqrt((x * x).sum() * (y * y).sum())
     return float((x * y).sum() / denominator) if denominator > 1e-12 else 0.0
@@ -68,7 +77,4 @@ def verification_score(image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.nd
     small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
     small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
     h = geometry.rescale_homography(b_from_a, size_a, work_a, size_b, work_b)
-    score = alignment_ncc(small_a, small_b, h)
-    if structure:
-        score = min(score, alignment_ncc(small_a, small_b, h, on="gradient"))
-    return max(0.0, score)
+    return max(0.0, alignment_ncc(small_a, small_b, h, on="both" if structure else "intensity"))

@@ -119,7 +119,7 @@ class DeepEstimator(Estimator):
         s = self.network.input_size
         if not geometry.is_valid_homography(b_from_a, s, s):
             return 0.0
-        return max(0.0, min(alignment_ncc(small_a, small_b, b_from_a), alignment_ncc(small_a, small_b, b_from_a, on="gradient")))
+        return max(0.0, alignment_ncc(small_a, small_b, b_from_a, on="both"))
 
     def estimate_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
         if not pairs:

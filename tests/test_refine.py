@@ -15,6 +15,7 @@ from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimator
 from udh_cli.estimators.refined import AutoEstimator, RefinedEstimator
 from udh_cli.verify import verification_score
+from udh_cli.models_catalog import models_dir
 from udh_cli.refine import PyramidEcc
 
 
@@ -98,3 +99,31 @@ def test_gradient_ncc_is_not_fooled_by_a_smooth_scene_under_a_wrong_shift():
     assert alignment_ncc(scene, scene, wrong, on="gradient") < 0.3
     with pytest.raises(ValueError, match="intensity"):
         alignment_ncc(scene, scene, right, on="colour")
+
+
+class Answers(Estimator):
+    """Answers a fixed homography."""
+
+    name: ClassVar[str] = "fixed"
+
+    def __init__(self, homography):
+        self.homography = homography
+
+    def _estimate(self, image_a, image_b):
+        return self.homography, 1.0, {}
+
+
+def test_a_doubtful_first_answer_escalates_to_the_longer_cascade_before_the_fallback():
+    a, b, truth = known_pair(4)
+    auto = AutoEstimator(initial="identity")
+    auto._first = Answers(geometry.translation(60.0, -40.0) @ truth)  # far off: ECC cannot save it
+    auto._second = Answers(truth)
+    estimate = auto.estimate(a, b)
+    assert estimate.details["used"] == "escalated" and "fallback" not in estimate.details
+    assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
+    # Learned initials get the second run with the networks' default rounds; others have none.
+    assert AutoEstimator(initial="identity")._second is None
+    if (models_dir() / "udh-unsupervised-refine.onnx").is_file():
+        learned = AutoEstimator()
+        assert [rounds for _, rounds in learned._first.stages] == [1, 1]
+        assert [rounds for _, rounds in learned._second.stages] == [2, 2]

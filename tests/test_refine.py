@@ -115,15 +115,16 @@ class Answers(Estimator):
 
 def test_a_doubtful_first_answer_escalates_to_the_longer_cascade_before_the_fallback():
     a, b, truth = known_pair(4)
-    auto = AutoEstimator(initial="identity")
+    auto = AutoEstimator(initial="identity", escalate=True)
     auto._first = Answers(geometry.translation(60.0, -40.0) @ truth)  # far off: ECC cannot save it
     auto._second = Answers(truth)
     estimate = auto.estimate(a, b)
     assert estimate.details["used"] == "escalated" and "fallback" not in estimate.details
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
     # Learned initials get the second run with the networks' default rounds; others have none.
-    assert AutoEstimator(initial="identity")._second is None
+    assert AutoEstimator(initial="identity", escalate=True)._second is None
+    assert AutoEstimator(initial="identity")._second is None  # off by default
     if (models_dir() / "udh-unsupervised-refine.onnx").is_file():
-        learned = AutoEstimator()
+        learned = AutoEstimator(escalate=True)
         assert [rounds for _, rounds in learned._first.stages] == [1, 1]
         assert [rounds for _, rounds in learned._second.stages] == [2, 2]

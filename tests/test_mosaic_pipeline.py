@@ -174,3 +174,14 @@ def test_learned_methods_search_for_large_motion_in_mosaics_unless_told_otherwis
     assert mosaic_method_options("auto", {"model": "m.onnx"}) == {"model": "m.onnx", "search": MOSAIC_SEARCH}
     assert mosaic_method_options("unsupervised", {"search": 0}) == {"search": 0}
     assert mosaic_method_options("sift", {"ratio": 0.8}) == {"ratio": 0.8}
+
+
+def test_the_pair_cache_knows_both_networks_of_a_cascade_inside_auto():
+    from udh_cli.estimators import create_estimator
+    from udh_cli.models_catalog import models_dir
+    from udh_cli.mosaic.pair_cache import estimator_identity
+
+    if not (models_dir() / "udh-unsupervised-refine.onnx").is_file():
+        pytest.skip("shipped refinement model not built yet")
+    files = {path.split("/")[-1] for path, _, _ in estimator_identity(create_estimator("auto"))["files"]}
+    assert files == {"udh-unsupervised.onnx", "udh-unsupervised-refine.onnx"}  # retraining either one re-estimates

@@ -33,7 +33,7 @@ from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult
 from udh_cli.mosaic.report import Reporter
 
 CACHE_FORMAT = "udh-mosaic-pairs/1"
-_MAX_DEPTH = 4  # how deep estimator settings are searched for model files (an estimator wrapping another...)
+_MAX_DEPTH = 6  # how deep estimator settings are searched for model files (auto -> its network -> stages -> model -> path)
 
 
 def cache_path(output: str | Path) -> Path:

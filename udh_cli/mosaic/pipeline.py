@@ -23,7 +23,7 @@ from udh_cli.mosaic.frames import ORDERS, FrameSet, open_frames
 from udh_cli.mosaic.gains import solve_gains
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
 from udh_cli.mosaic.outputs import StagedFiles, output_paths, preview_path, sidecar_path, stale_part_files
-from udh_cli.mosaic.pair_cache import PairCache, cache_path
+from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_with_rejection, summarise
@@ -420,6 +420,7 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, esti
         "udh_version": __version__,
         "source": str(frameset.source),
         "method": estimator.name,
+        "method_settings": estimator_identity(estimator)["settings"],  # with the mosaic's defaults (search)
         "fallback": None if fallback is None else fallback.name,
         "config": {k: v for k, v in asdict(config).items() if k not in ("method", "fallback")},
         "parts": [

@@ -85,6 +85,10 @@ def test_refinement_rounds_run_the_second_network_on_the_pre_warped_pair(tiny_on
     coarse = create_estimator("unsupervised", model=str(tiny_onnx), device="cpu")
     fine = create_estimator("unsupervised", model=str(tiny_fine_onnx), device="cpu", iterations=1)
     assert coarse.refine_rounds == 0  # a model given alone runs alone
+    both = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), device="cpu")
+    assert both.refine_rounds == 2  # a refinement model given is used
+    with pytest.raises(UdhError, match="no such model file"):
+        create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_onnx.with_name("missing.onnx")))
     a, b = textured_image(64, 64, seed=5), textured_image(64, 64, seed=6)
     small_a, small_b = cascade._small(a)[None], cascade._small(b)[None]
     first = coarse.predict_small(small_a, small_b)[0]

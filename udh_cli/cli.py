@@ -56,6 +56,7 @@ def estimate(
     model: Annotated[Optional[Path], typer.Option(help="Learned methods: an ONNX file instead of the shipped model.")] = None,
     device: Annotated[Optional[str], typer.Option(help="Learned methods: auto (CUDA if onnxruntime has it), cpu or cuda.")] = None,
     iterations: Annotated[Optional[int], typer.Option(help="Learned methods: rounds of the coarse network; ecc: ECC iterations.")] = None,
+    refine_model: Annotated[Optional[Path], typer.Option(help="Learned methods: an ONNX file for the refinement stage instead of the shipped one.")] = None,
     refine_rounds: Annotated[Optional[int], typer.Option(help="Learned methods: rounds of the refinement network after the coarse ones (0: none).")] = None,
     search: Annotated[Optional[int], typer.Option(help="Learned methods: when the answer scores low, retry from a (2N+1)^2 grid of shifts up to half the frame (0: off).")] = None,
 ) -> None:
@@ -63,7 +64,7 @@ def estimate(
     from udh_cli.api import estimate_report
 
     given = {"best_features": best_features, "model": None if model is None else str(model), "device": device, "iterations": iterations,
-             "refine_rounds": refine_rounds, "search": search}
+             "refine_model": None if refine_model is None else str(refine_model), "refine_rounds": refine_rounds, "search": search}
     options = {key: value for key, value in given.items() if value is not None}
     report = estimate_report(image_a, image_b, method, gt=gt, viz=viz, **options)
     if json_output:

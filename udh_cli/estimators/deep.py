@@ -36,8 +36,9 @@ class DeepEstimator(Estimator):
             failures from 25 % to 17 % ahead of the refinement rounds.
         refine_model: path of the refinement network; ``None`` takes the shipped ``<name>-refine`` model.
         refine_rounds: rounds of the refinement network after the coarse ones (0: no refinement stage).
-            ``None``: :data:`DEFAULT_REFINE_ROUNDS` when both networks are the shipped ones and a shipped
-            refinement network exists, else 0 (a ``model`` given alone runs alone).
+            ``None``: :data:`DEFAULT_REFINE_ROUNDS` when a ``refine_model`` is given, or when ``model`` is
+            the shipped one and a shipped refinement network exists; else 0 (a ``model`` given alone runs
+            alone).
         search: large-motion search for pairs whose score is below ``search_below``: rerun the network
             from a (2 * search + 1)^2 grid of translations up to half the frame and keep the best-scoring
             answer (0: off). For sequences that move further between frames than the network was trained
@@ -68,8 +69,8 @@ class DeepEstimator(Estimator):
         if self.iterations < 1 or self.batch_size < 1:  # 0 rounds would answer the identity as if estimated
             raise UdhError(f"method '{self.name}': iterations ({self.iterations}) and batch_size ({self.batch_size}) must be at least 1")
         if self.refine_rounds is None:
-            shipped_pair = self.model is None and self.refine_model is None and has_shipped(f"{self.name}-refine")
-            self.refine_rounds = DEFAULT_REFINE_ROUNDS if shipped_pair else 0
+            shipped_pair = self.model is None and has_shipped(f"{self.name}-refine")
+            self.refine_rounds = DEFAULT_REFINE_ROUNDS if self.refine_model is not None or shipped_pair else 0
         if self.search < 0:
             raise UdhError(f"method '{self.name}': search ({self.search}) must be 0 (off) or more")
         if self.refine_rounds < 0:

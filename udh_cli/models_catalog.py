@@ -24,10 +24,14 @@ def models_dir() -> Path:
     return Path(str(resources.files("udh_cli.models")))
 
 
+def _shipped_path(name: str, suffix: str) -> Path:
+    return models_dir() / f"{SHIPPED_MODELS[name]}{suffix}"
+
+
 def _shipped(name: str, suffix: str) -> Path:
     if name not in SHIPPED_MODELS:
         raise UdhError(f"no shipped model called '{name}'; choose one of: {', '.join(SHIPPED_MODELS)}, or give a file path")
-    path = models_dir() / f"{SHIPPED_MODELS[name]}{suffix}"
+    path = _shipped_path(name, suffix)
     if not path.is_file():
         raise UdhError(f"the shipped {name} model is missing ({path}); reinstall udh or pass --model PATH")
     return path
@@ -35,7 +39,7 @@ def _shipped(name: str, suffix: str) -> Path:
 
 def has_shipped(name: str) -> bool:
     """Whether the shipped ONNX model ``name`` is installed."""
-    return name in SHIPPED_MODELS and (models_dir() / f"{SHIPPED_MODELS[name]}.onnx").is_file()
+    return name in SHIPPED_MODELS and _shipped_path(name, ".onnx").is_file()
 
 
 def shipped_onnx(name: str) -> Path:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 from typing import ClassVar, Sequence
@@ -17,6 +18,7 @@ from udh_cli.onnx_model import OnnxHomographyModel
 from udh_cli.verify import alignment_ncc
 
 
+DEFAULT_ITERATIONS = 2  # coarse rounds
 DEFAULT_REFINE_ROUNDS = 2  # measured on the held-out rho-32 bench (models/README.md)
 
 
@@ -53,7 +55,7 @@ class DeepEstimator(Estimator):
     name: ClassVar[str] = "deep"
     model: str | None = None
     device: str = "auto"
-    iterations: int = 2
+    iterations: int = DEFAULT_ITERATIONS
     refine_model: str | None = None
     refine_rounds: int | None = None
     search: int = 0
@@ -86,6 +88,15 @@ class DeepEstimator(Estimator):
                 raise UdhError(f"{refine_path}: the refinement network takes {refiner.input_size}px inputs but "
                                f"{path} takes {self.network.input_size}px; give two models of the same input size")
             self.stages.append((refiner, self.refine_rounds))
+
+    def with_default_rounds(self) -> "DeepEstimator":
+        """The same estimator and loaded networks with the default rounds (the refinement stage only if
+        this one has it): a longer cascade without loading the models again."""
+        twin = copy.copy(self)
+        twin.iterations = DEFAULT_ITERATIONS
+        twin.refine_rounds = DEFAULT_REFINE_ROUNDS if len(self.stages) > 1 else 0
+        twin.stages = [(network, rounds) for (network, _), rounds in zip(self.stages, (twin.iterations, twin.refine_rounds))]
+        return twin
 
     def _small(self, image: np.ndarray) -> np.ndarray:
         s = self.network.input_size

@@ -17,6 +17,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimate, Estimator
+from udh_cli.estimators.deep import DeepEstimator
 from udh_cli.estimators.registry import create_estimator, estimator_options
 from udh_cli.refine import PyramidEcc
 from udh_cli.verify import verification_score
@@ -70,10 +71,8 @@ class RefinedEstimator(Estimator):
                   "refine_model": self.refine_model, "refine_rounds": None if alone else self.refine_rounds}
         takes = estimator_options(self.initial)
         self._first = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes})
-        self._second = None
-        if self.escalate and "iterations" in takes:  # a learned initial: the same networks, default rounds
-            keep = {"model", "device", "search", "refine_model"}
-            self._second = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes and k in keep})
+        # Escalation: a learned initial again, with its default (longer) rounds, sharing the loaded networks.
+        self._second = self._first.with_default_rounds() if self.escalate and isinstance(self._first, DeepEstimator) else None
         self._fallback = create_estimator(self.fallback) if self.fallback else None
 
     def _refine_and_score(self, image_a, image_b, start: Estimate) -> tuple[np.ndarray | None, float, dict]:

@@ -110,7 +110,7 @@ class CorrelationNet(nn.Module):
     def forward(self, patches: torch.Tensor) -> torch.Tensor:
         n = patches.shape[0]
         pooled = patches if self.fine else F.avg_pool2d(patches, 2)
-        both = torch.cat([pooled[:, 0:1], pooled[:, 1:2]], 0)  # 2N, 1, S/2, S/2: one pass, shared weights
+        both = torch.cat([pooled[:, 0:1], pooled[:, 1:2]], 0)  # 2N images: one pass, shared weights
         features = F.normalize(self.encoder(both), dim=1)
         volume = self.correlation(features[:n], features[n:])
         return self.head(self.regressor(volume)).view(-1, 4, 2) * OFFSET_SCALE

@@ -46,6 +46,16 @@ def tiny_fine_onnx(tmp_path_factory) -> Path:
     return _export_tiny(tmp_path_factory.mktemp("tiny_fine"), "corr-fine", seed=1)
 
 
+def test_lite_network_exports_with_its_window_index_as_a_constant(tmp_path):
+    """corr-lite (the fast coarse network) goes through ONNX with parity, and no network recomputes the
+    correlation window from shapes at run time: that was a dozen small ops per batch-1 call."""
+    onnx = pytest.importorskip("onnx")
+    path = _export_tiny(tmp_path, "corr-lite", seed=2)
+    ops = {node.op_type for node in onnx.load(str(path)).graph.node}
+    assert "GatherElements" in ops  # the window gather is there...
+    assert not ops & {"Range", "GreaterOrEqual", "Less"}  # ...but not the arithmetic that built its index
+
+
 def test_export_takes_check_patches_of_another_size(tiny_onnx, tmp_path):
     # `udh export-onnx --check-images` draws 128-px patches whatever the network's input size.
     pytest.importorskip("torch")

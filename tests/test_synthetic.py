@@ -1,4 +1,4 @@
-"""The synthetic pair generator's illumination shift."""
+"""The synthetic pair generator: illumination shifts and occluders."""
 
 from __future__ import annotations
 
@@ -27,3 +27,22 @@ def test_unconstrained_shifts_would_have_erased_it():
     dark = textured_image(128, 128, seed=4).astype(np.float32) / 255 * 0.25
     erased = np.clip((dark - 0.5) * 1.4 + 0.5 - 0.2, 0, 1)
     assert (erased == 0).mean() > 0.95
+
+
+def test_occluders_cover_the_asked_share_of_pairs_and_leave_all_or_none_sets_unchanged():
+    from udh_cli.synthetic import PairConfig, make_pairs
+
+    sources = [textured_image(320, 240, seed=s) for s in range(3)]
+
+    def draw(occluders):
+        config = PairConfig(patch_size=64, rho=8.0, illumination=False, occluders=occluders)
+        return make_pairs(sources, 200, config, np.random.default_rng(7), with_context=False)
+
+    clean, half, every, flag = draw(0.0), draw(0.5), draw(1.0), draw(True)
+    occluded_b = ~np.isclose(half.patch_b, half.clean_b).all(axis=(1, 2))
+    assert 0.4 < occluded_b.mean() < 0.6  # each pair is occluded with probability 0.5
+    assert np.isclose(clean.patch_b, clean.clean_b).all()
+    assert (~np.isclose(every.patch_b, every.clean_b).all(axis=(1, 2))).all()
+    # True means all, and draws no extra coin: benchmark sets made before the share existed are unchanged.
+    np.testing.assert_array_equal(every.patch_a, flag.patch_a)
+    np.testing.assert_array_equal(every.offsets, flag.offsets)

@@ -112,7 +112,7 @@ def train(
     data_kind: Annotated[str, typer.Option(help="auto, pool or flight.")] = "auto",
     small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = 0.3,
     illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.")] = True,
-    occluders: Annotated[bool, typer.Option(help="Random occluding blobs on the network's inputs.")] = False,
+    occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = 0.0,
     eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = 250,
     seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = 0,
     threads: Annotated[Optional[int], typer.Option(help="torch CPU threads [default: torch's choice].")] = None,

@@ -54,14 +54,14 @@ class PairConfig:
         small_motion_fraction: share of pairs whose own rho is drawn uniformly in [0, rho] instead of
             being rho; it teaches a network the small residuals that iterative refinement asks about.
         illumination: random brightness, contrast and gamma per patch.
-        occluders: random textured blobs on the patches.
+        occluders: share of pairs (0 to 1) whose patches get random textured blobs; ``True`` means all.
     """
 
     patch_size: int = 128
     rho: float = 32.0
     small_motion_fraction: float = 0.0
     illumination: bool = True
-    occluders: bool = False
+    occluders: float = 0.0
 
 
 @dataclass
@@ -215,7 +215,8 @@ def make_pairs(
         a_seen, b_seen = a, b
         if config.illumination:
             a_seen, b_seen = illuminate(a_seen, rng), illuminate(b_seen, rng)
-        if config.occluders:
+        # Only a fractional share draws a coin, so sets made with all or none occluded stay as they were.
+        if config.occluders >= 1.0 or (config.occluders > 0.0 and rng.uniform() < config.occluders):
             a_seen, b_seen = _occlude(a_seen, rng), _occlude(b_seen, rng)
         patch_a[i], patch_b[i] = a_seen, b_seen
         offsets[i] = delta

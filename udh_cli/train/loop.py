@@ -37,7 +37,9 @@ class TrainConfig:
         patch_size: network input side, pixels.
         rho: largest corner perturbation of synthetic pairs, pixels.
         small_motion_fraction: share of synthetic pairs with a smaller, random rho.
-        illumination / occluders: input augmentations (the losses see clean images).
+        illumination: random brightness/contrast/gamma on the inputs; occluders: the share of pairs
+            (0 to 1) with textured blobs pasted on the inputs. Both are input augmentations: the losses
+            see the clean images.
         steps: total optimiser steps (None: :data:`DEFAULT_STEPS`, or on resume the run's own total);
             batch: pairs per step and per process.
         lr: Adam learning rate (None: the paper's, 1e-4 unsupervised, 5e-4 supervised).
@@ -57,7 +59,7 @@ class TrainConfig:
     rho: float = 32.0
     small_motion_fraction: float = 0.3
     illumination: bool = True
-    occluders: bool = False
+    occluders: float = 0.0
     steps: int | None = None
     batch: int = 32
     lr: float | None = None

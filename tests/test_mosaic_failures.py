@@ -103,6 +103,35 @@ def test_a_frame_chained_past_the_horizon_is_reported_not_fatal(flight, tmp_path
     assert report["parts"][0]["frames"] == list(range(7)) and (tmp_path / "m.png").is_file()
 
 
+class ZoomsIn(FailOn):
+    """Real estimates, except pair 6 -> 7, which claims frame 7 is the same ground seen 4x closer: a wrong
+    pair of the kind that blew seneca's canvas up (every check passes, the frame is drawn 4x too large)."""
+
+    name = "zooms-in"
+
+    def _estimate(self, image_a, image_b):
+        a, b = self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))
+        if (a, b) == (6, 7):
+            h, confidence, details = self.inner._estimate(image_a, image_b)
+            return np.diag([0.25, 0.25, 1.0]) @ h, confidence, details  # B = A scaled down: A drawn 4x larger
+        return self.inner._estimate(image_a, image_b)
+
+
+def test_a_frame_drawn_at_an_implausible_scale_is_reported_and_the_bound_is_a_setting(flight, tmp_path):
+    folder, prints = flight
+    config = MosaicConfig(overlap_per_frame=0, min_verified=0)
+    report = run_mosaic(folder, tmp_path / "m.png", config, estimator=ZoomsIn(prints, lambda a, b: False))
+    frames = report["frames"]
+    assert frames[7]["status"] == "unplaced" and "scaled over 3x" in frames[7]["reason"]
+    assert [f["status"] for f in frames[:7]] == ["placed"] * 7
+    from dataclasses import replace
+
+    loose = run_mosaic(folder, tmp_path / "loose.png", replace(config, max_frame_scale=5.0), estimator=ZoomsIn(prints, lambda a, b: False))
+    assert [f["status"] for f in loose["frames"]] == ["placed"] * 8
+    with pytest.raises(UdhError, match="max-frame-scale"):
+        run_mosaic(folder, tmp_path / "bad.png", replace(config, max_frame_scale=1.0), estimator=ZoomsIn(prints, lambda a, b: False))
+
+
 class Crashes(FailOn):
     """Breaks the never-raise contract on pair 2 -> 3 (as a buggy estimator would)."""
 

@@ -182,6 +182,7 @@ def mosaic(
     min_verified: Annotated[float, typer.Option("--min-verified", help="Estimates whose alignment check (the lower of intensity and gradient NCC at 256 px) is below this count as failed; 0: no check.")] = _MOSAIC.min_verified,
     blend: Annotated[str, typer.Option("--blend", help="feather, multiband or none.")] = _MOSAIC.blend,
     max_size: Annotated[Optional[int], typer.Option("--max-size", help="Downscale the mosaic so its longest side is at most this many pixels.")] = _MOSAIC.max_size,
+    max_frame_scale: Annotated[float, typer.Option("--max-frame-scale", help="Report (leave out) frames the solve draws more than this many times larger or smaller than the reference frame.")] = _MOSAIC.max_frame_scale,
     no_gain: Annotated[bool, typer.Option("--no-gain", help="Skip gain (exposure) compensation.")] = False,
     overlap_per_frame: Annotated[int, typer.Option("--overlap-pairs", help="Loop-closure pairs per frame at most (0: plain chaining).")] = _MOSAIC.overlap_per_frame,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Simulator ground truth (default: SOURCE/ground_truth.json when present) to report the corner error.")] = None,
@@ -193,7 +194,7 @@ def mosaic(
 
     config = _MosaicConfig(
         method=method, fallback=fallback, method_options=_key_values(method_option or []), work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
-        blend=blend, max_size=max_size, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame,
+        blend=blend, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
     report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume)

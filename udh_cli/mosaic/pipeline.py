@@ -36,7 +36,6 @@ from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
 DEFAULT_METHOD = "sift"
 OUTPUT_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 SIDECAR_FORMAT = "udh-mosaic/1"
-MAX_FRAME_SCALE = 10.0  # a frame drawn more than 10x larger or smaller than it is has drifted beyond use
 
 
 @dataclass(frozen=True)
@@ -63,6 +62,10 @@ class MosaicConfig:
             loop-closure pair whose removal relieves them most is rejected (see ``solve_with_rejection``).
         blend: ``"feather"``, ``"multiband"`` or ``"none"``.
         gain_compensation: equalise exposure between frames.
+        max_frame_scale: after the solve, a frame drawn more than this many times larger or smaller (in
+            side length) than the reference frame is taken out of its part and reported. Why: drone frames
+            of one flight are about the same scale; a frame at 3x has drifted on wrong pair estimates, and
+            such frames blew seneca's canvas up to 14063x20704 px with the unsupervised method.
         max_size: longest side of the mosaic in pixels; larger canvases are downscaled. ``None``: full size.
         max_canvas_bytes: refuse a canvas that would need more memory than this to blend.
         batch_size: pairs per ``estimate_many`` call.
@@ -84,6 +87,7 @@ class MosaicConfig:
     outlier_px: float = 5.0
     blend: str = "multiband"  # hard seams blended band by band: no ghosts where parallax defeats the homographies
     gain_compensation: bool = True
+    max_frame_scale: float = 3.0
     max_size: int | None = None
     max_canvas_bytes: int = compositing.DEFAULT_MAX_CANVAS_BYTES
     batch_size: int = 16
@@ -127,6 +131,8 @@ def check_config(config: MosaicConfig) -> None:
         raise UdhError(f"--min-confidence {config.min_confidence}: give a value in [0, 1]")
     if not 0.0 <= config.min_verified <= 1.0:
         raise UdhError(f"--min-verified {config.min_verified}: give a value in [0, 1]")
+    if not config.max_frame_scale > 1.0:
+        raise UdhError(f"--max-frame-scale {config.max_frame_scale}: give a factor above 1 (frames drawn that many times larger or smaller than the reference are reported)")
     if config.every < 1 or config.overlap_per_frame < 0:
         raise UdhError("--every must be at least 1 and --overlap-pairs at least 0")
 
@@ -336,8 +342,9 @@ def _plan_canvases(frameset: FrameSet, parts: list[Part], output: Path, config: 
     for part in parts:
         # A long chain can carry a frame past the horizon of the reference's plane: report it, do not draw it.
         for i in list(part.frames):
-            if not geometry.is_valid_homography(part.solved[i], *sizes[i], max_scale=MAX_FRAME_SCALE):
-                part.dropped[i] = f"its homography to the reference frame {frameset.frames[part.reference].name} is degenerate (folded, past the horizon or scaled over {MAX_FRAME_SCALE:g}x)"
+            if not geometry.is_valid_homography(part.solved[i], *sizes[i], max_scale=config.max_frame_scale):
+                part.dropped[i] = (f"its homography to the reference frame {frameset.frames[part.reference].name} is degenerate "
+                                   f"(folded, past the horizon or scaled over {config.max_frame_scale:g}x; see --max-frame-scale)")
                 part.frames.remove(i)
     multi = [p for p in parts if len(p.frames) > 1]
     if not multi:

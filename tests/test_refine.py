@@ -39,14 +39,20 @@ def test_refinement_improves_a_perturbed_estimate(seed):
 
 
 def test_verification_score_separates_right_from_wrong():
-    right, wrong = [], []
+    from udh_cli.estimators.refined import RefinedEstimator
+
+    right, wrong, right_structure, wrong_structure = [], [], [], []
     for seed in range(8):
         a, b, truth = known_pair(seed)
-        right.append(verification_score(a, b, truth))
         off = geometry.homography_from_offsets(np.random.default_rng(seed).uniform(-25, 25, (4, 2)), 320, 240) @ truth
+        right.append(verification_score(a, b, truth))
         wrong.append(verification_score(a, b, off))
-    assert min(right) > 0.9
-    assert max(wrong) < 0.7  # well below the auto method's min_score (0.9)
+        right_structure.append(verification_score(a, b, truth, structure=True))
+        wrong_structure.append(verification_score(a, b, off, structure=True))
+    assert min(right) > 0.9 and max(wrong) < 0.7
+    # auto doubts answers by the structure score: the right ones stay clear above its threshold.
+    min_score = RefinedEstimator.min_score
+    assert min(right_structure) > min_score + 0.1 and max(wrong_structure) < min_score - 0.2
     assert verification_score(a, b, None) == 0.0
 
 
@@ -128,3 +134,16 @@ def test_a_doubtful_first_answer_escalates_to_the_longer_cascade_before_the_fall
         learned = AutoEstimator(escalate=True)
         assert [rounds for _, rounds in learned._first.stages] == [1, 1]
         assert [rounds for _, rounds in learned._second.stages] == [2, 2]
+
+
+def test_a_right_answer_with_little_overlap_still_verifies():
+    """Consecutive drone frames can share under a fifth of the view (two right copr pairs: 17 %); the
+    score must judge them on that overlap instead of refusing them, and still reject a wrong shift there."""
+    from conftest import textured_image
+
+    ground = textured_image(700, 240, seed=5)
+    a, b = ground[:, :320], ground[:, 260:580]  # B starts 260 px right of A: 60 of 320 columns shared (19 %)
+    truth = geometry.translation(-260.0, 0.0)  # x_B = x_A - 260
+    assert verification_score(a, b, truth, structure=True) > 0.9
+    assert verification_score(a, b, geometry.translation(-245.0, 6.0), structure=True) < 0.5
+    assert verification_score(a, b, geometry.translation(-300.0, 0.0), structure=True) == 0.0  # 6 % overlap: no judgement

@@ -147,3 +147,20 @@ def test_a_right_answer_with_little_overlap_still_verifies():
     assert verification_score(a, b, truth, structure=True) > 0.9
     assert verification_score(a, b, geometry.translation(-245.0, 6.0), structure=True) < 0.5
     assert verification_score(a, b, geometry.translation(-300.0, 0.0), structure=True) == 0.0  # 6 % overlap: no judgement
+
+
+def test_verification_is_not_fooled_by_an_occluder_but_still_rejects_a_wrong_answer():
+    """A textured blob over a fifth of B (a car, a bird, a cloud) ruins the whole-overlap correlation of the
+    right answer; the median over tiles ignores it, and a wrong answer stays low."""
+    from udh_cli.verify import alignment_ncc
+
+    a, b, truth = known_pair(3)
+    occluded = b.copy()
+    noise = cv2.GaussianBlur(np.random.default_rng(0).random(b.shape).astype(np.float32), (0, 0), 1.0)
+    occluded[60:160, 40:190] = (noise[60:160, 40:190] * 255).astype(b.dtype)  # 20 % of the image
+    gray_a, gray_b = (x.astype(np.float32) / 255 for x in (a, occluded))
+    whole = alignment_ncc(gray_a, gray_b, truth, on="both")
+    assert whole < 0.7  # the blob alone pulls the right answer under auto's threshold
+    assert verification_score(a, occluded, truth, structure=True) > 0.8
+    wrong = geometry.translation(9.0, -7.0) @ truth
+    assert verification_score(a, occluded, wrong, structure=True) < 0.4

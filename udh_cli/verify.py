@@ -9,6 +9,11 @@ from udh_cli import geometry
 from udh_cli.images import scaled_size, to_gray_float
 
 VERIFY_SIDE = 256  # longer side (px) of the images a verification score is computed on
+# Verification correlates a 4 x 4 grid of tiles over the overlap and takes the median. On held-out rho-32 pairs
+# with occluders, right answers (under 1 px) scored 0.41 median on the whole overlap and 0.73 tiled, while wrong
+# ones (over 10 px) stayed at most 0.51 tiled; on the wrong seneca pairs of the unsupervised network, 11 % passed
+# the mosaic's 0.3 check tiled against 40 % whole (and 93 % of its right pairs, against 100 %).
+VERIFY_TILES = 4
 # Least share of B that A must cover for verification_score to judge an alignment. Real consecutive drone
 # frames can overlap that little: two right copr pairs (SIFT reference, 30 and 158 inliers) cover 17 % and
 # 17.5 %, and at 0.3 they scored 0 and split the mosaic.
@@ -23,7 +28,7 @@ def gradient_magnitude(gray: np.ndarray) -> np.ndarray:
 
 
 def alignment_ncc(gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray, min_overlap: float = 0.3,
-                  on: str = "intensity") -> float:
+                  on: str = "intensity", tiles: int = 1) -> float:
     """Normalised cross-correlation between B and A warped into B's frame, over their overlap.
 
     Args:
@@ -35,6 +40,9 @@ def alignment_ncc(gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray, 
             and of B); "both" is the lower of the two, from one warp. Smooth, low-texture scenes (fields,
             water) keep a high intensity NCC under a wrong shift (wrong pairs of the seneca flight scored up
             to 0.9), their gradients do not (at most 0.47 at 256 px).
+        tiles: 1 correlates the whole overlap; N > 1 splits the overlap's bounding box into N x N tiles and
+            takes the median of the tiles' NCC (tiles at least half inside the overlap). The median ignores
+            what disagrees in a minority of tiles: occluders, moving water, a passing car.
 
     Returns:
         NCC in [-1, 1]; gain and bias changes do not lower it. 0 for a non-finite H or too little overlap.
@@ -50,11 +58,30 @@ def alignment_ncc(gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray, 
         return 0.0
     scores = []
     if on != "gradient":
-        scores.append(_ncc(warped[mask], gray_b[mask]))
+        scores.append(_tiled_ncc(warped, gray_b, mask, tiles))
     if on != "intensity":
         inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # Sobel reads one pixel around
-        scores.append(_ncc(gradient_magnitude(warped)[inner], gradient_magnitude(gray_b)[inner]))
+        scores.append(_tiled_ncc(gradient_magnitude(warped), gradient_magnitude(gray_b), inner, tiles))
     return min(scores)
+
+
+def _tiled_ncc(x: np.ndarray, y: np.ndarray, mask: np.ndarray, tiles: int) -> float:
+    """NCC of two (H, W) images over ``mask``: whole (``tiles`` 1), or the median over a ``tiles`` x ``tiles``
+    grid on the mask's bounding box of the tiles at least half inside the mask (0 when none is)."""
+    if tiles <= 1:
+        return _ncc(x[mask], y[mask])
+    rows, cols = np.nonzero(mask)
+    if rows.size == 0:
+        return 0.0
+    row_edges = np.linspace(rows.min(), rows.max() + 1, tiles + 1).astype(int)
+    col_edges = np.linspace(cols.min(), cols.max() + 1, tiles + 1).astype(int)
+    values = []
+    for r0, r1 in zip(row_edges[:-1], row_edges[1:]):
+        for c0, c1 in zip(col_edges[:-1], col_edges[1:]):
+            inside = mask[r0:r1, c0:c1]
+            if inside.size and inside.mean() >= 0.5:
+                values.append(_ncc(x[r0:r1, c0:c1][inside], y[r0:r1, c0:c1][inside]))
+    return float(np.median(values)) if values else 0.0
 
 
 def _ncc(x: np.ndarray, y: np.ndarray) -> float:
@@ -69,8 +96,9 @@ def verification_score(image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.nd
                        structure: bool = False) -> float:
     """How well ``b_from_a`` aligns two images of any size, at :data:`VERIFY_SIDE` px: in [0, 1].
 
-    The intensity NCC over the overlap; with ``structure``, the lower of the intensity and the gradient NCC
-    (both must agree, see :func:`alignment_ncc`). 0 for no or a degenerate estimate, or an overlap below
+    The median intensity NCC of :data:`VERIFY_TILES` x :data:`VERIFY_TILES` tiles of the overlap; with
+    ``structure``, the lower of that and the same for the gradient magnitudes (both must agree, see
+    :func:`alignment_ncc`). 0 for no or a degenerate estimate, or an overlap below
     :data:`VERIFY_MIN_OVERLAP` of B.
     """
     if b_from_a is None:
@@ -82,4 +110,4 @@ def verification_score(image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.nd
     small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
     small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
     h = geometry.rescale_homography(b_from_a, size_a, work_a, size_b, work_b)
-    return max(0.0, alignment_ncc(small_a, small_b, h, VERIFY_MIN_OVERLAP, on="both" if structure else "intensity"))
+    return max(0.0, alignment_ncc(small_a, small_b, h, VERIFY_MIN_OVERLAP, on="both" if structure else "intensity", tiles=VERIFY_TILES))

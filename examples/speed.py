@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from udh_cli.estimators import create_estimator
+from udh_cli.onnx_model import OnnxHomographyModel
 from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs, split_holdout
 
 DEFAULT_IMAGES = Path("../shared/data/pools/rsscn7-aerial/images")
@@ -27,6 +28,8 @@ def main() -> None:
     parser.add_argument("--images", type=Path, default=DEFAULT_IMAGES)
     parser.add_argument("--pairs", type=int, default=50)
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
+    parser.add_argument("--network", type=Path, action="append", default=[],
+                        help="another udh ONNX network to time alone (e.g. a corr-lite export); repeatable")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     _, held_out = split_holdout(list_images(args.images))
@@ -37,7 +40,12 @@ def main() -> None:
                cv2.imencode(".jpg", sources[batch.source_index[i]])[1]) for i in range(args.pairs)]
 
     cascade = create_estimator("unsupervised", device="cpu", threads=args.threads)
-    for stage, (network, rounds) in zip(("coarse network", "refinement network"), cascade.stages):
+    networks = [(stage, network, f"{rounds} round(s) by default")
+                for stage, (network, rounds) in zip(("coarse network", "refinement network"), cascade.stages)]
+    for path in args.network:
+        network = OnnxHomographyModel.load(path, "cpu", args.threads)
+        networks.append((f"{path.name} ({network.metadata.get('arch')})", network, "not shipped"))
+    for stage, network, note in networks:
         patch = np.random.default_rng(0).random((1, 2, network.input_size, network.input_size), dtype=np.float32)
         for _ in range(20):
             network.predict_offsets(patch)
@@ -46,8 +54,7 @@ def main() -> None:
             start = time.perf_counter()
             network.predict_offsets(patch)
             times.append((time.perf_counter() - start) * 1e3)
-        print(f"{stage} alone (onnxruntime CPU, batch 1, {args.threads} thread): median {np.median(times):.2f} ms per round, "
-              f"{rounds} round(s) by default")
+        print(f"{stage} alone (onnxruntime CPU, batch 1, {args.threads} thread): median {np.median(times):.2f} ms per round, {note}")
 
     single = {"device": "cpu", "threads": args.threads, "iterations": 1, "refine_rounds": 0}
     methods = {"unsupervised, 1 coarse round": ("unsupervised", single),

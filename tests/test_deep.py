@@ -108,6 +108,11 @@ def test_refinement_rounds_run_the_second_network_on_the_pre_warped_pair(tiny_on
     got = cascade.predict_small(small_a, small_b)[0]
     np.testing.assert_allclose(got / got[2, 2], expected / expected[2, 2], atol=1e-9)
     assert cascade.estimate(a, b).details["refine_rounds"] == 1
+    # A cascade can be run in pieces (the large-motion search screens with the first round, then continues).
+    rounds = cascade.rounds()
+    assert [r.path for r in rounds] == [tiny_onnx] * cascade.iterations + [tiny_fine_onnx]
+    continued = cascade.predict_small(small_a, small_b, rounds[1:], start=cascade.predict_small(small_a, small_b, rounds[:1]))[0]
+    np.testing.assert_allclose(continued / continued[2, 2], expected / expected[2, 2], atol=1e-9)
 
 
 def test_a_refinement_network_of_another_input_size_is_refused(tiny_onnx):

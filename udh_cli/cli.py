@@ -102,11 +102,11 @@ def train(
     data: Annotated[Optional[list[Path]], typer.Option("--data", "-d", help="Folder of images (synthetic pairs) or of a flight (consecutive frames). Repeat for more.")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Run folder: checkpoint.pt, best.pt, metrics.jsonl, config.json.")] = Path("runs/udh"),
     mode: Annotated[str, typer.Option(help="unsupervised (photometric L1, no labels) or supervised (L2 on synthetic labels).")] = "unsupervised",
-    arch: Annotated[str, typer.Option(help="Network: corr (CPU-friendly default) or vgg-paper (the paper's 34 M network).")] = "corr",
+    arch: Annotated[str, typer.Option(help="Network: corr (CPU-friendly default), corr-lite (faster, slimmer), corr-fine (full-resolution refinement) or vgg-paper (the paper's 34 M network).")] = "corr",
     rho: Annotated[float, typer.Option(help="Largest corner perturbation of synthetic pairs, px (paper: 16/32/45 for 85/75/65 % overlap).")] = 32.0,
-    steps: Annotated[Optional[int], typer.Option(help="Total optimiser steps [default: 20000; with --resume, the run's own].")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Total optimiser steps (default 20000; with --resume, the run's own).")] = None,
     batch: Annotated[int, typer.Option(help="Pairs per step (per process under torchrun).")] = 32,
-    lr: Annotated[Optional[float], typer.Option(help="Adam learning rate [default: the paper's, 1e-4 unsupervised, 5e-4 supervised].")] = None,
+    lr: Annotated[Optional[float], typer.Option(help="Adam learning rate (default: the paper's, 1e-4 unsupervised, 5e-4 supervised).")] = None,
     init: Annotated[Optional[str], typer.Option(help="Fine-tune from a checkpoint file or a shipped model (unsupervised, supervised).")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.")] = False,
     data_kind: Annotated[str, typer.Option(help="auto, pool or flight.")] = "auto",
@@ -115,7 +115,7 @@ def train(
     occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = 0.0,
     eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = 250,
     seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = 0,
-    threads: Annotated[Optional[int], typer.Option(help="torch CPU threads [default: torch's choice].")] = None,
+    threads: Annotated[Optional[int], typer.Option(help="torch CPU threads (default: torch's choice).")] = None,
 ) -> None:
     """Train the unsupervised or supervised network (needs the [bold]train[/bold] extra: torch)."""
     _require_torch()

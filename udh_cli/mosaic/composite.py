@@ -97,14 +97,15 @@ def composite(
     gains: np.ndarray,
     blend: str,
     reporter: Reporter,
-    stage: str = "compositing",
+    label: str = "compositing",
 ) -> np.ndarray:
     """Warp and blend the frames of one part into a (H, W, 4) BGRA uint8 canvas; alpha 255 where covered.
 
     ``mosaic_from_frame`` maps each frame's full-resolution pixels to canvas pixels; ``gains`` is indexed
     by frame. ``feather`` averages with weights that fall to 0 at frame borders; ``none`` and ``multiband``
     first give every canvas pixel to the frame whose weight is highest there (its most central view), then
-    copy (``none``) or blend the seams band by band (``multiband``, OpenCV's MultiBandBlender).
+    copy (``none``) or blend the seams band by band (``multiband``, OpenCV's MultiBandBlender). ``label``
+    names the progress bar (the time adds up under "compositing").
     """
     if blend not in BLENDS:
         raise UdhError(f"unknown blend '{blend}'; choose one of: {', '.join(BLENDS)}")
@@ -132,7 +133,7 @@ def composite(
     else:
         blender = cv2.detail_MultiBandBlender(0, MULTIBAND_LEVELS)
         blender.prepare((0, 0, width, height))
-    with reporter.stage(stage, len(rois)) as advance:
+    with reporter.stage("compositing", len(rois), label) as advance:
         for i, image in frames.full_images(rois):
             roi = rois[i]
             x0, y0, x1, y1 = roi

@@ -360,8 +360,8 @@ def _composite_part(frameset: FrameSet, part: Part, gains: np.ndarray, config: M
     if part.canvas is None:
         return
     to_mosaic = {i: part.canvas.mosaic_from_ref @ part.solved[i] for i in part.frames}
-    stage = "compositing" if part.number == 1 else f"compositing part {part.number}"
-    mosaic = compositing.composite(frameset, to_mosaic, part.canvas.size, gains, config.blend, reporter, stage)
+    label = "compositing" if part.number == 1 else f"compositing part {part.number}"
+    mosaic = compositing.composite(frameset, to_mosaic, part.canvas.size, gains, config.blend, reporter, label)
     with reporter.stage("writing", 1) as advance:
         if part.file.suffix.lower() in (".jpg", ".jpeg"):
             reporter.warn(f"{part.file.name}: JPEG has no alpha channel; uncovered areas are black (use .png or .tif to keep the mask)")

@@ -28,13 +28,14 @@ class Reporter:
         self.timings_s: dict[str, float] = {}
 
     @contextmanager
-    def stage(self, name: str, total: int | None = None) -> Iterator[Callable[[int], None]]:
-        """Time a stage and show its progress; yields ``advance(n=1)``. Repeated names add up."""
+    def stage(self, name: str, total: int | None = None, label: str | None = None) -> Iterator[Callable[[int], None]]:
+        """Time a stage and show its progress; yields ``advance(n=1)``. Repeated names add up (e.g. the
+        compositing of every part); ``label`` names the progress bar when it should say more than ``name``."""
         start = time.perf_counter()
         if not self.progress:
             yield lambda n=1: None
         else:
-            columns = (TextColumn(f"{name:<22}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+            columns = (TextColumn(f"{label or name:<22}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
             with Progress(*columns, console=self.console, transient=False) as progress:
                 task = progress.add_task(name, total=total)
                 yield lambda n=1: progress.advance(task, n)

@@ -103,6 +103,20 @@ def test_homography_from_points_general_quadrilaterals():
     np.testing.assert_allclose(geometry.transform_points(homography, src), dst, atol=1e-9)
 
 
+def test_small_numpy_batches_take_a_closed_form_equal_to_the_batched_solve():
+    rng = np.random.default_rng(4)
+    src = rng.uniform(0, 500, (3 * geometry.SMALL_BATCH, 4, 2))
+    dst = src + rng.normal(0, 30, src.shape)
+    batched = geometry.homography_from_points(src, dst)  # more than SMALL_BATCH pairs: the 8x8 solve
+    one_by_one = np.stack([geometry.homography_from_points(s, d) for s, d in zip(src, dst)])
+    np.testing.assert_allclose(one_by_one, batched, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(geometry.transform_points(one_by_one, src), dst, atol=1e-8)
+    assert geometry.homography_from_points(src[:2].astype(np.float32), dst[:2].astype(np.float32)).dtype == np.float32
+    collinear = np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0], [0.0, 5.0]])
+    with pytest.raises(np.linalg.LinAlgError):
+        geometry.homography_from_points(collinear, geometry.image_corners(2, 2))
+
+
 # ----------------------------------------------------------------------------------- transforms
 
 

@@ -28,7 +28,6 @@ the caller already imported it.
 from __future__ import annotations
 
 import math
-
 import sys
 from typing import Any
 

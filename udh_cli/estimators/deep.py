@@ -203,8 +203,9 @@ class DeepEstimator(Estimator):
             return h / h[2, 2] if np.isfinite(h).all() and abs(h[2, 2]) > 1e-12 else np.full((3, 3), np.nan)
 
         # Screen every hypothesis with the first round only, then run the rest of the cascade on the
-        # best-scoring few: a third of the passes of running the cascade on all 24 (search 2), with the
-        # same answers on the copr and seneca flights (models/README.md).
+        # best-scoring few: a third of the passes of running the cascade on all 24 (search 2). On copr's
+        # consecutive pairs the answers were the same at a quarter of the time; seneca's run went from
+        # 170 to 104 s (README, mosaic section).
         rounds = self.rounds()
         screened = self.predict_small(crops_a, crops_b, rounds[:1])
         finalists = []

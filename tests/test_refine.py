@@ -164,3 +164,27 @@ def test_verification_is_not_fooled_by_an_occluder_but_still_rejects_a_wrong_ans
     assert verification_score(a, occluded, truth, structure=True) > 0.8
     wrong = geometry.translation(9.0, -7.0) @ truth
     assert verification_score(a, occluded, wrong, structure=True) < 0.4
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_tiled_ncc_from_tile_moments_equals_the_tile_by_tile_correlation(seed):
+    """The one-pass tiled NCC (six masked moments per tile) gives the per-tile loop's answer, including tiles
+    that are only partly inside the overlap, tiles left out for being mostly outside, and flat tiles."""
+    from udh_cli.verify import _tiled_ncc, _tiled_ncc_loop
+
+    rng = np.random.default_rng(seed)
+    x = cv2.GaussianBlur(rng.random((96, 128)).astype(np.float32), (0, 0), 2.0)
+    y = 1.5 * x + 0.2 + 0.03 * rng.random(x.shape).astype(np.float32)  # gain, bias and noise
+    y[:30, :40] = 0.5  # a flat corner: its tiles have no variance, so their NCC is 0
+    mask = cv2.warpPerspective(np.ones_like(x), geometry.translation(rng.uniform(-40, 40), rng.uniform(-30, 30)),
+                               (128, 96), flags=cv2.INTER_NEAREST) > 0.5
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    row_edges = np.linspace(rows[0], rows[-1] + 1, 5).astype(int)
+    col_edges = np.linspace(cols[0], cols[-1] + 1, 5).astype(int)
+    expected = _tiled_ncc_loop(x, y, mask, row_edges, col_edges)
+    assert 0.3 < expected < 0.999
+    assert _tiled_ncc(x, y, mask, 4) == pytest.approx(expected, abs=1e-9)
+    sliver = np.zeros_like(mask)
+    sliver[10:12, 5:100] = True  # two rows: most of a 4x4 grid is empty, the loop answers
+    assert _tiled_ncc(x, y, sliver, 4) == pytest.approx(_tiled_ncc_loop(x, y, sliver, np.linspace(10, 12, 5).astype(int),
+                                                                         np.linspace(5, 100, 5).astype(int)), abs=1e-12)

@@ -108,6 +108,9 @@ def _similarity_normaliser(points: Array) -> Array:
     return xp.stack(rows, -2)
 
 
+SMALL_BATCH = 8  # numpy batches up to this many pairs take the closed form (the 8x8 solve's overhead was a fifth of an estimate)
+
+
 def homography_from_points(src: Array, dst: Array) -> Array:
     """Tensor DLT: the homography mapping four ``src`` points onto four ``dst`` points.
 
@@ -139,9 +142,6 @@ def homography_from_points(src: Array, dst: Array) -> Array:
     h_norm = xp.concatenate([h, xp.ones_like(h[..., :1])], -1).reshape(h.shape[:-1] + (3, 3))
     homography = xp.linalg.inv(t_dst) @ h_norm @ t_src
     return homography / homography[..., 2:3, 2:3]
-
-
-SMALL_BATCH = 8  # numpy batches up to this many pairs take the closed form (the 8x8 solve's overhead was a fifth of an estimate)
 
 
 def _square_to_quad(quad: list[list[float]]) -> list[list[float]]:
@@ -320,10 +320,8 @@ def is_valid_homography(b_from_a: np.ndarray | None, width: int, height: int, ma
     w = [g * x + i * y + j for x, y in corners]
     # H is defined up to scale, sign included (-H is the same map): what matters is that all of A's
     # corners have w of one sign, i.e. none of them lies beyond the horizon.
-    if all(v < 0 for v in w):
-        w = [-v for v in w]
-        a, b, c, d, e, f = -a, -b, -c, -d, -e, -f
-    if any(v <= 1e-9 * max(abs(u) for u in w) for v in w):
+    sign = -1.0 if all(v < 0 for v in w) else 1.0
+    if any(sign * v <= 1e-9 * max(abs(u) for u in w) for v in w):
         return False
     quad = [((a * x + b * y + c) / v, (d * x + e * y + f) / v) for (x, y), v in zip(corners, w)]
     if not all(math.isfinite(q) for point in quad for q in point):

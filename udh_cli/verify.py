@@ -75,18 +75,17 @@ def _tiled_ncc(x: np.ndarray, y: np.ndarray, mask: np.ndarray, tiles: int) -> fl
         return 0.0
     row_edges = np.linspace(rows[0], rows[-1] + 1, tiles + 1).astype(int)
     col_edges = np.linspace(cols[0], cols[-1] + 1, tiles + 1).astype(int)
-    if np.any(np.diff(row_edges) == 0) or np.any(np.diff(col_edges) == 0):
-        return _tiled_ncc_loop(x, y, mask, row_edges, col_edges)  # a sliver of overlap: some tiles are empty
-    # The six masked moments of every tile in one pass (np.add.reduceat over the tile edges), instead of
-    # a correlation per tile: the score runs several times per estimate and this was most of its time.
+    # The six masked moments of every tile in one pass (np.add.reduceat over the tile edges), instead of a
+    # correlation per tile: the score runs several times per estimate and this was most of its time.
     r0, r1, c0, c1 = row_edges[0], row_edges[-1], col_edges[0], col_edges[-1]
-    m = mask[r0:r1, c0:c1].astype(np.float64)
-    xm, ym = x[r0:r1, c0:c1] * m, y[r0:r1, c0:c1] * m
-    moments = np.stack([m, xm, ym, xm * x[r0:r1, c0:c1], ym * y[r0:r1, c0:c1], xm * y[r0:r1, c0:c1]])
+    x, y, m = x[r0:r1, c0:c1], y[r0:r1, c0:c1], mask[r0:r1, c0:c1].astype(np.float64)
+    xm, ym = x * m, y * m
+    moments = np.stack([m, xm, ym, xm * x, ym * y, xm * y])
     sums = np.add.reduceat(np.add.reduceat(moments, row_edges[:-1] - r0, axis=1), col_edges[:-1] - c0, axis=2)
     count, sx, sy, sxx, syy, sxy = sums.reshape(6, -1)
     area = np.outer(np.diff(row_edges), np.diff(col_edges)).ravel()
-    used = count >= 0.5 * area
+    # A sliver of overlap leaves some tiles empty (area 0; reduceat's sums there are not theirs): left out.
+    used = (area > 0) & (count >= 0.5 * area)
     if not used.any():
         return 0.0
     count, sx, sy, sxx, syy, sxy = (v[used] for v in (count, sx, sy, sxx, syy, sxy))
@@ -94,17 +93,6 @@ def _tiled_ncc(x: np.ndarray, y: np.ndarray, mask: np.ndarray, tiles: int) -> fl
     flat = (var_x <= 1e-10 * count) | (var_y <= 1e-10 * count)  # constant tiles (up to rounding): NCC 0
     ncc = np.where(flat, 0.0, (sxy - sx * sy / count) / np.sqrt(np.where(flat, 1.0, var_x * var_y)))
     return float(np.median(ncc))
-
-
-def _tiled_ncc_loop(x: np.ndarray, y: np.ndarray, mask: np.ndarray, row_edges: np.ndarray, col_edges: np.ndarray) -> float:
-    """:func:`_tiled_ncc` tile by tile, for grids with empty tiles."""
-    values = []
-    for r0, r1 in zip(row_edges[:-1], row_edges[1:]):
-        for c0, c1 in zip(col_edges[:-1], col_edges[1:]):
-            inside = mask[r0:r1, c0:c1]
-            if inside.size and inside.mean() >= 0.5:
-                values.append(_ncc(x[r0:r1, c0:c1][inside], y[r0:r1, c0:c1][inside]))
-    return float(np.median(values)) if values else 0.0
 
 
 def _ncc(x: np.ndarray, y: np.ndarray) -> float:

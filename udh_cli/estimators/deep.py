@@ -215,12 +215,13 @@ class DeepEstimator(Estimator):
             finalists += ranked[:SEARCH_FINALISTS]
         finished = self.predict_small(crops_a[finalists], crops_b[finalists], rounds[1:], start=screened[finalists])
         best_h, best_scores = [], []
+        kept = min(SEARCH_FINALISTS, len(shifts))  # finalists come in runs of `kept` per pair, in pair order
         for p in range(len(pairs)):
+            run = range(p * kept, (p + 1) * kept)
             candidates = []
-            for index, crop_h in zip(finalists, finished):
-                if index // len(shifts) == p:
-                    h = whole(index, crop_h)
-                    candidates.append((self.score(small_a[p], small_b[p], h), -index, h))
+            for k in run:
+                h = whole(finalists[k], finished[k])
+                candidates.append((self.score(small_a[p], small_b[p], h), -finalists[k], h))
             score, _, h = max(candidates, key=lambda c: (c[0], c[1]))
             best_h.append(h)
             best_scores.append(score)

@@ -208,3 +208,43 @@ def test_impossible_settings_and_outputs_are_refused_before_any_work(pool, tmp_p
     with pytest.raises(UdhError, match="is a file"):
         Trainer(tiny_config(pool, a_file), progress=False)
     assert a_file.read_bytes() == b"x"
+
+
+def test_distillation_pulls_the_student_towards_the_teacher(pool, tmp_path):
+    """A student trained with --teacher ends far closer to the teacher's answers than the same run without,
+    and a teacher that cannot serve (supervised mode, another patch size) is refused before any work."""
+    from udh_cli.train.checkpoint import save_checkpoint
+
+    # A teacher whose answer is known and wrong: every corner moved by (+3, -2) px, whatever the input.
+    # The photometric loss alone leads elsewhere, so only the teacher term can bring the student there.
+    teacher_run = tmp_path / "teacher"
+    train(tiny_config(pool, teacher_run, steps=1), threads=1, progress=False)
+    state = load_checkpoint(teacher_run / "checkpoint.pt")
+    last = max(k for k in state["model"] if k.startswith("head.") and k.endswith(".weight"))
+    state["model"][last].zero_()
+    state["model"][last.replace("weight", "bias")].copy_(torch.tensor([3.0, -2.0] * 4) / 32.0)
+    teacher_ckpt = tmp_path / "constant_teacher.pt"
+    save_checkpoint(teacher_ckpt, state)
+    constant = torch.tensor([3.0, -2.0]).expand(4, 2)
+
+    def distance_to_teacher(out: Path) -> float:
+        trainer = Trainer(tiny_config(pool, out, steps=None), resume=True, threads=1, progress=False)
+        norm = trainer.normalization
+        patches = (torch.from_numpy(trainer.validation.patches) - norm["mean"]) / norm["std"]
+        with torch.no_grad():
+            predicted = trainer._bare_model().eval()(patches)
+        return float(losses.distillation_loss(predicted, constant.expand_as(predicted)))
+
+    plain, distilled = tmp_path / "plain", tmp_path / "distilled"
+    train(tiny_config(pool, plain, steps=60), threads=1, progress=False)
+    train(tiny_config(pool, distilled, steps=60, teacher=str(teacher_ckpt), teacher_weight=1.0), threads=1, progress=False)
+    assert distance_to_teacher(distilled) < 0.5 * distance_to_teacher(plain)
+    assert distance_to_teacher(distilled) < 1.0  # px
+    assert load_checkpoint(distilled / "checkpoint.pt")["config"]["teacher"] == str(teacher_ckpt)
+
+    with pytest.raises(UdhError, match="needs --mode unsupervised"):
+        Trainer(tiny_config(pool, tmp_path / "sup", mode="supervised", teacher=str(teacher_ckpt)), progress=False)
+    with pytest.raises(UdhError, match="32px patches, this run on 64px"):
+        Trainer(tiny_config(pool, tmp_path / "big", patch_size=64, teacher=str(teacher_ckpt)), progress=False)
+    with pytest.raises(UdhError, match="--teacher-weight"):
+        Trainer(tiny_config(pool, tmp_path / "neg", teacher=str(teacher_ckpt), teacher_weight=-1.0), progress=False)

@@ -108,6 +108,8 @@ def train(
     batch: Annotated[int, typer.Option(help="Pairs per step (per process under torchrun).")] = 32,
     lr: Annotated[Optional[float], typer.Option(help="Adam learning rate (default: the paper's, 1e-4 unsupervised, 5e-4 supervised).")] = None,
     init: Annotated[Optional[str], typer.Option(help="Fine-tune from a checkpoint file or a shipped model (unsupervised, supervised).")] = None,
+    teacher: Annotated[Optional[str], typer.Option(help="Distil from this checkpoint or shipped model (unsupervised mode): its answers join the loss, no labels.")] = None,
+    teacher_weight: Annotated[float, typer.Option(help="Weight of the mean |offset - teacher's offset| (px) beside the photometric loss.")] = 0.01,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.")] = False,
     data_kind: Annotated[str, typer.Option(help="auto, pool or flight.")] = "auto",
     small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = 0.3,
@@ -124,7 +126,7 @@ def train(
     config = TrainConfig(
         mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, arch=arch, rho=rho, small_motion_fraction=small_motion,
         illumination=illumination, occluders=occluders, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
-        checkpoint_every=eval_every, init=init, out=str(out),
+        checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),
     )
     last = run_training(config, resume=resume, threads=threads)
     summary = ", ".join(f"{k} {v:.4g}" for k, v in last.items() if isinstance(v, float))

@@ -48,6 +48,9 @@ class TrainConfig:
         seed: seeds data generation and initialisation.
         eval_every, checkpoint_every: in steps. val_pairs: size of the fixed validation set.
         init: a checkpoint (or a shipped model name) to fine-tune from.
+        teacher: a checkpoint (or shipped model name) to distil from, unsupervised mode only: the loss adds
+            ``teacher_weight`` times the mean absolute difference, in pixels, between this network's offsets and
+            the teacher's on the same inputs. No labels are used; the teacher's own answers are the target.
         out: run folder (checkpoint.pt, best.pt, metrics.jsonl, config.json).
     """
 
@@ -71,6 +74,8 @@ class TrainConfig:
     checkpoint_every: int = 250
     val_pairs: int = 256
     init: str | None = None
+    teacher: str | None = None
+    teacher_weight: float = 0.01
     out: str = "runs/udh"
 
     def learning_rate(self) -> float:
@@ -176,6 +181,7 @@ class Trainer:
         else:
             self.normalization = self._measure_normalization()
             self.trained_before = {}
+        self.teacher = self._load_teacher(config.teacher) if config.teacher else None
         if self.world > 1:
             self.model = torch.nn.parallel.DistributedDataParallel(self.model)
         self.validation = self.data.validation(config.val_pairs)
@@ -186,6 +192,18 @@ class Trainer:
         """Global standardisation: the mean and std of training inputs, measured once, stored with the model."""
         sample = self.data.batch(np.random.default_rng(self.config.seed + 999), 256, unsupervised=False).patches
         return {"mean": float(sample.mean()), "std": float(sample.std() + 1e-6)}
+
+    def _load_teacher(self, name: str) -> tuple[torch.nn.Module, dict[str, float]]:
+        """The frozen network to distil from, with the normalisation it was trained with."""
+        if self.config.mode != "unsupervised":
+            raise UdhError("--teacher distils without labels; it needs --mode unsupervised (supervised training has the true labels)")
+        state = load_checkpoint(resolve_init(name))
+        if int(state["config"]["patch_size"]) != self.config.patch_size:
+            raise UdhError(f"--teacher {name} works on {state['config']['patch_size']}px patches, this run on {self.config.patch_size}px")
+        teacher = create_model(state["config"]["arch"], self.config.patch_size).to(self.device)
+        teacher.load_state_dict(state["model"])
+        teacher.eval().requires_grad_(False)
+        return teacher, dict(state["normalization"])
 
     def _bare_model(self) -> torch.nn.Module:
         return self.model.module if hasattr(self.model, "module") else self.model
@@ -252,7 +270,13 @@ class Trainer:
     def _loss(self, tensors: dict[str, torch.Tensor], offsets: torch.Tensor) -> torch.Tensor:
         if self.config.mode == "supervised":
             return losses.supervised_loss(offsets, tensors["offsets"])
-        return losses.photometric_loss(offsets, tensors["context_a"], tensors["origin"], tensors["clean_b"])
+        loss = losses.photometric_loss(offsets, tensors["context_a"], tensors["origin"], tensors["clean_b"])
+        if self.teacher is not None:
+            teacher, normalization = self.teacher
+            with torch.no_grad():
+                target = teacher(_standardise(tensors["patches"], normalization))
+            loss = loss + self.config.teacher_weight * losses.distillation_loss(offsets, target)
+        return loss
 
     @torch.no_grad()
     def evaluate(self) -> dict[str, float]:
@@ -347,6 +371,8 @@ def _check_config(config: TrainConfig, out: Path) -> None:
     for name in ("steps", "batch", "eval_every", "checkpoint_every", "val_pairs", "patch_size"):
         if getattr(config, name) < 1:
             raise UdhError(f"--{name.replace('_', '-')} {getattr(config, name)}: must be at least 1")
+    if not config.teacher_weight >= 0:
+        raise UdhError(f"--teacher-weight {config.teacher_weight}: must be zero or positive")
     if not config.rho > 0:
         raise UdhError(f"--rho {config.rho}: must be positive")
     if out.exists() and not out.is_dir():

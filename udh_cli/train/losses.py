@@ -75,6 +75,15 @@ def supervised_loss(offsets: torch.Tensor, true_offsets: torch.Tensor) -> torch.
     return 0.5 * ((offsets - true_offsets) ** 2).sum(dim=(1, 2)).mean()
 
 
+def distillation_loss(offsets: torch.Tensor, teacher_offsets: torch.Tensor) -> torch.Tensor:
+    """Mean absolute difference, in pixels, between (N, 4, 2) offsets and a teacher's on the same inputs.
+
+    L1 rather than L2: where the teacher is wrong by tens of pixels (its own failures), the student should
+    not be pulled hard towards it; the photometric term beside it decides those pairs.
+    """
+    return (offsets - teacher_offsets).abs().mean()
+
+
 def corner_error(offsets: torch.Tensor, true_offsets: torch.Tensor) -> torch.Tensor:
     """(N,) mean corner distance in pixels; for a shared set of corners this is exactly MACE."""
     return (offsets - true_offsets).pow(2).sum(-1).sqrt().mean(-1)

@@ -26,6 +26,12 @@ class PyramidEcc:
             and the result is rescaled exactly to the originals.
         levels: pyramid levels, each half the size of the next.
         iterations: ECC iterations per level, coarsest first (a bounded budget).
+        blur: side of the Gaussian OpenCV applies to both images before aligning, per level, coarsest first
+            (1: none). Blur widens ECC's basin but biases its optimum under strong perspective, because
+            blurring then warping is not warping then blurring. So the finest level aligns unblurred: on
+            graf1/graf3 (Oxford ground truth, 640 px) ``auto`` went from 2.44 to 1.93 px, and on the
+            held-out synthetic pairs the rho-32 median from 0.09 to 0.05 px (p95 0.99 to 0.86, failures
+            unchanged at 0.3 %). No blur at all (1, 1, 1) lost the basin: rho-32 failures 1.3 %.
         eps: ECC's convergence threshold.
         max_move: the largest corner move from the start, as a share of A's diagonal, that counts as
             refining; ECC that goes further has diverged (a refinement corrects a close guess).
@@ -34,8 +40,16 @@ class PyramidEcc:
     work_side: int = 640
     levels: int = 3
     iterations: tuple[int, ...] = (20, 15, 10)  # from the cascade's start, (40, 30, 20) cost 25 % more time for the same failures
+    blur: tuple[int, ...] = (3, 3, 1)
     eps: float = 1e-5
     max_move: float = 0.25
+
+    def __post_init__(self) -> None:
+        if len(self.iterations) < self.levels or len(self.blur) < self.levels:
+            raise ValueError(f"PyramidEcc: {self.levels} levels need as many iterations and blur sizes "
+                             f"(got {len(self.iterations)} and {len(self.blur)})")
+        if any(size < 1 or size % 2 == 0 for size in self.blur):
+            raise ValueError(f"PyramidEcc: blur sizes {self.blur} must be odd and positive")
 
     def refine(self, image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.ndarray) -> tuple[np.ndarray, float]:
         """Returns the refined ``b_from_a`` (pixels of the given images) and the final correlation.
@@ -48,13 +62,14 @@ class PyramidEcc:
         current = np.asarray(b_from_a, dtype=np.float64)
         correlation = float("nan")
         budgets = list(self.iterations)[-self.levels :]
-        for level, budget in zip(range(self.levels - 1, -1, -1), budgets):
+        blurs = list(self.blur)[-self.levels :]
+        for level, budget, blur in zip(range(self.levels - 1, -1, -1), budgets, blurs):
             s = scale / (2**level)
             work_a, work_b = scaled_size(size_a, s), scaled_size(size_b, s)
             small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
             small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
             start = geometry.rescale_homography(current, size_a, work_a, size_b, work_b)
-            ecc = EccEstimator(iterations=budget, eps=self.eps, gauss_filt_size=3, min_correlation=0.0)
+            ecc = EccEstimator(iterations=budget, eps=self.eps, gauss_filt_size=blur, min_correlation=0.0)
             try:
                 refined, correlation, _ = ecc.refine(small_a, small_b, start)
             except EstimationFailed:

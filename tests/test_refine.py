@@ -158,6 +158,30 @@ def test_a_doubtful_first_answer_escalates_to_the_longer_cascade_before_the_fall
         assert [rounds for _, rounds in learned._second.stages] == [2, 2]
 
 
+@dataclass
+class DivergingRefiner(PyramidEcc):
+    """An ECC pyramid that always diverges."""
+
+    def refine(self, image_a, image_b, b_from_a):
+        raise EstimationFailed("ECC moved a corner 50 px from its start: it diverged")
+
+
+def test_an_answer_ecc_diverges_from_gets_a_second_opinion_even_when_it_scores_well():
+    """A wrong network answer on a smooth pair can score above min_score; ECC diverging from it is the
+    better warning. The fallback then runs, and its answer is kept only if it verifies better."""
+    a, b, truth = known_pair(6)
+    nearly = geometry.translation(0.6, -0.4) @ truth  # scores above min_score, yet 0.7 px off
+    auto = AutoEstimator(initial="identity", refiner=DivergingRefiner())
+    auto._first = Answers(nearly)
+    estimate = auto.estimate(a, b)
+    assert estimate.details["score"] >= auto.min_score and "refine_failure" in estimate.details
+    assert estimate.details["fallback"]["method"] == "sift" and estimate.details["used"] == "sift"
+    assert geometry.mace(estimate.homography, truth, 320, 240) < 0.5
+    converging = AutoEstimator(initial="identity")  # the same answer, refined normally: no second opinion
+    converging._first = Answers(nearly)
+    assert "fallback" not in converging.estimate(a, b).details
+
+
 def test_a_right_answer_with_little_overlap_still_verifies():
     """Consecutive drone frames can share under a fifth of the view (two right copr pairs: 17 %); the
     score must judge them on that overlap instead of refusing them, and still reject a wrong shift there."""

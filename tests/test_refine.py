@@ -156,6 +156,7 @@ def test_a_doubtful_first_answer_escalates_to_the_longer_cascade_before_the_fall
         learned = AutoEstimator(escalate=True)
         assert [rounds for _, rounds in learned._first.stages] == [1, 1]
         assert [rounds for _, rounds in learned._second.stages] == [2, 2]
+        assert AutoEstimator(threads=1)._first.threads == 1  # passed on to the network
 
 
 @dataclass

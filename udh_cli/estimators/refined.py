@@ -34,6 +34,8 @@ class RefinedEstimator(Estimator):
         initial: the registry name of the first estimator (the unsupervised network by default).
         model: ONNX path for a learned ``initial``; None takes the shipped model.
         device: onnxruntime device for a learned ``initial``.
+        threads: onnxruntime intra-op threads for a learned ``initial`` (None: onnxruntime's default, one per
+            physical core).
         iterations: rounds of the coarse network (each predicts the residual of the last).
         refine_model, refine_rounds, search: the network's refinement stage and large-motion search (see
             :class:`~udh_cli.estimators.deep.DeepEstimator`).
@@ -56,6 +58,7 @@ class RefinedEstimator(Estimator):
     initial: str = "unsupervised"
     model: str | None = None
     device: str = "auto"
+    threads: int | None = None
     # One round of each network is enough ahead of ECC; always running the full cascade cost about 25 % more
     # time (held-out rho 32, 300 pairs).
     iterations: int = 1
@@ -72,7 +75,7 @@ class RefinedEstimator(Estimator):
         # The network's options go to the first estimator when it takes them (the learned ones do).
         # A model given alone runs alone, as with the network's own method (refine_rounds then defaults to 0).
         alone = self.model is not None and self.refine_model is None
-        wanted = {"model": self.model, "device": self.device, "iterations": self.iterations, "search": self.search,
+        wanted = {"model": self.model, "device": self.device, "threads": self.threads, "iterations": self.iterations, "search": self.search,
                   "refine_model": self.refine_model, "refine_rounds": None if alone else self.refine_rounds}
         takes = estimator_options(self.initial)
         self._first = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes})

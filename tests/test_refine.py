@@ -141,17 +141,23 @@ class Answers(Estimator):
         return self.homography, 1.0, {}
 
 
-def test_a_doubtful_first_answer_escalates_to_the_longer_cascade_before_the_fallback():
+def test_a_doubtful_answer_asks_the_fallback_first_and_escalates_only_if_that_is_doubted_too():
     a, b, truth = known_pair(4)
-    auto = AutoEstimator(initial="identity", escalate=True)
-    auto._first = Answers(geometry.translation(60.0, -40.0) @ truth)  # far off: ECC cannot save it
-    auto._second = Answers(truth)
+    wrong = Answers(geometry.translation(60.0, -40.0) @ truth)  # far off: ECC cannot save it
+    # SIFT settles the pair: the longer cascade is not run.
+    auto = AutoEstimator(initial="identity")
+    auto._first, auto._second = wrong, Answers(truth)
     estimate = auto.estimate(a, b)
-    assert estimate.details["used"] == "escalated" and "fallback" not in estimate.details
+    assert estimate.details["used"] == "sift" and "escalated" not in estimate.details
+    assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
+    # SIFT fails as well: the longer cascade gets its turn and wins.
+    auto._fallback = AlwaysFails()
+    estimate = auto.estimate(a, b)
+    assert estimate.details["fallback"]["score"] == 0.0 and estimate.details["used"] == "escalated"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
     # Learned initials get the second run with the networks' default rounds; others have none.
     assert AutoEstimator(initial="identity", escalate=True)._second is None
-    assert AutoEstimator(initial="identity")._second is None  # off by default
+    assert AutoEstimator.escalate and not RefinedEstimator.escalate  # on for auto only
     if (models_dir() / "udh-unsupervised-refine.onnx").is_file():
         learned = AutoEstimator(escalate=True)
         assert [rounds for _, rounds in learned._first.stages] == [1, 1]

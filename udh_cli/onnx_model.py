@@ -58,9 +58,9 @@ class OnnxHomographyModel:
         if threads:
             options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
-        # Idle pool threads must sleep, not spin: an estimate interleaves each pass with numpy and OpenCV
-        # work, and on 2 cores a spinning worker took a core from it (default cascade with 2 threads: 18.2 ms
-        # spinning, against 9.7 ms on 1 thread). A lone pass costs 1.23 ms instead of 1.11 ms without spinning.
+        # Idle pool threads must sleep, not spin: an estimate interleaves each pass with NumPy and OpenCV
+        # work, and on 2 cores a spinning worker took a core from it (default cascade on 2 threads: 19.6-24.2
+        # ms spinning, 9.4-14.6 ms sleeping). Back-to-back passes alone lose a little (1.11 -> 1.23 ms).
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             session = ort.InferenceSession(str(path), sess_options=options, providers=providers_for(device))

@@ -201,7 +201,11 @@ class Trainer:
         if int(state["config"]["patch_size"]) != self.config.patch_size:
             raise UdhError(f"--teacher {name} works on {state['config']['patch_size']}px patches, this run on {self.config.patch_size}px")
         teacher = create_model(state["config"]["arch"], self.config.patch_size).to(self.device)
-        teacher.load_state_dict(state["model"])
+        try:
+            teacher.load_state_dict(state["model"])
+        except RuntimeError as exc:
+            raise UdhError(f"--teacher {name}: its weights do not fit its own {state['config']['arch']} network "
+                           f"({str(exc).splitlines()[0]})") from None
         teacher.eval().requires_grad_(False)
         return teacher, dict(state["normalization"])
 

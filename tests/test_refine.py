@@ -163,6 +163,7 @@ def test_a_doubtful_answer_asks_the_fallback_first_and_escalates_only_if_that_is
         assert [rounds for _, rounds in learned._first.stages] == [1, 1]
         assert [rounds for _, rounds in learned._second.stages] == [2, 2]
         assert AutoEstimator(threads=1)._first.threads == 1  # passed on to the network
+        assert AutoEstimator(iterations=2, refine_rounds=2)._second is None  # already the full cascade
 
 
 @dataclass

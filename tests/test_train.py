@@ -220,7 +220,7 @@ def test_distillation_pulls_the_student_towards_the_teacher(pool, tmp_path):
     teacher_run = tmp_path / "teacher"
     train(tiny_config(pool, teacher_run, steps=1), threads=1, progress=False)
     state = load_checkpoint(teacher_run / "checkpoint.pt")
-    last = max(k for k in state["model"] if k.startswith("head.") and k.endswith(".weight"))
+    last = [k for k in state["model"] if k.startswith("head.") and k.endswith(".weight")][-1]  # in module order
     state["model"][last].zero_()
     state["model"][last.replace("weight", "bias")].copy_(torch.tensor([3.0, -2.0] * 4) / 32.0)
     teacher_ckpt = tmp_path / "constant_teacher.pt"
@@ -246,5 +246,6 @@ def test_distillation_pulls_the_student_towards_the_teacher(pool, tmp_path):
         Trainer(tiny_config(pool, tmp_path / "sup", mode="supervised", teacher=str(teacher_ckpt)), progress=False)
     with pytest.raises(UdhError, match="32px patches, this run on 64px"):
         Trainer(tiny_config(pool, tmp_path / "big", patch_size=64, teacher=str(teacher_ckpt)), progress=False)
-    with pytest.raises(UdhError, match="--teacher-weight"):
-        Trainer(tiny_config(pool, tmp_path / "neg", teacher=str(teacher_ckpt), teacher_weight=-1.0), progress=False)
+    for weight in (-1.0, 0.0):
+        with pytest.raises(UdhError, match="--teacher-weight"):
+            Trainer(tiny_config(pool, tmp_path / "neg", teacher=str(teacher_ckpt), teacher_weight=weight), progress=False)

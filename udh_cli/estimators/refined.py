@@ -85,6 +85,8 @@ class RefinedEstimator(Estimator):
         self._first = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes})
         # Escalation: a learned initial again, with its default (longer) rounds, sharing the loaded networks.
         self._second = self._first.with_default_rounds() if self.escalate and isinstance(self._first, DeepEstimator) else None
+        if self._second is not None and len(self._second.rounds()) <= len(self._first.rounds()):
+            self._second = None  # the first run is already as long: rerunning it would only repeat its answer
         self._fallback = create_estimator(self.fallback) if self.fallback else None
 
     def _refine_and_score(self, image_a, image_b, start: Estimate) -> tuple[np.ndarray | None, float, dict]:
@@ -122,9 +124,11 @@ class RefinedEstimator(Estimator):
         return self.estimate_many([(image_a, image_b)])[0]
 
     def _doubted(self, score: float, details: dict) -> bool:
-        """An answer needs a second opinion when it scores low, or when ECC diverged from it: a start outside
-        ECC's basin is rarely right, yet a wrong network answer on a smooth pair can still score above
-        ``min_score`` (held-out rho 32: one such pair at 11.5 px scored 0.73; SIFT's answer scored 0.94)."""
+        """An answer needs a second opinion when it scores low, or when its refinement failed (ECC diverged,
+        did not converge, or left a degenerate homography): a start outside ECC's basin is rarely right, yet a
+        wrong network answer on a smooth pair can still score above ``min_score`` (held-out rho 32: one such
+        pair at 11.5 px scored 0.73; SIFT's answer scored 0.94). ``details`` at the top level describe the
+        first answer; the second opinions are under their own keys."""
         return score < self.min_score or "refine_failure" in details
 
     def _finish(self, image_a, image_b, start: Estimate, first_ms: float) -> Estimate:

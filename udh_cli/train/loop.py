@@ -195,8 +195,6 @@ class Trainer:
 
     def _load_teacher(self, name: str) -> tuple[torch.nn.Module, dict[str, float]]:
         """The frozen network to distil from, with the normalisation it was trained with."""
-        if self.config.mode != "unsupervised":
-            raise UdhError("--teacher distils without labels; it needs --mode unsupervised (supervised training has the true labels)")
         state = load_checkpoint(resolve_init(name))
         if int(state["config"]["patch_size"]) != self.config.patch_size:
             raise UdhError(f"--teacher {name} works on {state['config']['patch_size']}px patches, this run on {self.config.patch_size}px")
@@ -375,8 +373,10 @@ def _check_config(config: TrainConfig, out: Path) -> None:
     for name in ("steps", "batch", "eval_every", "checkpoint_every", "val_pairs", "patch_size"):
         if getattr(config, name) < 1:
             raise UdhError(f"--{name.replace('_', '-')} {getattr(config, name)}: must be at least 1")
-    if not config.teacher_weight >= 0:
-        raise UdhError(f"--teacher-weight {config.teacher_weight}: must be zero or positive")
+    if config.teacher and not config.teacher_weight > 0:
+        raise UdhError(f"--teacher-weight {config.teacher_weight}: must be positive when distilling from --teacher")
+    if config.teacher and config.mode != "unsupervised":
+        raise UdhError("--teacher distils without labels; it needs --mode unsupervised (supervised training has the true labels)")
     if not config.rho > 0:
         raise UdhError(f"--rho {config.rho}: must be positive")
     if out.exists() and not out.is_dir():

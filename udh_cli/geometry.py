@@ -321,7 +321,8 @@ def is_valid_homography(b_from_a: np.ndarray | None, width: int, height: int, ma
     # H is defined up to scale, sign included (-H is the same map): what matters is that all of A's
     # corners have w of one sign, i.e. none of them lies beyond the horizon.
     sign = -1.0 if all(v < 0 for v in w) else 1.0
-    if any(sign * v <= 1e-9 * max(abs(u) for u in w) for v in w):
+    floor = 1e-9 * max(abs(v) for v in w)
+    if any(sign * v <= floor for v in w):
         return False
     quad = [((a * x + b * y + c) / v, (d * x + e * y + f) / v) for (x, y), v in zip(corners, w)]
     if not all(math.isfinite(q) for point in quad for q in point):

@@ -171,10 +171,7 @@ class Trainer:
             if init["config"]["arch"] != config.arch or int(init["config"]["patch_size"]) != config.patch_size:
                 raise UdhError(f"--init {config.init} is a {init['config']['arch']} network for {init['config']['patch_size']}px patches; "
                                f"pass --arch {init['config']['arch']}")
-            try:
-                self.model.load_state_dict(init["model"])
-            except RuntimeError as exc:
-                raise UdhError(f"--init {config.init}: its weights do not fit the {config.arch} network ({str(exc).splitlines()[0]})") from None
+            _load_weights(self.model, init, f"--init {config.init}")
             # The network's weights only make sense with the normalisation they were trained with.
             self.normalization = dict(init["normalization"])
             self.trained_before = {"init": str(config.init), "init_steps": int(init["step"]), "init_data": init["config"]["data"]}
@@ -199,11 +196,7 @@ class Trainer:
         if int(state["config"]["patch_size"]) != self.config.patch_size:
             raise UdhError(f"--teacher {name} works on {state['config']['patch_size']}px patches, this run on {self.config.patch_size}px")
         teacher = create_model(state["config"]["arch"], self.config.patch_size).to(self.device)
-        try:
-            teacher.load_state_dict(state["model"])
-        except RuntimeError as exc:
-            raise UdhError(f"--teacher {name}: its weights do not fit its own {state['config']['arch']} network "
-                           f"({str(exc).splitlines()[0]})") from None
+        _load_weights(teacher, state, f"--teacher {name}")
         teacher.eval().requires_grad_(False)
         return teacher, dict(state["normalization"])
 
@@ -366,6 +359,14 @@ class Trainer:
     def _model_only_state(self) -> dict[str, Any]:
         return {"model": self._bare_model().state_dict(), "config": asdict(self.config), "normalization": self.normalization,
                 "trained_before": self.trained_before, "data_description": self.data.description, "best_val": self.best_val}
+
+
+def _load_weights(model: torch.nn.Module, state: dict[str, Any], source: str) -> None:
+    """Load a checkpoint's weights into ``model``; weights that do not fit are a clear error, not a traceback."""
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        raise UdhError(f"{source}: its weights do not fit the {state['config']['arch']} network ({str(exc).splitlines()[0]})") from None
 
 
 def _check_config(config: TrainConfig, out: Path) -> None:

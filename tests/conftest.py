@@ -51,3 +51,38 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+def export_tiny_network(folder: Path, arch: str, seed: int) -> Path:
+    """An untrained 32-pixel ``arch`` network, saved as a checkpoint and exported like a real one."""
+    torch = pytest.importorskip("torch")
+    from udh_cli.train.archs import create_model
+    from udh_cli.train.checkpoint import save_checkpoint
+    from udh_cli.train.export import export_onnx
+    from udh_cli.train.loop import TrainConfig
+    from dataclasses import asdict
+
+    torch.manual_seed(seed)
+    model = create_model(arch, 32)
+    config = asdict(TrainConfig(patch_size=32, data=["synthetic"], rho=8.0, arch=arch))
+    save_checkpoint(folder / f"{arch}.pt", {"model": model.state_dict(), "config": config, "step": 0,
+                                           "normalization": {"mean": 0.5, "std": 0.25}})
+    real = np.stack([textured_image(32, 32, seed=1), textured_image(32, 32, seed=2)])[None].astype(np.float32) / 255
+    result = export_onnx(folder / f"{arch}.pt", folder / f"{arch}.onnx", check_inputs=real)
+    assert result["max_abs_diff"] < 1e-4
+    assert result["metadata"]["input_size"] == "32" and result["metadata"]["arch"] == arch
+    return folder / f"{arch}.onnx"
+
+
+def run_main(monkeypatch, capfd, *args: str) -> tuple[int, str, str]:
+    """Run the console entry point in-process; returns (exit code, stdout, stderr)."""
+    import sys
+
+    from udh_cli import cli
+
+    monkeypatch.setattr(sys, "argv", ["udh", *args])
+    with pytest.raises(SystemExit) as stop:
+        cli.main()
+    captured = capfd.readouterr()
+    code = stop.value.code if isinstance(stop.value.code, int) else (0 if stop.value.code is None else 1)
+    return code, captured.out, captured.err

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from udh_cli import cli, geometry
 from udh_cli.homography_files import format_homography
 
-from conftest import warped_pair
+from conftest import run_main, warped_pair
 
 WIDTH, HEIGHT = 320, 240
 TRUTH = geometry.homography_from_offsets(np.random.default_rng(42).uniform(-12, 12, (4, 2)), WIDTH, HEIGHT)
@@ -37,16 +37,6 @@ def files(tmp_path_factory) -> dict[str, Path]:
     paths["text.png"].write_text("not an image\n")
     paths["bad_gt.txt"].write_text("1 0 0\n0 1 0\n")
     return paths
-
-
-def run_main(monkeypatch, capfd, *args: str) -> tuple[int, str, str]:
-    """Run the console entry point in-process; returns (exit code, stdout, stderr)."""
-    monkeypatch.setattr(sys, "argv", ["udh", *args])
-    with pytest.raises(SystemExit) as stop:
-        cli.main()
-    captured = capfd.readouterr()
-    code = stop.value.code if isinstance(stop.value.code, int) else (0 if stop.value.code is None else 1)
-    return code, captured.out, captured.err
 
 
 # ---------------------------------------------------------------------------------- good input

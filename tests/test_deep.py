@@ -7,50 +7,29 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import textured_image, warped_pair
+from conftest import export_tiny_network, textured_image, warped_pair
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators import create_estimator
 from udh_cli.models_catalog import SHIPPED_MODELS, models_dir
 
 
-def _export_tiny(folder: Path, arch: str, seed: int) -> Path:
-    """An untrained 32-pixel ``arch`` network, saved as a checkpoint and exported like a real one."""
-    torch = pytest.importorskip("torch")
-    from udh_cli.train.archs import create_model
-    from udh_cli.train.checkpoint import save_checkpoint
-    from udh_cli.train.export import export_onnx
-    from udh_cli.train.loop import TrainConfig
-    from dataclasses import asdict
-
-    torch.manual_seed(seed)
-    model = create_model(arch, 32)
-    config = asdict(TrainConfig(patch_size=32, data=["synthetic"], rho=8.0, arch=arch))
-    save_checkpoint(folder / f"{arch}.pt", {"model": model.state_dict(), "config": config, "step": 0,
-                                           "normalization": {"mean": 0.5, "std": 0.25}})
-    real = np.stack([textured_image(32, 32, seed=1), textured_image(32, 32, seed=2)])[None].astype(np.float32) / 255
-    result = export_onnx(folder / f"{arch}.pt", folder / f"{arch}.onnx", check_inputs=real)
-    assert result["max_abs_diff"] < 1e-4
-    assert result["metadata"]["input_size"] == "32" and result["metadata"]["arch"] == arch
-    return folder / f"{arch}.onnx"
-
-
 @pytest.fixture(scope="module")
 def tiny_onnx(tmp_path_factory) -> Path:
-    return _export_tiny(tmp_path_factory.mktemp("tiny"), "corr", seed=0)
+    return export_tiny_network(tmp_path_factory.mktemp("tiny"), "corr", seed=0)
 
 
 @pytest.fixture(scope="module")
 def tiny_fine_onnx(tmp_path_factory) -> Path:
     """The refinement architecture, exported: its strided stem and 4-px cells go through ONNX too."""
-    return _export_tiny(tmp_path_factory.mktemp("tiny_fine"), "corr-fine", seed=1)
+    return export_tiny_network(tmp_path_factory.mktemp("tiny_fine"), "corr-fine", seed=1)
 
 
 def test_lite_network_exports_with_its_window_index_as_a_constant(tmp_path):
     """corr-lite (the fast coarse network) goes through ONNX with parity, and no network recomputes the
     correlation window from shapes at run time: that was a dozen small ops per batch-1 call."""
     onnx = pytest.importorskip("onnx")
-    path = _export_tiny(tmp_path, "corr-lite", seed=2)
+    path = export_tiny_network(tmp_path, "corr-lite", seed=2)
     ops = {node.op_type for node in onnx.load(str(path)).graph.node}
     assert "GatherElements" in ops  # the window gather is there...
     assert not ops & {"Range", "GreaterOrEqual", "Less"}  # ...but not the arithmetic that built its index

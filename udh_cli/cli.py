@@ -59,12 +59,14 @@ def estimate(
     refine_model: Annotated[Optional[Path], typer.Option(help="Learned methods: an ONNX file for the refinement stage instead of the shipped one.")] = None,
     refine_rounds: Annotated[Optional[int], typer.Option(help="Learned methods: rounds of the refinement network after the coarse ones (0: none).")] = None,
     search: Annotated[Optional[int], typer.Option(help="Learned methods: when the answer scores low, retry from a (2N+1)^2 grid of shifts up to half the frame (0: off).")] = None,
+    precision: Annotated[Optional[str], typer.Option(help="Learned methods: which shipped networks, int8 (the default where shipped) or fp32.")] = None,
 ) -> None:
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold])."""
     from udh_cli.api import estimate_report
 
     given = {"best_features": best_features, "model": None if model is None else str(model), "device": device, "iterations": iterations,
-             "refine_model": None if refine_model is None else str(refine_model), "refine_rounds": refine_rounds, "search": search}
+             "refine_model": None if refine_model is None else str(refine_model), "refine_rounds": refine_rounds, "search": search,
+             "precision": precision}
     options = {key: value for key, value in given.items() if value is not None}
     report = estimate_report(image_a, image_b, method, gt=gt, viz=viz, **options)
     if json_output:
@@ -163,6 +165,33 @@ def export_onnx(
     meta = result["metadata"]
     console.print(f"wrote {result['path']}: {meta['arch']} ({meta['mode']}), {meta['steps']} steps, "
                   f"input {meta['input_size']}px; max |onnx - torch| = {result['max_abs_diff']:.2e} px")
+
+
+@app.command()
+def quantize(
+    model: Annotated[Path, typer.Argument(help="A float32 udh ONNX model (from `udh export-onnx`).")],
+    data: Annotated[list[Path], typer.Option("--data", "-d", help="Folders of training images to calibrate on (repeatable); not your held-out images.")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="The int8 .onnx file to write.")] = Path("model-int8.onnx"),
+    pairs: Annotated[int, typer.Option(help="Calibration pairs per motion level (4 levels up to the model's training rho).")] = 64,
+    images: Annotated[int, typer.Option(help="At most this many images are drawn from --data.")] = 200,
+    seed: Annotated[int, typer.Option(help="Seed of the image draw and the synthetic pairs.")] = 0,
+) -> None:
+    """Quantize a network to int8 for faster CPU inference, calibrated on synthetic pairs of your images."""
+    from udh_cli.synthetic import list_images, load_sources, split_holdout
+    from udh_cli.train.quantize import quantize_model
+
+    if images < 1:
+        raise UdhError(f"--images ({images}) must be at least 1")
+    found = list_images(data)
+    train_paths, _ = split_holdout(found)  # the bench's held-out images stay unseen here too
+    if not train_paths:
+        raise UdhError(f"--data holds {len(found)} image(s), all held out for benchmarks (every 10th); give a folder of 2 or more")
+    rng = np.random.default_rng(seed)
+    chosen = sorted(rng.choice(len(train_paths), min(images, len(train_paths)), replace=False))
+    with console.status(f"calibrating on {len(chosen)} images..."):
+        result = quantize_model(model, output, load_sources([train_paths[i] for i in chosen], min_count=1), pairs, seed)
+    console.print(f"wrote {result['path']}: int8 of {model.name}; offsets differ from float32 by "
+                  f"{result['median_drift_px']:.3f} px median, {result['max_drift_px']:.2f} px at most ({result['check_pairs']} check pairs)")
 
 
 from udh_cli.mosaic.pipeline import MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there

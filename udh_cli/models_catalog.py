@@ -16,7 +16,25 @@ SHIPPED_MODELS = {
     "unsupervised": "udh-unsupervised",
     "unsupervised-refine": "udh-unsupervised-refine",  # the fine stage run after the coarse one
     "supervised": "udh-supervised",
+    # int8 copies (`udh quantize`) of the float32 networks above: the default where shipped (see DeepEstimator)
+    "unsupervised-int8": "udh-unsupervised-int8",
+    "unsupervised-refine-int8": "udh-unsupervised-refine-int8",
 }
+PRECISIONS = ("int8", "fp32")
+
+
+def shipped_variant(name: str, precision: str | None) -> str:
+    """The shipped model to load for ``name`` at ``precision``: "int8" (its int8 copy, an error when none is
+    shipped), "fp32" (the float32 network) or ``None`` (int8 where shipped, else float32)."""
+    if precision not in (None, *PRECISIONS):
+        raise UdhError(f"unknown precision '{precision}'; choose {' or '.join(PRECISIONS)}")
+    if precision == "fp32":
+        return name
+    if has_shipped(f"{name}-int8"):
+        return f"{name}-int8"
+    if precision == "int8":
+        raise UdhError(f"no int8 copy of the {name} model is shipped; use precision fp32, or make one with `udh quantize`")
+    return name
 
 
 def models_dir() -> Path:

@@ -63,7 +63,11 @@ class OnnxHomographyModel:
         # ms spinning, 9.4-14.6 ms sleeping). Back-to-back passes alone lose a little (1.11 -> 1.23 ms).
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
-            session = ort.InferenceSession(str(path), sess_options=options, providers=providers_for(device))
+            # QDQ propagation moves an int8 model's first quantize step above its first max-pool, which then
+            # runs on uint8 in NCHW, a slow kernel: 0.5 ms of a 1.1 ms pass (`udh quantize`). Off, the pool
+            # stays float32 and blocked (20 us). Float32 models have no QDQ nodes, so nothing changes for them.
+            session = ort.InferenceSession(str(path), sess_options=options, providers=providers_for(device),
+                                           disabled_optimizers=["QDQPropagationTransformer"])
         except UdhError:
             raise
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises several private exception types

@@ -38,8 +38,8 @@ class RefinedEstimator(Estimator):
         threads: onnxruntime intra-op threads for a learned ``initial`` (None: onnxruntime's default, one per
             physical core).
         iterations: rounds of the coarse network (each predicts the residual of the last).
-        refine_model, refine_rounds, search: the network's refinement stage and large-motion search (see
-            :class:`~udh_cli.estimators.deep.DeepEstimator`).
+        refine_model, refine_rounds, search, precision: the network's refinement stage, large-motion search
+            and shipped-model precision (see :class:`~udh_cli.estimators.deep.DeepEstimator`).
         refiner: the ECC pyramid and its iteration budget.
         escalate: when the answer is still doubted after the fallback (see :meth:`_doubted`), rerun a learned
             ``initial`` with its own default (longer) cascade and keep the better-verified answer. On by default
@@ -69,6 +69,7 @@ class RefinedEstimator(Estimator):
     refine_model: str | None = None
     refine_rounds: int | None = 1
     search: int = 0
+    precision: str | None = None
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     escalate: bool = False
     fallback: str | None = None
@@ -80,7 +81,7 @@ class RefinedEstimator(Estimator):
         # A model given alone runs alone, as with the network's own method (refine_rounds then defaults to 0).
         alone = self.model is not None and self.refine_model is None
         wanted = {"model": self.model, "device": self.device, "threads": self.threads, "iterations": self.iterations, "search": self.search,
-                  "refine_model": self.refine_model, "refine_rounds": None if alone else self.refine_rounds}
+                  "refine_model": self.refine_model, "refine_rounds": None if alone else self.refine_rounds, "precision": self.precision}
         takes = estimator_options(self.initial)
         self._first = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes})
         # Escalation: a learned initial again, with its default (longer) rounds, sharing the loaded networks.

@@ -39,9 +39,11 @@ def main() -> None:
     frames = [(cv2.imencode(".jpg", (batch.context_a[i, 0] * 255).astype(np.uint8))[1],
                cv2.imencode(".jpg", sources[batch.source_index[i]])[1]) for i in range(args.pairs)]
 
-    cascade = create_estimator("unsupervised", device="cpu", threads=args.threads)
-    networks = [(stage, network, f"{rounds} round(s) by default")
-                for stage, (network, rounds) in zip(("coarse network", "refinement network"), cascade.stages)]
+    networks = []
+    for precision in ("int8", "fp32"):  # the shipped default (int8) and the float32 networks it was made from
+        cascade = create_estimator("unsupervised", device="cpu", threads=args.threads, precision=precision)
+        networks += [(f"{stage}, {precision}", network, f"{rounds} round(s) by default")
+                     for stage, (network, rounds) in zip(("coarse network", "refinement network"), cascade.stages)]
     for path in args.network:
         network = OnnxHomographyModel.load(path, "cpu", args.threads)
         networks.append((f"{path.name} ({network.metadata.get('arch')})", network, "not shipped"))
@@ -58,6 +60,7 @@ def main() -> None:
 
     single = {"device": "cpu", "threads": args.threads, "iterations": 1, "refine_rounds": 0}
     methods = {"unsupervised, 1 coarse round": ("unsupervised", single),
+               "the same, fp32": ("unsupervised", {**single, "precision": "fp32"}),
                "unsupervised, default cascade": ("unsupervised", {"device": "cpu", "threads": args.threads}),
                "orb": ("orb", {}), "sift": ("sift", {})}
     results = {}

@@ -181,7 +181,12 @@ def test_the_pair_cache_knows_both_networks_of_a_cascade_inside_auto():
     from udh_cli.models_catalog import models_dir
     from udh_cli.mosaic.pair_cache import estimator_identity
 
-    if not (models_dir() / "udh-unsupervised-refine.onnx").is_file():
+    if not (models_dir() / "udh-unsupervised-refine-int8.onnx").is_file():
         pytest.skip("shipped refinement model not built yet")
-    files = {path.split("/")[-1] for path, _, _ in estimator_identity(create_estimator("auto"))["files"]}
-    assert files == {"udh-unsupervised.onnx", "udh-unsupervised-refine.onnx"}  # retraining either one re-estimates
+
+    def files(**options) -> set[str]:
+        return {path.split("/")[-1] for path, _, _ in estimator_identity(create_estimator("auto", **options))["files"]}
+
+    # Retraining (or requantizing) either network re-estimates; so does switching precision.
+    assert files() == {"udh-unsupervised-int8.onnx", "udh-unsupervised-refine-int8.onnx"}
+    assert files(precision="fp32") == {"udh-unsupervised.onnx", "udh-unsupervised-refine.onnx"}

@@ -113,6 +113,8 @@ def test_shipped_int8_cascade_matches_float32_on_pairs_it_never_saw():
         truth = geometry.rescale_homography(small, (128, 128), (320, 240))
         a, b = warped_pair(truth, 320, 240, seed=seed)
         for name, estimator in (("int8", int8), ("fp32", fp32)):
-            errors[name].append(geometry.mace(estimator.estimate(a, b).homography, truth, 320, 240))
+            estimate = estimator.estimate(a, b)
+            assert estimate.details["precision"] == name  # what ran is reported
+            errors[name].append(geometry.mace(estimate.homography, truth, 320, 240))
     assert np.median(errors["int8"]) < 2.5  # px at 320x240, corners moved by up to 40 px
     assert abs(np.median(errors["int8"]) - np.median(errors["fp32"])) < 0.5

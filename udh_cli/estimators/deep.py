@@ -170,7 +170,8 @@ class DeepEstimator(Estimator):
             valid = geometry.is_valid_homography(h, s, s)
             full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
             failure = None if valid else "the network's 4-point output gives a degenerate homography"
-            details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched}
+            details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
+                       "precision": self.network.metadata.get("precision", "fp32")}
             out.append(self._checked(full, confidence, per_pair_ms, failure, details, a.shape))
         return out
 

@@ -252,3 +252,14 @@ def test_tiled_ncc_from_tile_moments_equals_the_tile_by_tile_correlation(seed):
     sliver[10:12, 5:100] = True  # two rows: most of a 4x4 grid is empty
     assert _tiled_ncc(x, y, sliver, 4) == pytest.approx(_tiled_ncc_loop(x, y, sliver, np.linspace(10, 12, 5).astype(int),
                                                                          np.linspace(5, 100, 5).astype(int)), abs=1e-12)
+
+
+def test_a_network_without_refinement_stage_can_start_the_refinement():
+    """supervised has no refinement network: unsupervised+ecc must not hand it the default refine_rounds."""
+    if not (models_dir() / "udh-supervised.onnx").is_file():
+        pytest.skip("shipped supervised model not built yet")
+    refined = RefinedEstimator(initial="supervised", device="cpu")
+    assert refined._first.refine_rounds == 0 and len(refined._first.rounds()) == 1
+    truth = geometry.translation(2.0, -1.5)
+    a, b = warped_pair(truth, 320, 240, seed=4)
+    assert geometry.mace(refined.estimate(a, b).homography, truth, 320, 240) < 0.3

@@ -21,6 +21,7 @@ from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.deep import DeepEstimator
 from udh_cli.estimators.registry import create_estimator, estimator_options
+from udh_cli.models_catalog import has_shipped
 from udh_cli.refine import PyramidEcc
 from udh_cli.verify import verification_score
 
@@ -79,7 +80,8 @@ class RefinedEstimator(Estimator):
     def __post_init__(self) -> None:
         # The network's options go to the first estimator when it takes them (the learned ones do).
         # A model given alone runs alone, as with the network's own method (refine_rounds then defaults to 0).
-        alone = self.model is not None and self.refine_model is None
+        # So does a network with no shipped refinement stage (supervised): the default refine_rounds is not for it.
+        alone = self.refine_model is None and (self.model is not None or not has_shipped(f"{self.initial}-refine"))
         wanted = {"model": self.model, "device": self.device, "threads": self.threads, "iterations": self.iterations, "search": self.search,
                   "refine_model": self.refine_model, "refine_rounds": None if alone else self.refine_rounds, "precision": self.precision}
         takes = estimator_options(self.initial)

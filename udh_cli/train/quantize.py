@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import atomic_write_bytes
+from udh_cli.images import atomic_write_bytes, check_output_path
 from udh_cli.onnx_model import OnnxHomographyModel
 from udh_cli.synthetic import PairConfig, make_pairs
 
@@ -82,6 +82,7 @@ def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndar
     except ImportError:
         raise UdhError("quantisation needs the onnx package: pip install 'udh[train]'") from None
 
+    output = check_output_path(output, (".onnx",))  # a bad output path fails now, not after the calibration
     model = OnnxHomographyModel.load(source, device="cpu")
     if model.metadata.get("precision") == "int8":
         raise UdhError(f"{source}: already an int8 model; quantize the float32 network it came from")
@@ -131,6 +132,6 @@ def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndar
     if not np.isfinite(drift).all() or median_drift > MAX_MEDIAN_DRIFT_PX:
         raise UdhError(f"{source}: the int8 network drifts {median_drift:.2f} px (median) from the float32 one, more "
                        f"than {MAX_MEDIAN_DRIFT_PX} px; calibrate on more, or more typical, images (--data)")
-    atomic_write_bytes(Path(output), proto.SerializeToString())
-    return {"path": Path(output), "median_drift_px": median_drift, "max_drift_px": max_drift, "check_pairs": len(check),
+    atomic_write_bytes(output, proto.SerializeToString())
+    return {"path": output, "median_drift_px": median_drift, "max_drift_px": max_drift, "check_pairs": len(check),
             "metadata": metadata}

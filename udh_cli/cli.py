@@ -170,26 +170,17 @@ def export_onnx(
 @app.command()
 def quantize(
     model: Annotated[Path, typer.Argument(help="A float32 udh ONNX model (from `udh export-onnx`).")],
-    data: Annotated[list[Path], typer.Option("--data", "-d", help="Folders of training images to calibrate on (repeatable); not your held-out images.")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="The int8 .onnx file to write.")] = Path("model-int8.onnx"),
+    data: Annotated[list[Path], typer.Option("--data", "-d", help="Folders of training images to calibrate on (repeatable); every 10th image, the benchmarks' held-out split, is left out.")],
+    output: Annotated[Optional[Path], typer.Option("--output", "-o", help="The int8 .onnx file to write (default: MODEL's name with -int8, beside it).")] = None,
     pairs: Annotated[int, typer.Option(help="Calibration pairs per motion level (4 levels up to the model's training rho).")] = 64,
     images: Annotated[int, typer.Option(help="At most this many images are drawn from --data.")] = 200,
     seed: Annotated[int, typer.Option(help="Seed of the image draw and the synthetic pairs.")] = 0,
 ) -> None:
     """Quantize a network to int8 for faster CPU inference, calibrated on synthetic pairs of your images."""
-    from udh_cli.synthetic import list_images, load_sources, split_holdout
-    from udh_cli.train.quantize import quantize_model
+    from udh_cli.train.quantize import quantize_from_folders
 
-    if images < 1:
-        raise UdhError(f"--images ({images}) must be at least 1")
-    found = list_images(data)
-    train_paths, _ = split_holdout(found)  # the bench's held-out images stay unseen here too
-    if not train_paths:
-        raise UdhError(f"--data holds {len(found)} image(s), all held out for benchmarks (every 10th); give a folder of 2 or more")
-    rng = np.random.default_rng(seed)
-    chosen = sorted(rng.choice(len(train_paths), min(images, len(train_paths)), replace=False))
-    with console.status(f"calibrating on {len(chosen)} images..."):
-        result = quantize_model(model, output, load_sources([train_paths[i] for i in chosen], min_count=1), pairs, seed)
+    with console.status("calibrating..."):
+        result = quantize_from_folders(model, output, data, images, pairs, seed)
     console.print(f"wrote {result['path']}: int8 of {model.name}; offsets differ from float32 by "
                   f"{result['median_drift_px']:.3f} px median, {result['max_drift_px']:.2f} px at most ({result['check_pairs']} check pairs)")
 

@@ -11,30 +11,18 @@ from pathlib import Path
 
 from udh_cli.errors import UdhError
 
-# method name -> file stem in models/
+# method name -> file stem in models/ (float32 networks; the .pt files beside them are for fine-tuning)
 SHIPPED_MODELS = {
     "unsupervised": "udh-unsupervised",
     "unsupervised-refine": "udh-unsupervised-refine",  # the fine stage run after the coarse one
     "supervised": "udh-supervised",
-    # int8 copies (`udh quantize`) of the float32 networks above: the default where shipped (see DeepEstimator)
-    "unsupervised-int8": "udh-unsupervised-int8",
-    "unsupervised-refine-int8": "udh-unsupervised-refine-int8",
+}
+# int8 copies (`udh quantize`) of some of them, for inference only: the default where shipped (DeepEstimator)
+SHIPPED_INT8 = {
+    "unsupervised": "udh-unsupervised-int8",
+    "unsupervised-refine": "udh-unsupervised-refine-int8",
 }
 PRECISIONS = ("int8", "fp32")
-
-
-def shipped_variant(name: str, precision: str | None) -> str:
-    """The shipped model to load for ``name`` at ``precision``: "int8" (its int8 copy, an error when none is
-    shipped), "fp32" (the float32 network) or ``None`` (int8 where shipped, else float32)."""
-    if precision not in (None, *PRECISIONS):
-        raise UdhError(f"unknown precision '{precision}'; choose {' or '.join(PRECISIONS)}")
-    if precision == "fp32":
-        return name
-    if has_shipped(f"{name}-int8"):
-        return f"{name}-int8"
-    if precision == "int8":
-        raise UdhError(f"no int8 copy of the {name} model is shipped; use precision fp32, or make one with `udh quantize`")
-    return name
 
 
 def models_dir() -> Path:
@@ -55,13 +43,35 @@ def _shipped(name: str, suffix: str) -> Path:
     return path
 
 
-def has_shipped(name: str) -> bool:
-    """Whether the shipped ONNX model ``name`` is installed."""
-    return name in SHIPPED_MODELS and _shipped_path(name, ".onnx").is_file()
+def check_precision(precision: str | None) -> None:
+    """Raise :class:`UdhError` unless ``precision`` is "int8", "fp32" or ``None``."""
+    if precision not in (None, *PRECISIONS):
+        raise UdhError(f"unknown precision '{precision}'; choose {' or '.join(PRECISIONS)}")
 
 
-def shipped_onnx(name: str) -> Path:
-    """The ONNX file of a shipped model ("unsupervised" or "supervised")."""
+def _int8_path(name: str) -> Path | None:
+    return models_dir() / f"{SHIPPED_INT8[name]}.onnx" if name in SHIPPED_INT8 else None
+
+
+def has_shipped(name: str, precision: str | None = "fp32") -> bool:
+    """Whether the shipped ONNX network ``name`` is installed at ``precision`` (``None``: at either)."""
+    int8 = _int8_path(name)
+    has_int8 = int8 is not None and int8.is_file()
+    has_fp32 = name in SHIPPED_MODELS and _shipped_path(name, ".onnx").is_file()
+    return {"int8": has_int8, "fp32": has_fp32, None: has_int8 or has_fp32}[precision]
+
+
+def shipped_onnx(name: str, precision: str | None = "fp32") -> Path:
+    """The ONNX file of the shipped network ``name`` ("unsupervised", "unsupervised-refine", "supervised") at
+    ``precision``: "fp32", "int8" (an error when no int8 copy is shipped) or ``None`` (int8 where shipped)."""
+    check_precision(precision)
+    int8 = _int8_path(name)
+    if precision != "fp32" and int8 is not None and int8.is_file():
+        return int8
+    if precision == "int8":
+        if name not in SHIPPED_MODELS:
+            _shipped(name, ".onnx")  # the unknown-name error
+        raise UdhError(f"no int8 copy of the {name} model is shipped; use precision fp32, or make one with `udh quantize`")
     return _shipped(name, ".onnx")
 
 

@@ -64,7 +64,7 @@ class OnnxHomographyModel:
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             # QDQ propagation moves an int8 model's first quantize step above its first max-pool, which then
-            # runs on uint8 in NCHW, a slow kernel: 0.5 ms of a 1.1 ms pass (`udh quantize`). Off, the pool
+            # runs on uint8 in NCHW, a slow kernel: 0.5 ms of a 1.6 ms pass (`udh quantize`). Off, the pool
             # stays float32 and blocked (20 us). Float32 models have no QDQ nodes, so nothing changes for them.
             session = ort.InferenceSession(str(path), sess_options=options, providers=providers_for(device),
                                            disabled_optimizers=["QDQPropagationTransformer"])
@@ -92,7 +92,19 @@ class OnnxHomographyModel:
         """``patches`` (N, 2, S, S) grey in [0, 1] -> (N, 4, 2) float64 offsets in pixels of the S x S input."""
         if patches.ndim != 4 or patches.shape[1:] != (2, self.input_size, self.input_size):
             raise UdhError(f"expected patches of shape (N, 2, {self.input_size}, {self.input_size}), got {patches.shape}")
-        standardised = ((patches - self.mean) / self.std).astype(np.float32)
+        standardised = self.standardise(patches)
         name = self.session.get_inputs()[0].name  # "patches" from `udh export-onnx`; load() checked there is one
         outputs = [self.session.run(None, {name: standardised[i : i + batch_size]})[0] for i in range(0, len(patches), batch_size)]
         return np.concatenate(outputs).astype(np.float64)
+
+    def standardise(self, patches: np.ndarray) -> np.ndarray:
+        """Grey patches in [0, 1] -> the float32 network input, standardised as in training."""
+        return ((patches - self.mean) / self.std).astype(np.float32)
+
+
+def write_metadata(proto, metadata: dict[str, str]) -> None:
+    """Replace an ONNX ``ModelProto``'s metadata with ``metadata`` (all strings): the keys `load` checks."""
+    del proto.metadata_props[:]
+    for key, value in metadata.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value

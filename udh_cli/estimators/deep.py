@@ -47,9 +47,9 @@ class DeepEstimator(Estimator):
             answer (0: off). For sequences that move further between frames than the network was trained
             for (it saw corners moved by up to 45 px of 128).
         search_below: the score under which a pair is searched.
-        precision: which shipped networks to load when ``model`` / ``refine_model`` are not given: "int8"
-            (`udh quantize` copies: a network pass 1.7 -> 1.1 ms on one core, the same bench accuracy),
-            "fp32", or ``None``: int8 where shipped, else float32.
+        precision: which shipped networks to load for those not given as ``model`` / ``refine_model`` files:
+            "int8" (`udh quantize` copies: a network pass 1.7 -> 1.1 ms on one core, the same median accuracy
+            on the bench, tails slightly worse), "fp32", or ``None``: int8 where shipped, else float32.
         batch_size: pairs per onnxruntime call in :meth:`estimate_many`.
         threads: onnxruntime intra-op threads (None: onnxruntime's default).
 
@@ -71,23 +71,24 @@ class DeepEstimator(Estimator):
     stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        from udh_cli.models_catalog import has_shipped, shipped_onnx, shipped_variant
+        from udh_cli.models_catalog import check_precision, has_shipped, shipped_onnx
 
         if self.iterations < 1 or self.batch_size < 1:  # 0 rounds would answer the identity as if estimated
             raise UdhError(f"method '{self.name}': iterations ({self.iterations}) and batch_size ({self.batch_size}) must be at least 1")
         if self.refine_rounds is None:
-            shipped_pair = self.model is None and has_shipped(f"{self.name}-refine")
+            shipped_pair = self.model is None and has_shipped(f"{self.name}-refine", precision=None)
             self.refine_rounds = DEFAULT_REFINE_ROUNDS if self.refine_model is not None or shipped_pair else 0
         if self.search < 0:
             raise UdhError(f"method '{self.name}': search ({self.search}) must be 0 (off) or more")
         if self.refine_rounds < 0:
             raise UdhError(f"method '{self.name}': refine_rounds ({self.refine_rounds}) must be 0 or more")
+        check_precision(self.precision)
 
-        path = self.model if self.model is not None else shipped_onnx(shipped_variant(self.name, self.precision))
+        path = self.model if self.model is not None else shipped_onnx(self.name, self.precision)
         self.network = OnnxHomographyModel.load(path, self.device, self.threads)
         self.stages = [(self.network, self.iterations)]
         if self.refine_rounds:
-            refine_path = self.refine_model if self.refine_model is not None else shipped_onnx(shipped_variant(f"{self.name}-refine", self.precision))
+            refine_path = self.refine_model if self.refine_model is not None else shipped_onnx(f"{self.name}-refine", self.precision)
             refiner = OnnxHomographyModel.load(refine_path, self.device, self.threads)
             if refiner.input_size != self.network.input_size:
                 raise UdhError(f"{refine_path}: the refinement network takes {refiner.input_size}px inputs but "
@@ -102,6 +103,12 @@ class DeepEstimator(Estimator):
         twin.refine_rounds = DEFAULT_REFINE_ROUNDS if len(self.stages) > 1 else 0
         twin.stages = [(network, rounds) for (network, _), rounds in zip(self.stages, (twin.iterations, twin.refine_rounds))]
         return twin
+
+    def loaded_precision(self) -> str:
+        """What the cascade runs in: "int8", "fp32", or "mixed" (networks of both, e.g. a float32 ``model``
+        file followed by the shipped int8 refinement network)."""
+        found = {network.metadata.get("precision", "fp32") for network, _ in self.stages}
+        return found.pop() if len(found) == 1 else "mixed"
 
     def _small(self, image: np.ndarray) -> np.ndarray:
         s = self.network.input_size
@@ -171,7 +178,7 @@ class DeepEstimator(Estimator):
             full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
             failure = None if valid else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
-                       "precision": self.network.metadata.get("precision", "fp32")}
+                       "precision": self.loaded_precision()}
             out.append(self._checked(full, confidence, per_pair_ms, failure, details, a.shape))
         return out
 

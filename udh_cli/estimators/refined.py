@@ -68,7 +68,7 @@ class RefinedEstimator(Estimator):
     # time (held-out rho 32, 300 pairs).
     iterations: int = 1
     refine_model: str | None = None
-    refine_rounds: int | None = 1
+    refine_rounds: int | None = None  # None: one round when the network has a refinement stage
     search: int = 0
     precision: str | None = None
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
@@ -79,11 +79,12 @@ class RefinedEstimator(Estimator):
 
     def __post_init__(self) -> None:
         # The network's options go to the first estimator when it takes them (the learned ones do).
-        # A model given alone runs alone, as with the network's own method (refine_rounds then defaults to 0).
-        # So does a network with no shipped refinement stage (supervised): the default refine_rounds is not for it.
-        alone = self.refine_model is None and (self.model is not None or not has_shipped(f"{self.initial}-refine"))
+        # A model given alone runs alone, as with the network's own method, and so does a network with no
+        # shipped refinement stage (supervised): their refine_rounds default to 0 there. An explicit value goes as is.
+        has_refiner = self.refine_model is not None or (self.model is None and has_shipped(f"{self.initial}-refine", precision=None))
+        refine_rounds = self.refine_rounds if self.refine_rounds is not None else (1 if has_refiner else None)
         wanted = {"model": self.model, "device": self.device, "threads": self.threads, "iterations": self.iterations, "search": self.search,
-                  "refine_model": self.refine_model, "refine_rounds": None if alone else self.refine_rounds, "precision": self.precision}
+                  "refine_model": self.refine_model, "refine_rounds": refine_rounds, "precision": self.precision}
         takes = estimator_options(self.initial)
         self._first = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes})
         # Escalation: a learned initial again, with its default (longer) rounds, sharing the loaded networks.

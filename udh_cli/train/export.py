@@ -17,7 +17,7 @@ import torch
 
 from udh_cli.errors import UdhError
 from udh_cli.images import atomic_write_bytes
-from udh_cli.onnx_model import MODEL_FORMAT
+from udh_cli.onnx_model import MODEL_FORMAT, write_metadata
 from udh_cli.train.archs import create_model
 from udh_cli.train.checkpoint import load_checkpoint
 
@@ -70,9 +70,7 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
     )
     proto = onnx.load_from_string(buffer.getvalue())
     metadata = model_metadata(state)
-    for key, value in metadata.items():
-        entry = proto.metadata_props.add()
-        entry.key, entry.value = key, value
+    write_metadata(proto, metadata)
     onnx.checker.check_model(proto)
     data = proto.SerializeToString()
 

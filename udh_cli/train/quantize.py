@@ -27,7 +27,7 @@ import numpy as np
 
 from udh_cli.errors import UdhError
 from udh_cli.images import atomic_write_bytes, check_output_path
-from udh_cli.onnx_model import OnnxHomographyModel
+from udh_cli.onnx_model import OnnxHomographyModel, write_metadata
 from udh_cli.synthetic import PairConfig, make_pairs
 
 # Calibration motions, as fractions of the rho the network was trained at: a cascade shows a network large
@@ -37,15 +37,20 @@ QUANTIZED_OPS = ("Conv", "Relu", "Gemm", "MaxPool")  # a ReLU quantized with its
 MAX_MEDIAN_DRIFT_PX = 0.5  # an int8 network further than this from its source (median over check pairs) is refused
 
 
-def calibration_patches(sources: list[np.ndarray], model: OnnxHomographyModel, pairs_per_motion: int, seed: int) -> np.ndarray:
-    """(N, 2, S, S) synthetic pairs in [0, 1] (with illumination shifts) at every :data:`CALIBRATION_MOTION`
-    of the model's training rho (metadata ``rho``, 32 px if absent)."""
+def calibration_motions(model: OnnxHomographyModel) -> list[float]:
+    """The rho values (px of the S x S input) to calibrate at: :data:`CALIBRATION_MOTION` of the model's
+    training rho (metadata ``rho``; 32 px if absent), at least 1 px."""
     rho = float(model.metadata.get("rho", 32.0))
+    return [max(1.0, rho * fraction) for fraction in CALIBRATION_MOTION]
+
+
+def calibration_patches(sources: list[np.ndarray], model: OnnxHomographyModel, pairs_per_motion: int, seed: int) -> np.ndarray:
+    """(N, 2, S, S) synthetic pairs in [0, 1] (with illumination shifts), ``pairs_per_motion`` at each of
+    :func:`calibration_motions`."""
     rng = np.random.default_rng(seed)
     batches = []
-    for fraction in CALIBRATION_MOTION:
-        config = PairConfig(rho=max(1.0, rho * fraction), patch_size=model.input_size)
-        pairs = make_pairs(sources, pairs_per_motion, config, rng, with_context=False)
+    for rho in calibration_motions(model):
+        pairs = make_pairs(sources, pairs_per_motion, PairConfig(rho=rho, patch_size=model.input_size), rng, with_context=False)
         batches.append(np.stack([pairs.patch_a, pairs.patch_b], 1))
     return np.concatenate(batches)
 
@@ -63,15 +68,50 @@ def _nodes_to_quantize(model_proto: Any) -> list[str]:
     return chosen
 
 
+def quantize_from_folders(source: str | Path, output: str | Path | None, folders: list[Path], images: int = 200,
+                          pairs_per_motion: int = 64, seed: int = 0) -> dict[str, Any]:
+    """What ``udh quantize`` does: :func:`quantize_model` calibrated on up to ``images`` images drawn (by
+    ``seed``) from the training part of ``folders`` (every tenth image, the benchmarks' held-out split, is
+    left out). ``output`` ``None`` writes ``<source stem>-int8.onnx`` beside ``source``."""
+    from udh_cli.synthetic import list_images, load_sources, split_holdout
+
+    source = Path(source)
+    output = source.with_name(f"{source.stem}-int8.onnx") if output is None else Path(output)
+    _check_request(source, output, pairs_per_motion, seed)
+    if images < 1:
+        raise UdhError(f"--images ({images}) must be at least 1")
+    found = list_images(folders)
+    train_paths, _ = split_holdout(found)
+    if not train_paths:
+        raise UdhError(f"--data holds {len(found)} image(s), all held out for benchmarks (every 10th); give a folder of 2 or more")
+    rng = np.random.default_rng(seed)
+    chosen = sorted(rng.choice(len(train_paths), min(images, len(train_paths)), replace=False))
+    sources = load_sources([train_paths[i] for i in chosen], min_count=1)
+    return quantize_model(source, output, sources, pairs_per_motion, seed)
+
+
+def _check_request(source: Path, output: Path, pairs_per_motion: int, seed: int) -> Path:
+    """Fail before any work on a bad output path, an output that would replace the source, or bad numbers."""
+    output = check_output_path(output, (".onnx",))
+    if output.resolve() == Path(source).resolve():
+        raise UdhError(f"{output}: the int8 copy would replace the float32 network it is made from; give another --output")
+    if pairs_per_motion < 1:
+        raise UdhError(f"--pairs ({pairs_per_motion}) must be at least 1: calibration pairs per motion level")
+    if seed < 0:
+        raise UdhError(f"--seed ({seed}) must be 0 or more")
+    return output
+
+
 def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndarray], pairs_per_motion: int = 64,
                    seed: int = 0) -> dict[str, Any]:
     """Write an int8 copy of the udh ONNX network ``source`` to ``output`` (atomically), calibrated on
     synthetic pairs from ``sources`` (320x240 grey uint8 images, see :func:`udh_cli.synthetic.load_sources`;
     give training images, never the held-out ones).
 
-    The copy keeps the source's metadata and adds ``precision`` ("int8") and ``calibration``. It is checked
-    against the source on fresh pairs: the median and largest |offset difference| in pixels of the S x S
-    input are returned, and a median above :data:`MAX_MEDIAN_DRIFT_PX` is refused.
+    The copy keeps the source's metadata and adds ``precision`` ("int8"), ``calibration`` and
+    ``quantized_from``. It is checked against the source on fresh pairs (another seed, the same images): the
+    median and largest |offset difference| in pixels of the S x S input are returned, and a median above
+    :data:`MAX_MEDIAN_DRIFT_PX` is refused.
 
     Returns ``{"path", "median_drift_px", "max_drift_px", "check_pairs", "metadata"}``.
     """
@@ -80,16 +120,13 @@ def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndar
         from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
         from onnxruntime.quantization.shape_inference import quant_pre_process
     except ImportError:
-        raise UdhError("quantisation needs the onnx package: pip install 'udh[train]'") from None
+        raise UdhError("quantisation needs the onnx package: pip install onnx (it comes with udh[train])") from None
 
-    output = check_output_path(output, (".onnx",))  # a bad output path fails now, not after the calibration
+    output = _check_request(Path(source), Path(output), pairs_per_motion, seed)
     model = OnnxHomographyModel.load(source, device="cpu")
     if model.metadata.get("precision") == "int8":
         raise UdhError(f"{source}: already an int8 model; quantize the float32 network it came from")
-    if pairs_per_motion < 1:
-        raise UdhError(f"pairs per motion ({pairs_per_motion}) must be at least 1")
-    calibration = calibration_patches(sources, model, pairs_per_motion, seed)
-    standardised = ((calibration - model.mean) / model.std).astype(np.float32)
+    standardised = model.standardise(calibration_patches(sources, model, pairs_per_motion, seed))
     input_name = model.session.get_inputs()[0].name
 
     class _Reader(CalibrationDataReader):
@@ -112,15 +149,13 @@ def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndar
         )
         proto = onnx.load(str(quantized))
     metadata = dict(model.metadata)
+    motions = "/".join(f"{rho:.0f}" for rho in calibration_motions(model))
     metadata["precision"] = "int8"
-    motions = "/".join(f"{max(1.0, float(metadata.get('rho', 32.0)) * f):.0f}" for f in CALIBRATION_MOTION)
-    metadata["calibration"] = (f"{len(calibration)} synthetic pairs (rho {motions}, illumination shifts) "
+    metadata["calibration"] = (f"{len(standardised)} synthetic pairs (rho {motions}, illumination shifts) "
                                f"from {len(sources)} images, seed {seed}; static per-channel QDQ, min/max ranges")
     metadata["quantized_from"] = json.dumps({"file": Path(source).name, "steps": metadata.get("steps")})
-    del proto.metadata_props[:]
-    for key, value in metadata.items():
-        entry = proto.metadata_props.add()
-        entry.key, entry.value = key, value
+    write_metadata(proto, metadata)
+    onnx.checker.check_model(proto)
 
     with tempfile.TemporaryDirectory(prefix="udh-quantize-") as scratch:
         candidate = Path(scratch) / "candidate.onnx"
@@ -128,8 +163,10 @@ def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndar
         int8 = OnnxHomographyModel.load(candidate, device="cpu")
         check = calibration_patches(sources, model, 16, seed + 1)
         drift = np.abs(int8.predict_offsets(check) - model.predict_offsets(check))
+    if not np.isfinite(drift).all():
+        raise UdhError(f"{source}: the int8 network gives non-finite offsets; it cannot be used")
     median_drift, max_drift = float(np.median(drift)), float(drift.max())
-    if not np.isfinite(drift).all() or median_drift > MAX_MEDIAN_DRIFT_PX:
+    if median_drift > MAX_MEDIAN_DRIFT_PX:
         raise UdhError(f"{source}: the int8 network drifts {median_drift:.2f} px (median) from the float32 one, more "
                        f"than {MAX_MEDIAN_DRIFT_PX} px; calibrate on more, or more typical, images (--data)")
     atomic_write_bytes(output, proto.SerializeToString())

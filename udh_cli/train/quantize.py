@@ -3,7 +3,8 @@
 Why: the network pass is most of a single-round estimate on a CPU, and there the convolutions were already
 running near the core's float32 peak (the 16x16 layers at about 47 GMAC/s on one core). int8
 convolutions ran about 1.8x faster on this AVX2 machine; the shipped coarse network's pass went from 1.7 to
-1.1 ms on one core (models/README.md), and the cascade's accuracy was unchanged on the bench pairs.
+1.1 ms on one core (models/README.md), with the cascade's median accuracy unchanged on the bench pairs (its
+tails slightly worse).
 
 What is quantized (measured on the ``corr`` networks, per-op onnxruntime profile, one core):
 
@@ -18,6 +19,7 @@ Needs the ``onnx`` package (the ``[train]`` extra) for onnxruntime's quantisatio
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import tempfile
 from pathlib import Path
@@ -28,7 +30,7 @@ import numpy as np
 from udh_cli.errors import UdhError
 from udh_cli.images import atomic_write_bytes, check_output_path
 from udh_cli.onnx_model import OnnxHomographyModel, write_metadata
-from udh_cli.synthetic import PairConfig, make_pairs
+from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs, split_holdout
 
 # Calibration motions, as fractions of the rho the network was trained at: a cascade shows a network large
 # motion in its first round and small residuals after, and both need their activation ranges covered.
@@ -73,8 +75,6 @@ def quantize_from_folders(source: str | Path, output: str | Path | None, folders
     """What ``udh quantize`` does: :func:`quantize_model` calibrated on up to ``images`` images drawn (by
     ``seed``) from the training part of ``folders`` (every tenth image, the benchmarks' held-out split, is
     left out). ``output`` ``None`` writes ``<source stem>-int8.onnx`` beside ``source``."""
-    from udh_cli.synthetic import list_images, load_sources, split_holdout
-
     source = Path(source)
     output = source.with_name(f"{source.stem}-int8.onnx") if output is None else Path(output)
     _check_request(source, output, pairs_per_motion, seed)
@@ -91,7 +91,12 @@ def quantize_from_folders(source: str | Path, output: str | Path | None, folders
 
 
 def _check_request(source: Path, output: Path, pairs_per_motion: int, seed: int) -> Path:
-    """Fail before any work on a bad output path, an output that would replace the source, or bad numbers."""
+    """Fail before any work on a missing onnx package or source, a bad output path, an output that would
+    replace the source, or bad numbers."""
+    if importlib.util.find_spec("onnx") is None:  # onnxruntime's quantisation tools need it
+        raise UdhError("quantisation needs the onnx package: pip install onnx (it comes with udh[train])")
+    if not Path(source).is_file():
+        raise UdhError(f"{source}: no such model file")
     output = check_output_path(output, (".onnx",))
     if output.resolve() == Path(source).resolve():
         raise UdhError(f"{output}: the int8 copy would replace the float32 network it is made from; give another --output")
@@ -115,14 +120,11 @@ def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndar
 
     Returns ``{"path", "median_drift_px", "max_drift_px", "check_pairs", "metadata"}``.
     """
-    try:
-        import onnx
-        from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
-        from onnxruntime.quantization.shape_inference import quant_pre_process
-    except ImportError:
-        raise UdhError("quantisation needs the onnx package: pip install onnx (it comes with udh[train])") from None
-
     output = _check_request(Path(source), Path(output), pairs_per_motion, seed)
+    import onnx
+    from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
     model = OnnxHomographyModel.load(source, device="cpu")
     if model.metadata.get("precision") == "int8":
         raise UdhError(f"{source}: already an int8 model; quantize the float32 network it came from")

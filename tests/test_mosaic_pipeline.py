@@ -190,3 +190,5 @@ def test_the_pair_cache_knows_both_networks_of_a_cascade_inside_auto():
     # Retraining (or requantizing) either network re-estimates; so does switching precision.
     assert files() == {"udh-unsupervised-int8.onnx", "udh-unsupervised-refine-int8.onnx"}
     assert files(precision="fp32") == {"udh-unsupervised.onnx", "udh-unsupervised-refine.onnx"}
+    # The default and an explicit int8 are the same estimator: a resumed mosaic keeps its pairs.
+    assert estimator_identity(create_estimator("auto")) == estimator_identity(create_estimator("auto", precision="int8"))

@@ -71,7 +71,7 @@ class DeepEstimator(Estimator):
     stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        from udh_cli.models_catalog import check_precision, has_shipped, shipped_onnx
+        from udh_cli.models_catalog import PRECISIONS, check_precision, has_shipped, shipped_onnx
 
         if self.iterations < 1 or self.batch_size < 1:  # 0 rounds would answer the identity as if estimated
             raise UdhError(f"method '{self.name}': iterations ({self.iterations}) and batch_size ({self.batch_size}) must be at least 1")
@@ -94,6 +94,10 @@ class DeepEstimator(Estimator):
                 raise UdhError(f"{refine_path}: the refinement network takes {refiner.input_size}px inputs but "
                                f"{path} takes {self.network.input_size}px; give two models of the same input size")
             self.stages.append((refiner, self.refine_rounds))
+        if self.precision is None and self.loaded_precision() in PRECISIONS:
+            # Record what was chosen, so that settings (mosaic sidecars, the pair cache) say what ran and
+            # precision=None and precision="int8" name the same estimator.
+            self.precision = self.loaded_precision()
 
     def with_default_rounds(self) -> "DeepEstimator":
         """The same estimator and loaded networks with the default rounds (the refinement stage only if

@@ -87,6 +87,8 @@ class RefinedEstimator(Estimator):
                   "refine_model": self.refine_model, "refine_rounds": refine_rounds, "precision": self.precision}
         takes = estimator_options(self.initial)
         self._first = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes})
+        if self.precision is None:
+            self.precision = getattr(self._first, "precision", None)  # what the network chose (see DeepEstimator)
         # Escalation: a learned initial again, with its default (longer) rounds, sharing the loaded networks.
         self._second = self._first.with_default_rounds() if self.escalate and isinstance(self._first, DeepEstimator) else None
         if self._second is not None and len(self._second.rounds()) <= len(self._first.rounds()):

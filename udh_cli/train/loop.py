@@ -394,4 +394,10 @@ def _raise_interrupt(signum, frame):  # noqa: ARG001 - signal handler signature
 
 def train(config: TrainConfig, resume: bool = False, threads: int | None = None, progress: bool = True) -> dict[str, Any]:
     """Library entry point of ``udh train``: returns the final metrics record."""
-    return Trainer(config, resume=resume, threads=threads, progress=progress).run()
+    last = Trainer(config, resume=resume, threads=threads, progress=progress).run()
+    if torch.distributed.is_initialized():
+        # Every rank leaves together: a rank that exited while another was still finishing its checkpoint
+        # collective made gloo abort the slower one (SIGABRT, seen once in CI under load).
+        torch.distributed.barrier()
+        torch.distributed.destroy_process_group()
+    return last

@@ -80,6 +80,10 @@ def test_quantizing_twice_over_itself_or_too_far_is_refused(tiny_float_and_int8,
         quantize.quantize_model(source, source, _sources(), pairs_per_motion=4)
     with pytest.raises(UdhError, match=r"--seed \(-1\)"):
         quantize.quantize_model(source, tmp_path / "x.onnx", _sources(), seed=-1)
+    broken = OnnxHomographyModel.load(source, "cpu")
+    broken.metadata["rho"] = "lots"
+    with pytest.raises(UdhError, match="unusable training rho"):
+        quantize.calibration_motions(broken)
     monkeypatch.setattr(quantize, "MAX_MEDIAN_DRIFT_PX", -1.0)  # any drift is too much
     with pytest.raises(UdhError, match="drifts"):
         quantize.quantize_model(source, tmp_path / "refused.onnx", _sources(), pairs_per_motion=4)

@@ -42,7 +42,12 @@ MAX_MEDIAN_DRIFT_PX = 0.5  # an int8 network further than this from its source (
 def calibration_motions(model: OnnxHomographyModel) -> list[float]:
     """The rho values (px of the S x S input) to calibrate at: :data:`CALIBRATION_MOTION` of the model's
     training rho (metadata ``rho``; 32 px if absent), at least 1 px."""
-    rho = float(model.metadata.get("rho", 32.0))
+    try:
+        rho = float(model.metadata.get("rho", 32.0))
+    except ValueError:
+        rho = float("nan")
+    if not 0.0 < rho < model.input_size:
+        raise UdhError(f"{model.path}: its metadata gives an unusable training rho ({model.metadata.get('rho')!r}); re-export it with `udh export-onnx`")
     return [max(1.0, rho * fraction) for fraction in CALIBRATION_MOTION]
 
 

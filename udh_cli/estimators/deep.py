@@ -71,13 +71,13 @@ class DeepEstimator(Estimator):
     stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        from udh_cli.models_catalog import PRECISIONS, check_precision, has_shipped, shipped_onnx
+        from udh_cli.models_catalog import PRECISIONS, check_precision, shipped_onnx
 
         if self.iterations < 1 or self.batch_size < 1:  # 0 rounds would answer the identity as if estimated
             raise UdhError(f"method '{self.name}': iterations ({self.iterations}) and batch_size ({self.batch_size}) must be at least 1")
         if self.refine_rounds is None:
-            shipped_pair = self.model is None and has_shipped(f"{self.name}-refine", precision=None)
-            self.refine_rounds = DEFAULT_REFINE_ROUNDS if self.refine_model is not None or shipped_pair else 0
+            has_stage = has_refinement_stage(self.name, self.model, self.refine_model)
+            self.refine_rounds = DEFAULT_REFINE_ROUNDS if has_stage else 0
         if self.search < 0:
             raise UdhError(f"method '{self.name}': search ({self.search}) must be 0 (off) or more")
         if self.refine_rounds < 0:
@@ -94,10 +94,11 @@ class DeepEstimator(Estimator):
                 raise UdhError(f"{refine_path}: the refinement network takes {refiner.input_size}px inputs but "
                                f"{path} takes {self.network.input_size}px; give two models of the same input size")
             self.stages.append((refiner, self.refine_rounds))
-        if self.precision is None and self.loaded_precision() in PRECISIONS:
+        loaded = self.loaded_precision()
+        if self.precision is None and loaded in PRECISIONS:
             # Record what was chosen, so that settings (mosaic sidecars, the pair cache) say what ran and
             # precision=None and precision="int8" name the same estimator.
-            self.precision = self.loaded_precision()
+            self.precision = loaded
 
     def with_default_rounds(self) -> "DeepEstimator":
         """The same estimator and loaded networks with the default rounds (the refinement stage only if
@@ -176,13 +177,14 @@ class DeepEstimator(Estimator):
                     small_h[i], scores[i], searched[i] = h, score, True
         s = self.network.input_size
         per_pair_ms = (time.perf_counter() - start) * 1e3 / len(pairs)
+        precision = self.loaded_precision()
         out = []
         for (a, b), h, confidence, was_searched in zip(pairs, small_h, scores, searched):
             valid = geometry.is_valid_homography(h, s, s)
             full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
             failure = None if valid else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
-                       "precision": self.loaded_precision()}
+                       "precision": precision}
             out.append(self._checked(full, confidence, per_pair_ms, failure, details, a.shape))
         return out
 
@@ -245,6 +247,14 @@ class DeepEstimator(Estimator):
 
     def estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> Estimate:
         return self.estimate_many([(image_a, image_b)])[0]
+
+
+def has_refinement_stage(name: str, model: str | None, refine_model: str | None) -> bool:
+    """Whether the learned method ``name`` gets a refinement stage: a ``refine_model`` file is given, or no
+    ``model`` file is and a shipped ``<name>-refine`` network exists (at either precision)."""
+    from udh_cli.models_catalog import has_shipped
+
+    return refine_model is not None or (model is None and has_shipped(f"{name}-refine", precision=None))
 
 
 def _window(shape: tuple[int, ...], fx0: float, fy0: float, fx1: float, fy1: float) -> tuple[int, int, int, int]:

@@ -19,9 +19,8 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimate, Estimator
-from udh_cli.estimators.deep import DeepEstimator
+from udh_cli.estimators.deep import DeepEstimator, has_refinement_stage
 from udh_cli.estimators.registry import create_estimator, estimator_options
-from udh_cli.models_catalog import has_shipped
 from udh_cli.refine import PyramidEcc
 from udh_cli.verify import verification_score
 
@@ -81,8 +80,8 @@ class RefinedEstimator(Estimator):
         # The network's options go to the first estimator when it takes them (the learned ones do).
         # A model given alone runs alone, as with the network's own method, and so does a network with no
         # shipped refinement stage (supervised): their refine_rounds default to 0 there. An explicit value goes as is.
-        has_refiner = self.refine_model is not None or (self.model is None and has_shipped(f"{self.initial}-refine", precision=None))
-        refine_rounds = self.refine_rounds if self.refine_rounds is not None else (1 if has_refiner else None)
+        has_stage = has_refinement_stage(self.initial, self.model, self.refine_model)
+        refine_rounds = self.refine_rounds if self.refine_rounds is not None else (1 if has_stage else None)
         wanted = {"model": self.model, "device": self.device, "threads": self.threads, "iterations": self.iterations, "search": self.search,
                   "refine_model": self.refine_model, "refine_rounds": refine_rounds, "precision": self.precision}
         takes = estimator_options(self.initial)

@@ -396,8 +396,8 @@ def train(config: TrainConfig, resume: bool = False, threads: int | None = None,
     """Library entry point of ``udh train``: returns the final metrics record."""
     last = Trainer(config, resume=resume, threads=threads, progress=progress).run()
     if torch.distributed.is_initialized():
-        # Every rank leaves together: a rank that exited while another was still finishing its checkpoint
-        # collective made gloo abort the slower one (SIGABRT, seen once in CI under load).
+        # Every rank leaves together: once in CI, under load, a gloo rank aborted (SIGABRT) when its peer,
+        # rank 0, which hosts the rendezvous store, had already exited.
         torch.distributed.barrier()
         torch.distributed.destroy_process_group()
     return last

@@ -405,3 +405,14 @@ def test_is_valid_homography_accepts_mild_and_rejects_broken():
     assert not geometry.is_valid_homography(np.diag([30.0, 30.0, 1.0]), 320, 240)
     assert not geometry.is_valid_homography(np.diag([1 / 30, 1 / 30, 1.0]), 320, 240)
     assert geometry.is_valid_homography(np.diag([10.0, 10.0, 1.0]), 320, 240)
+
+
+@pytest.mark.parametrize("horizontal", [True, False])
+def test_mirror_matrix_is_cv2_flip_and_its_own_inverse(horizontal):
+    image = np.arange(7 * 5, dtype=np.float32).reshape(5, 7)
+    mirror = geometry.mirror_matrix(7, 5, horizontal)
+    flipped = cv2.flip(image, 1 if horizontal else 0)
+    for x, y in [(0, 0), (6, 0), (2, 3), (6, 4)]:
+        xm, ym = geometry.transform_points(mirror, np.array([[x, y]], float))[0]
+        assert flipped[int(round(ym)), int(round(xm))] == image[y, x]
+    np.testing.assert_allclose(mirror @ mirror, np.eye(3))

@@ -191,3 +191,19 @@ def test_accepts_path_strings(tmp_path):
     write_image(str(tmp_path / "s.png"), np.zeros((8, 8), np.uint8))
     assert read_image(str(tmp_path / "s.png")).shape == (8, 8)
     assert isinstance(read_image(Path(tmp_path / "s.png")), np.ndarray)
+
+
+def test_local_contrast_removes_gain_and_bias_that_vary_across_the_image():
+    from conftest import textured_image
+    from udh_cli.images import local_contrast
+
+    image = textured_image(seed=2).astype(np.float32) / 255
+    ys, xs = np.mgrid[0:240, 0:320].astype(np.float32)
+    gain, bias = 0.5 + xs / 320, 0.2 * ys / 240  # both change slowly across the image
+    plain, lit = local_contrast(image, 4.0), local_contrast(image * gain + bias, 4.0)
+    inner = (slice(20, -20), slice(20, -20))
+    assert lit.dtype == np.float32 and lit.shape == image.shape
+    assert abs(float(plain[inner].mean())) < 0.1 and 0.7 < float(plain[inner].std()) < 1.3
+    assert float(np.corrcoef(plain[inner].ravel(), lit[inner].ravel())[0, 1]) > 0.95
+    flat = local_contrast(np.full((64, 64), 0.5, np.float32) + np.random.default_rng(0).normal(0, 1e-3, (64, 64)).astype(np.float32), 4.0)
+    assert float(np.abs(flat).max()) < 0.5  # the floor keeps sensor noise from becoming texture

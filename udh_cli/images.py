@@ -113,6 +113,20 @@ def to_gray_float(image: np.ndarray) -> np.ndarray:
     return _unit_float(image)
 
 
+def local_contrast(gray: np.ndarray, sigma: float, floor: float = 0.01) -> np.ndarray:
+    """(H, W) float32 -> (H, W) float32 with zero local mean and unit local standard deviation.
+
+    Mean and deviation are Gaussian-weighted over ``sigma`` pixels. This removes illumination that varies
+    across the image (shading, vignetting, a lit and a shadowed side), which a single gain and bias cannot
+    model. ``floor`` (in the units of ``gray``, [0, 1]) caps the gain in flat regions, so that sensor noise
+    there is not amplified into texture.
+    """
+    mean = cv2.GaussianBlur(gray, (0, 0), sigma)
+    detail = gray - mean
+    deviation = np.sqrt(cv2.GaussianBlur(detail * detail, (0, 0), sigma))
+    return (detail / np.maximum(deviation, floor)).astype(np.float32)
+
+
 def _unit_float(image: np.ndarray) -> np.ndarray:
     """float32 copy of ``image`` with integer types scaled by their maximum, so full scale is 1."""
     if image.dtype.kind in "iu":

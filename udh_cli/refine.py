@@ -14,7 +14,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.ecc import EccEstimator
-from udh_cli.images import scaled_size, to_gray_float
+from udh_cli.images import local_contrast, scaled_size, to_gray_float
 
 
 @dataclass
@@ -43,6 +43,7 @@ class PyramidEcc:
     blur: tuple[int, ...] = (3, 3, 1)
     eps: float = 1e-5
     max_move: float = 0.25
+    contrast_sigma: float = 2.0
 
     def __post_init__(self) -> None:
         if len(self.iterations) < self.levels or len(self.blur) < self.levels:
@@ -68,6 +69,8 @@ class PyramidEcc:
             work_a, work_b = scaled_size(size_a, s), scaled_size(size_b, s)
             small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
             small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
+            if self.contrast_sigma > 0:
+                small_a, small_b = local_contrast(small_a, self.contrast_sigma), local_contrast(small_b, self.contrast_sigma)
             start = geometry.rescale_homography(current, size_a, work_a, size_b, work_b)
             ecc = EccEstimator(iterations=budget, eps=self.eps, gauss_filt_size=blur, min_correlation=0.0)
             try:

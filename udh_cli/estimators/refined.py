@@ -21,10 +21,12 @@ from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.deep import DeepEstimator, has_refinement_stage
 from udh_cli.estimators.registry import create_estimator, estimator_options
+from udh_cli.estimators.views import VIEWS, ViewEstimator
 from udh_cli.refine import PyramidEcc
 from udh_cli.verify import verification_score
 
 CLEAR_DROP = 0.05  # a refinement that lowers the score by more than this is discarded
+NEAR_SHARE = 0.01  # a refinement of a match-verified answer may move its corners by this share of A's diagonal
 
 
 @dataclass
@@ -73,7 +75,9 @@ class RefinedEstimator(Estimator):
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     escalate: bool = False
     fallback: str | None = None
+    views: tuple[str, ...] = ()
     min_score: float = 0.7
+    trusted_inliers: int = 15
     _first: Estimator = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -93,6 +97,8 @@ class RefinedEstimator(Estimator):
         if self._second is not None and len(self._second.rounds()) <= len(self._first.rounds()):
             self._second = None  # the first run is already as long: rerunning it would only repeat its answer
         self._fallback = create_estimator(self.fallback) if self.fallback else None
+        network = self._second or self._first
+        self._views = [ViewEstimator(network, view) for view in self.views]
 
     def _refine_and_score(self, image_a, image_b, start: Estimate) -> tuple[np.ndarray | None, float, dict]:
         """Refine ``start`` photometrically and keep whichever of the two verifies better."""
@@ -136,6 +142,20 @@ class RefinedEstimator(Estimator):
         first answer; the second opinions are under their own keys."""
         return score < self.min_score or "refine_failure" in details
 
+    def _matched(self, found: Estimate) -> bool:
+        """Whether a feature method's answer is verified by its own matches: at least ``trusted_inliers``
+        RANSAC inliers. On the held-out synthetic sets (1,200 pairs, rho 16-45, a quarter occluded) no SIFT
+        answer with 15 or more inliers was wrong; with 12, 3 were."""
+        return found.ok and found.details.get("inliers", 0) >= self.trusted_inliers
+
+    @staticmethod
+    def _near(refined: np.ndarray | None, start: np.ndarray, shape_a: tuple[int, ...]) -> bool:
+        """Whether ``refined`` moved no corner of A by more than :data:`NEAR_SHARE` of A's diagonal from ``start``."""
+        if refined is None:
+            return False
+        height, width = shape_a[:2]
+        return float(geometry.corner_errors(refined, start, width, height).max()) <= NEAR_SHARE * float(np.hypot(width, height))
+
     def _finish(self, image_a, image_b, start: Estimate, first_ms: float) -> Estimate:
         started = time.perf_counter()
         homography, score, details = self._refine_and_score(image_a, image_b, start)
@@ -147,11 +167,20 @@ class RefinedEstimator(Estimator):
         opinions = [("fallback", self._fallback.name, self._fallback)] if self._fallback is not None else []
         if self._second is not None:
             opinions.append(("escalated", "escalated", self._second))
+        opinions += [(view.view, view.view, view) for view in self._views]
         for key, used, estimator in opinions:
             if not doubted:
                 break
-            other, other_score, other_details = self._refine_and_score(image_a, image_b, estimator.estimate(image_a, image_b))
+            found = estimator.estimate(image_a, image_b)
+            other, other_score, other_details = self._refine_and_score(image_a, image_b, found)
             details[key] = {"method": estimator.name, "score": other_score, **other_details}
+            if self._matched(found):
+                # Many matches agreeing on one answer outvote the photometric score, which occluders, surf or
+                # a wrong shift of a smooth scene can fool; the refinement is kept only if it stays by them.
+                homography = other if self._near(other, found.homography, image_a.shape) else found.homography
+                score = max(other_score, found.confidence)
+                details["used"], details["verified_by"] = used, "matches"
+                break
             if other_score > score:
                 homography, score = other, other_score
                 details["used"] = used
@@ -168,3 +197,4 @@ class AutoEstimator(RefinedEstimator):
     name: ClassVar[str] = "auto"
     fallback: str | None = "sift"
     escalate: bool = True
+    views: tuple[str, ...] = VIEWS

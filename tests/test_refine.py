@@ -318,7 +318,7 @@ def occluded(image: np.ndarray, seed: int = 0) -> np.ndarray:
 
 
 def test_an_answer_many_matches_agree_on_outvotes_the_photometric_score():
-    """Occluders (or surf) lower a right answer's score; 15 or more RANSAC inliers were never wrong on the
+    """Occluders (or surf) lower a right answer's score; 20 or more RANSAC inliers were never wrong on the
     held-out sets, so such an answer is kept and not escalated, and its confidence is the matcher's."""
     a, b, truth = known_pair(2)
     b = occluded(b)
@@ -331,10 +331,23 @@ def test_an_answer_many_matches_agree_on_outvotes_the_photometric_score():
     assert "escalated" not in estimate.details and estimate.confidence >= 0.9
     # ECC may polish the matched answer but not leave it: no corner moves by over 1 % of the diagonal (4 px).
     assert geometry.corner_errors(estimate.homography, truth, 320, 240).max() <= NEAR_SHARE * np.hypot(320, 240)
-    # Few inliers: only the score counts, and the pair is escalated.
-    auto._fallback = Matches(truth, inliers=8)
+
+
+def test_fewer_matches_ask_for_more_opinions_and_win_only_when_nothing_verifies():
+    a, b, truth = known_pair(2)
+    wrong = Answers(geometry.translation(30.0, 20.0) @ truth)
+    # Occluded: nothing verifies photometrically, so the 8 matches' answer is kept after the other opinions.
+    auto = AutoEstimator(initial="identity")
+    auto._first, auto._second, auto._fallback = wrong, wrong, Matches(truth, inliers=8)
+    estimate = auto.estimate(a, occluded(b))
+    assert "escalated" in estimate.details and "mirrored" in estimate.details
+    assert estimate.details["used"] == "matches" and estimate.details["verified_by"] == "matches"
+    assert geometry.corner_errors(estimate.homography, truth, 320, 240).max() <= NEAR_SHARE * np.hypot(320, 240)
+    # Clear images: the longer cascade's answer verifies and beats 8 matches agreeing on a wrong one.
+    auto._second, auto._fallback = Answers(truth), Matches(wrong.homography, inliers=8)
     estimate = auto.estimate(a, b)
-    assert "verified_by" not in estimate.details and "escalated" in estimate.details
+    assert estimate.details["used"] == "escalated" and "verified_by" not in estimate.details
+    assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3 and estimate.confidence >= auto.min_score
 
 
 def test_views_are_the_last_opinions_and_the_best_verified_one_is_kept():

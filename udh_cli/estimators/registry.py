@@ -24,7 +24,7 @@ ESTIMATORS: dict[str, tuple[str, str, str]] = {
     "unsupervised": ("udh_cli.estimators.deep", "UnsupervisedEstimator", "the unsupervised deep network (onnxruntime)"),
     "supervised": ("udh_cli.estimators.deep", "SupervisedEstimator", "supervised HomographyNet (onnxruntime)"),
     "unsupervised+ecc": ("udh_cli.estimators.refined", "RefinedEstimator", "unsupervised network, then coarse-to-fine ECC"),
-    "auto": ("udh_cli.estimators.refined", "AutoEstimator", "unsupervised+ecc, verified; SIFT+ECC, then the full cascade, when it does not verify"),
+    "auto": ("udh_cli.estimators.refined", "AutoEstimator", "unsupervised+ecc, verified; SIFT+ECC, the full cascade, then mirrored/flipped/swapped views while it does not verify"),
 }
 
 

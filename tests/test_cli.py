@@ -47,7 +47,7 @@ def test_json_output(files):
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
     assert {"method", "homography", "elapsed_ms", "confidence"} <= set(report)
-    assert report["method"] == "sift" and report["ok"] is True
+    assert report["method"] == "auto" and report["ok"] is True  # the default method
     homography = np.asarray(report["homography"])
     assert homography.shape == (3, 3)
     assert float(geometry.mace(homography, TRUTH, WIDTH, HEIGHT)) < 0.2
@@ -71,7 +71,7 @@ def test_other_methods_and_colour_jpeg(files, method):
 def test_table_output_and_viz(files, tmp_path):
     picture = tmp_path / "result.png"
     result = CliRunner().invoke(
-        cli.app, ["estimate", str(files["a.png"]), str(files["b16.png"]), "--gt", str(files["truth.txt"]), "--viz", str(picture), "--best-features", "200"]
+        cli.app, ["estimate", str(files["a.png"]), str(files["b16.png"]), "--gt", str(files["truth.txt"]), "--viz", str(picture), "-m", "sift", "--best-features", "200"]
     )
     assert result.exit_code == 0, result.output
     for text in ("pixels of A -> pixels of B", "top-left", "bottom-left", "corner error", "confidence", str(picture)):
@@ -91,6 +91,7 @@ def test_table_output_and_viz(files, tmp_path):
         (["a.png", "text.png"], "not a readable image"),
         (["one.png", "a.png"], "1x1 pixels"),
         (["flat.png", "flat.png", "-m", "sift"], "sift found no homography"),
+        (["flat.png", "flat.png"], "auto found no homography: no answer aligns the images"),  # the default method
         (["flat.png", "a.png", "-m", "orb"], "orb found no homography"),
         (["flat.png", "a.png", "-m", "ecc"], "ecc found no homography"),
         (["a.png", "b16.png", "--gt", "bad_gt.txt"], "not a 3x3 homography"),

@@ -139,10 +139,11 @@ def test_auto_keeps_a_verified_answer_and_refined_alone_does_not_fall_back():
     assert not failed.ok and failed.confidence == 0.0
 
 
-def test_textureless_images_give_no_confident_answer():
+def test_textureless_images_give_a_clear_failure_not_an_answer():
     flat = np.full((240, 320), 128, np.uint8)
     estimate = AutoEstimator(initial="identity").estimate(flat, flat)
-    assert estimate.confidence == 0.0
+    assert not estimate.ok and estimate.confidence == 0.0
+    assert "no answer aligns the images" in estimate.failure
 
 
 def test_gradient_ncc_is_not_fooled_by_a_smooth_scene_under_a_wrong_shift():

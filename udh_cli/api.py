@@ -7,12 +7,12 @@ from typing import Any
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.estimators import Estimate, create_estimator, require_ok
+from udh_cli.estimators import DEFAULT_METHOD, Estimate, create_estimator, require_ok
 from udh_cli.homography_files import read_homography
 from udh_cli.images import IMAGE_SUFFIXES, check_output_path, read_image, write_image
 
 
-def estimate_files(path_a: str | Path, path_b: str | Path, method: str = "sift", **options: Any) -> Estimate:
+def estimate_files(path_a: str | Path, path_b: str | Path, method: str = DEFAULT_METHOD, **options: Any) -> Estimate:
     """Read two image files and estimate ``b_from_a`` in their full-resolution pixels.
 
     ``options`` go to the estimator (e.g. ``best_features=50`` for sift). Raises :class:`UdhError` for
@@ -25,7 +25,7 @@ def estimate_files(path_a: str | Path, path_b: str | Path, method: str = "sift",
 def estimate_report(
     path_a: str | Path,
     path_b: str | Path,
-    method: str = "sift",
+    method: str = DEFAULT_METHOD,
     *,
     gt: str | Path | None = None,
     viz: str | Path | None = None,

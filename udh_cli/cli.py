@@ -15,6 +15,7 @@ from rich.table import Table
 
 from udh_cli import __version__, geometry
 from udh_cli.errors import UdhError
+from udh_cli.estimators.registry import DEFAULT_METHOD
 
 app = typer.Typer(
     name="udh",
@@ -48,7 +49,7 @@ def _root(
 def estimate(
     image_a: Annotated[Path, typer.Argument(help="Image A (any size; colour or grey; 8 or 16 bit).")],
     image_b: Annotated[Path, typer.Argument(help="Image B.")],
-    method: Annotated[str, typer.Option("--method", "-m", help="sift, orb, ecc, identity, unsupervised, supervised, unsupervised+ecc or auto.")] = "sift",
+    method: Annotated[str, typer.Option("--method", "-m", help="auto (the default: the network, ECC and verification, with SIFT as a second opinion), sift, orb, ecc, identity, unsupervised, supervised or unsupervised+ecc.")] = DEFAULT_METHOD,
     json_output: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of tables.")] = False,
     viz: Annotated[Optional[Path], typer.Option("--viz", help="Write a picture: A's border warped onto B.")] = None,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Ground-truth homography file (A to B) to report the corner error.")] = None,
@@ -194,7 +195,7 @@ _MOSAIC = _MosaicConfig()
 def mosaic(
     source: Annotated[Path, typer.Argument(help="Folder of JPEG/PNG/TIFF frames (consecutive frames overlap), or a video file.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Mosaic image (.png or .tif keep the alpha channel). Split runs write NAME.partK.png.")] = Path("mosaic.png"),
-    method: Annotated[str, typer.Option("--method", "-m", help="Any registered estimator: sift, orb, ecc, ... and the learned methods.")] = _MOSAIC.method,
+    method: Annotated[str, typer.Option("--method", "-m", help="Any registered estimator: auto (the default), sift, orb, ecc, ... and the learned methods.")] = _MOSAIC.method,
     fallback: Annotated[Optional[str], typer.Option("--fallback", help="Method for the pairs --method fails or doubts (e.g. sift).")] = _MOSAIC.fallback,
     method_option: Annotated[Optional[list[str]], typer.Option("--method-option", "-O", help="KEY=VALUE option for --method, repeatable (e.g. model=my.onnx); VALUE is read as JSON when it parses.")] = None,
     work_size: Annotated[int, typer.Option("--work-size", help="Longest side, pixels, of the copies the estimators see; homographies are rescaled exactly.")] = _MOSAIC.work_size,

@@ -28,7 +28,9 @@ from udh_cli.refine import PyramidEcc
 from udh_cli.verify import verification_score
 
 CLEAR_DROP = 0.05  # a refinement that lowers the score by more than this is discarded
-FALLBACK_OPTIONS: dict[str, dict[str, Any]] = {"sift": {"contrast_threshold": 0.002}}  # see fallback_options
+# See fallback_options. best_features bounds the matching time on large photos (8,000-11,000 keypoints at this
+# contrast on 800-px drone frames; quadratic in the count).
+FALLBACK_OPTIONS: dict[str, dict[str, Any]] = {"sift": {"contrast_threshold": 0.002, "best_features": 10000}}
 NEAR_SHARE = 0.01  # a refinement of a match-verified answer may move its corners by this share of A's diagonal
 
 
@@ -56,11 +58,11 @@ class RefinedEstimator(Estimator):
             out-scored the right one on copr and the mosaic fell apart; neither happens now.
         fallback: registry name tried first when the answer is doubted (None: never).
         fallback_options: the fallback's options; None: :data:`FALLBACK_OPTIONS` for its name. As the
-            fallback, SIFT keeps keypoints of a quarter of its own default contrast (0.005, not 0.02): the
+            fallback, SIFT keeps keypoints of a tenth of its own default contrast (0.002, not 0.02): the
             faint texture of dark or smooth patches then survives next to bright occluders. On the held-out
-            sets SIFT alone then failed on 0 % of the rho-32 pairs (2.3 % at 0.02), 4.3 % of the occluded ones
-            (16.3 %) and 14.7 % at rho 45 (17.0 %), in the same time on 128 x 128 patches; no answer with 20 or
-            more inliers was wrong (with 15, 3 of 1,200).
+            sets SIFT alone then failed on 0 % of the rho-32 pairs (2.3 % at 0.02), 2.0 % of the occluded ones
+            (16.3 %) and 14.3 % at rho 45 (17.0 %), in the same time on 128 x 128 patches; no answer with 20 or
+            more inliers was wrong (with 15, 2 of 1,200).
         views: the last opinions, while still doubted: the network (its longer cascade when it escalates) on
             these copies of the pair (:data:`~udh_cli.estimators.views.VIEWS`). For ``auto`` all three, in
             session 7: held-out rho-45 failures 3.7 -> 3.0 % and rho 32 0.3 -> 0 % at the same median time
@@ -216,6 +218,9 @@ class RefinedEstimator(Estimator):
             homography, score = supported[0], supported[1]
             details["used"], details["verified_by"] = supported[2], "matches"
         failure = None if homography is not None else (start.failure or "no estimate")
+        if homography is not None and score <= 0.0 and "verified_by" not in details:
+            # No evidence at all: a score of 0 means constant tiles, too little overlap or anti-correlation.
+            homography, failure = None, "no answer aligns the images (they may lack texture or not overlap)"
         elapsed = first_ms + (time.perf_counter() - started) * 1e3
         return self._checked(homography, score, elapsed, failure, details, image_a.shape)
 

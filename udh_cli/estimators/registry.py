@@ -27,6 +27,11 @@ ESTIMATORS: dict[str, tuple[str, str, str]] = {
     "auto": ("udh_cli.estimators.refined", "AutoEstimator", "unsupervised+ecc, verified; SIFT+ECC, the full cascade, then mirrored/flipped/swapped views while it does not verify"),
 }
 
+# The method of `udh estimate` and `udh mosaic` when none is given: the verified combination, which measured
+# best on the synthetic benchmark, graf1/graf3 and the example flight, and at least as well as SIFT on the real
+# flights (README, Results; session 7).
+DEFAULT_METHOD = "auto"
+
 
 def parse_key_value(item: str) -> tuple[str, Any] | None:
     """``"KEY=VALUE"`` from a command line -> ``(KEY, value)``, the value read as JSON when it parses

@@ -15,7 +15,7 @@ import numpy as np
 
 from udh_cli import __version__, geometry
 from udh_cli.errors import UdhError
-from udh_cli.estimators import Estimator, create_estimator
+from udh_cli.estimators import DEFAULT_METHOD, Estimator, create_estimator
 from udh_cli.estimators.registry import estimator_options
 from udh_cli.images import atomic_write_bytes, check_output_path, write_image
 from udh_cli.mosaic import composite as compositing
@@ -33,7 +33,6 @@ from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
 # The default method. SIFT: measured on the flights, the shipped networks are not yet accurate enough on real
 # consecutive frames, and "auto" is no better than SIFT there (README, Results). Switching needs no pipeline
 # change: the pipeline only uses the Estimator interface.
-DEFAULT_METHOD = "sift"
 OUTPUT_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 SIDECAR_FORMAT = "udh-mosaic/1"
 

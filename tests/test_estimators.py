@@ -149,6 +149,8 @@ def test_registry():
         ("sift", {"best_features": -3}, "best_features -3 must be at least 1"),
         ("orb", {"ratio": 0.0}, r"ratio 0.0 must be in \(0, 1\]"),
         ("ecc", {"iterations": 0}, "iterations 0 must be at least 1"),
+        ("sift", {"matcher": "brute"}, "matcher 'brute' must be bf or flann"),
+        ("orb", {"matcher": "flann"}, "flann needs float descriptors"),
     ],
 )
 def test_bad_option_values_fail_when_the_estimator_is_made(method, options, message):
@@ -156,6 +158,16 @@ def test_bad_option_values_fail_when_the_estimator_is_made(method, options, mess
     # every pair later or (best_features=-3) silently drop the three strongest keypoints.
     with pytest.raises(UdhError, match=message):
         create_estimator(method, **options)
+
+
+def test_flann_matching_agrees_with_brute_force_and_repeats_exactly():
+    truth = geometry.homography_from_offsets(np.array([[9, -6], [-7, 5], [6, 8], [-5, -7]], float), 320, 240)
+    a, b = warped_pair(truth, 320, 240, seed=4)
+    exact = create_estimator("sift", contrast_threshold=0.002).estimate(a, b)
+    flann = [create_estimator("sift", matcher="flann", contrast_threshold=0.002).estimate(a, b) for _ in range(2)]
+    assert flann[0].details["inliers"] >= 0.95 * exact.details["inliers"] > 0
+    assert geometry.mace(flann[0].homography, truth, 320, 240) < 0.3
+    np.testing.assert_array_equal(flann[0].homography, flann[1].homography)  # seeded: the same answer twice
 
 
 def test_option_values_of_a_kin_type_are_accepted():

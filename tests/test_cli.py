@@ -68,6 +68,20 @@ def test_other_methods_and_colour_jpeg(files, method):
     assert error < {"orb": 2.0, "ecc": 0.3, "identity": 30.0}[method]
 
 
+def test_an_unverified_answer_is_printed_with_a_warning(files, tmp_path):
+    """Two unrelated textured images: auto answers its best guess, says it is unconfirmed, and the JSON says so."""
+    from conftest import textured_image
+
+    other = tmp_path / "other.png"
+    cv2.imwrite(str(other), textured_image(WIDTH, HEIGHT, seed=99))
+    table = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(other)])
+    report = json.loads(CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(other), "--json"]).stdout)
+    assert table.exit_code == 0 and "did not verify" in table.stdout
+    assert report["ok"] and report["details"]["verified"] is False and report["confidence"] < 0.1
+    right = json.loads(CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(files["b16.png"]), "--json"]).stdout)
+    assert right["details"]["verified"] is True
+
+
 def test_table_output_and_viz(files, tmp_path):
     picture = tmp_path / "result.png"
     result = CliRunner().invoke(

@@ -13,7 +13,7 @@ from conftest import warped_pair
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimator
-from udh_cli.estimators.refined import NEAR_SHARE, AutoEstimator, RefinedEstimator
+from udh_cli.estimators.refined import NEAR_PX, AutoEstimator, RefinedEstimator
 from udh_cli.verify import verification_score
 from udh_cli.models_catalog import models_dir
 from udh_cli.refine import PyramidEcc
@@ -329,9 +329,9 @@ def test_an_answer_many_matches_agree_on_outvotes_the_photometric_score():
     auto._first, auto._second, auto._fallback = wrong, wrong, Matches(truth, inliers=40)
     estimate = auto.estimate(a, b)
     assert estimate.details["used"] == "matches" and estimate.details["verified_by"] == "matches"
-    assert "escalated" not in estimate.details and estimate.confidence >= 0.9
-    # ECC may polish the matched answer but not leave it: no corner moves by over 1 % of the diagonal (4 px).
-    assert geometry.corner_errors(estimate.homography, truth, 320, 240).max() <= NEAR_SHARE * np.hypot(320, 240)
+    assert "escalated" not in estimate.details and estimate.confidence >= 0.9 and estimate.details["verified"]
+    # ECC may polish the matched answer but not leave it: no corner moves by over NEAR_PX (2 px).
+    assert geometry.corner_errors(estimate.homography, truth, 320, 240).max() <= NEAR_PX
 
 
 def test_fewer_matches_ask_for_more_opinions_and_win_only_when_nothing_verifies():
@@ -343,7 +343,7 @@ def test_fewer_matches_ask_for_more_opinions_and_win_only_when_nothing_verifies(
     estimate = auto.estimate(a, occluded(b))
     assert "escalated" in estimate.details and "mirrored" in estimate.details
     assert estimate.details["used"] == "matches" and estimate.details["verified_by"] == "matches"
-    assert geometry.corner_errors(estimate.homography, truth, 320, 240).max() <= NEAR_SHARE * np.hypot(320, 240)
+    assert geometry.corner_errors(estimate.homography, truth, 320, 240).max() <= NEAR_PX
     # Clear images: the longer cascade's answer verifies and beats 8 matches agreeing on a wrong one.
     auto._second, auto._fallback = Answers(truth), Matches(wrong.homography, inliers=8)
     estimate = auto.estimate(a, b)
@@ -374,6 +374,6 @@ def test_views_are_the_last_opinions_and_the_best_verified_one_is_kept():
     auto._views = [ViewEstimator(right_when_mirrored, view) for view in ("flipped", "mirrored", "swapped")]
     estimate = auto.estimate(a, b)
     assert estimate.details["used"] == "mirrored" and "swapped" not in estimate.details  # settled: no more looks
-    assert estimate.details["flipped"]["score"] < 0.3
+    assert estimate.details["flipped"]["score"] < 0.3 and estimate.details["verified"]
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
     assert AutoEstimator.views == ("mirrored", "flipped", "swapped") and RefinedEstimator.views == ()

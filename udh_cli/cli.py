@@ -95,6 +95,9 @@ def _print_estimate(payload: dict) -> None:
     if "viz" in payload:
         summary += f"   picture: {payload['viz']}"
     console.print(summary)
+    if payload["details"].get("verified") is False:
+        console.print("[yellow]warning:[/yellow] this answer did not verify (a low alignment score and no matches "
+                      "that agree on it): it is the best found, and may be wrong")
 
 
 _PASSTHROUGH = {"allow_extra_args": True, "ignore_unknown_options": True}

@@ -33,7 +33,9 @@ CLEAR_DROP = 0.05  # a refinement that lowers the score by more than this is dis
 # 4-6x faster than bf (seneca's auto mosaic spent 1.9 s a pair in bf matching), and best_features bounds the
 # count on large photos.
 FALLBACK_OPTIONS: dict[str, dict[str, Any]] = {"sift": {"contrast_threshold": 0.002, "best_features": 10000, "matcher": "flann"}}
-NEAR_SHARE = 0.01  # a refinement of a match-verified answer may move its corners by this share of A's diagonal
+# How far (pixels of A) ECC may move a corner of an answer that matches verify. A fixed distance, not a share of
+# the image: on river1/river2 (1024x768, 1,460 SIFT inliers, a moving river) ECC pulled corners 9.8 px away.
+NEAR_PX = 2.0
 
 
 @dataclass
@@ -71,8 +73,8 @@ class RefinedEstimator(Estimator):
             (the few doubted pairs pay for them); occluded rho-32 pairs 14.0 -> 13.3 %.
         trusted_inliers: an opinion with at least this many RANSAC inliers (SIFT's, ORB's) is verified by its
             matches: it is kept whatever its photometric score, with its matcher's confidence if that is
-            higher, and no further opinion is asked; ECC may polish it by up to :data:`NEAR_SHARE` of A's
-            diagonal. With fewer inliers the opinions go on, and the matched answer is kept only if none
+            higher, and no further opinion is asked; ECC may polish it by up to :data:`NEAR_PX` at each
+            corner. With fewer inliers the opinions go on, and the matched answer is kept only if none
             verifies photometrically. Occluders, surf and moving water lower the photometric score of right
             answers: on brighton-beach ``auto`` left 5 of 18 frames unplaced before, all of which SIFT's
             matches place; on the occluded pairs this took failures from 13.3 to 1.7 % (with the fallback's
@@ -178,11 +180,11 @@ class RefinedEstimator(Estimator):
 
     @staticmethod
     def _near(refined: np.ndarray | None, start: np.ndarray, shape_a: tuple[int, ...]) -> bool:
-        """Whether ``refined`` moved no corner of A by more than :data:`NEAR_SHARE` of A's diagonal from ``start``."""
+        """Whether ``refined`` moved no corner of A by more than :data:`NEAR_PX` from ``start``."""
         if refined is None:
             return False
         height, width = shape_a[:2]
-        return float(geometry.corner_errors(refined, start, width, height).max()) <= NEAR_SHARE * float(np.hypot(width, height))
+        return float(geometry.corner_errors(refined, start, width, height).max()) <= NEAR_PX
 
     def _finish(self, image_a, image_b, start: Estimate, first_ms: float) -> Estimate:
         started = time.perf_counter()
@@ -206,8 +208,11 @@ class RefinedEstimator(Estimator):
             if found.ok and "inliers" in found.details:
                 # Matches agreeing on one answer say more than a photometric score that occluders, surf or a
                 # wrong shift of a smooth scene can fool; ECC's polish is kept only if it stays by them.
-                kept = other if self._near(other, found.homography, image_a.shape) else found.homography
-                supported = (kept, max(other_score, found.confidence), used)
+                if self._near(other, found.homography, image_a.shape):
+                    supported = (other, max(other_score, found.confidence), used)
+                else:
+                    details[key]["refinement_kept"] = False
+                    supported = (found.homography, max(other_details.get("start_score", 0.0), found.confidence), used)
                 if found.details["inliers"] >= self.trusted_inliers:
                     homography, score, doubted = supported[0], supported[1], False
                     details["used"], details["verified_by"] = used, "matches"
@@ -222,6 +227,7 @@ class RefinedEstimator(Estimator):
             # RANSAC's support does.
             homography, score = supported[0], supported[1]
             details["used"], details["verified_by"] = supported[2], "matches"
+        details["verified"] = not doubted or "verified_by" in details  # False: the best answer found, unconfirmed
         failure = None if homography is not None else (start.failure or "no estimate")
         if homography is not None and score <= 0.0 and "verified_by" not in details:
             # No evidence at all: a score of 0 means constant tiles, too little overlap or anti-correlation.

@@ -15,6 +15,9 @@ from udh_cli.estimators.base import Estimator
 from udh_cli.images import to_gray_float
 
 
+HAS_MASKED_ECC = hasattr(cv2, "findTransformECCWithMask")  # OpenCV 4.13 and 5 have it
+
+
 @dataclass
 class EccEstimator(Estimator):
     """Maximise the correlation coefficient between B and A warped by ``b_from_a``.
@@ -43,8 +46,12 @@ class EccEstimator(Estimator):
     def _estimate(self, image_a, image_b):
         return self.refine(image_a, image_b, self.init)
 
-    def refine(self, image_a, image_b, b_from_a: np.ndarray | None):
-        """Run ECC from ``b_from_a`` (or the identity); returns ``(b_from_a, correlation, details)``."""
+    def refine(self, image_a, image_b, b_from_a: np.ndarray | None, mask_b: np.ndarray | None = None):
+        """Run ECC from ``b_from_a`` (or the identity); returns ``(b_from_a, correlation, details)``.
+
+        ``mask_b``: (H_B, W_B) bool, the pixels of B that may count (all when None). Needs OpenCV's
+        ``findTransformECCWithMask`` (:data:`HAS_MASKED_ECC`).
+        """
         gray_a, gray_b = to_gray_float(image_a), to_gray_float(image_b)
         if float(gray_a.std()) < 1e-4 or float(gray_b.std()) < 1e-4:
             raise EstimationFailed("an image is constant; ECC needs texture")
@@ -54,9 +61,15 @@ class EccEstimator(Estimator):
         warp = geometry.invert(start).astype(np.float32)
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, self.iterations, self.eps)
         try:
-            correlation, warp = cv2.findTransformECC(
-                gray_b, gray_a, warp, cv2.MOTION_HOMOGRAPHY, criteria, None, self.gauss_filt_size
-            )
+            if mask_b is None:
+                correlation, warp = cv2.findTransformECC(
+                    gray_b, gray_a, warp, cv2.MOTION_HOMOGRAPHY, criteria, None, self.gauss_filt_size
+                )
+            else:
+                everywhere_a = np.ones(gray_a.shape, np.uint8)
+                correlation, warp = cv2.findTransformECCWithMask(
+                    gray_b, gray_a, mask_b.astype(np.uint8), everywhere_a, warp, cv2.MOTION_HOMOGRAPHY, criteria, self.gauss_filt_size
+                )
         except cv2.error as exc:
             raise EstimationFailed(f"ECC did not converge ({_opencv_reason(exc)})") from None
         if not np.isfinite(correlation) or correlation < self.min_correlation:

@@ -274,7 +274,6 @@ def translation(dx: float, dy: float) -> np.ndarray:
     return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
 
 
-
 def mirror_matrix(width: int, height: int, horizontal: bool = True) -> np.ndarray:
     """(3, 3) map from pixels of a ``width`` x ``height`` image to the same image mirrored left-right
     (``horizontal``, ``cv2.flip(image, 1)``: ``x' = w - 1 - x``) or upside down (``cv2.flip(image, 0)``:
@@ -282,6 +281,7 @@ def mirror_matrix(width: int, height: int, horizontal: bool = True) -> np.ndarra
     if horizontal:
         return np.array([[-1.0, 0.0, width - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     return np.array([[1.0, 0.0, 0.0], [0.0, -1.0, height - 1.0], [0.0, 0.0, 1.0]])
+
 
 # --------------------------------------------------------------------------------------- metrics
 

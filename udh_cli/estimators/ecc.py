@@ -15,7 +15,7 @@ from udh_cli.estimators.base import Estimator
 from udh_cli.images import to_gray_float
 
 
-HAS_MASKED_ECC = hasattr(cv2, "findTransformECCWithMask")  # OpenCV 4.13 and 5 have it
+HAS_MASKED_ECC = hasattr(cv2, "findTransformECCWithMask")  # recent OpenCV only (5.0.0 on the development machine)
 
 
 @dataclass

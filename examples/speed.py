@@ -4,7 +4,9 @@
 
 Runs every method on the same 320x240 pairs in one process (after a warm-up) and prints median times.
 "Whole estimate" = decode the two JPEGs from memory, convert, resize, run the method, and for the learned
-methods the DLT and the exact rescale to the original pixels. Times are medians over the pairs.
+methods the DLT and the exact rescale to the original pixels. Times are medians over the pairs, and so is the
+corner error of each method on the whole frames, at the corners of the patch the pair was drawn from (A's border
+is reflected texture where the warp left the source).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from udh_cli import geometry
 from udh_cli.estimators import create_estimator
 from udh_cli.onnx_model import OnnxHomographyModel
 from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs, split_holdout
@@ -38,6 +41,11 @@ def main() -> None:
     batch = make_pairs(sources, args.pairs, PairConfig(rho=32), np.random.default_rng(0))
     frames = [(cv2.imencode(".jpg", (batch.context_a[i, 0] * 255).astype(np.uint8))[1],
                cv2.imencode(".jpg", sources[batch.source_index[i]])[1]) for i in range(args.pairs)]
+    # A shows the source at source_from_a(x) (make_pairs), and B is the source: the frames' b_from_a is source_from_a.
+    corners = geometry.image_corners(batch.patch_a.shape[2], batch.patch_a.shape[1])
+    truths = [geometry.homography_from_points(corners + origin, corners + origin + offsets)
+              for origin, offsets in zip(batch.origin.astype(np.float64), batch.offsets.astype(np.float64))]
+    patch_corners = [corners + origin for origin in batch.origin.astype(np.float64)]
 
     networks = []
     for precision in ("int8", "fp32"):  # the shipped default (int8) and the float32 networks it was made from
@@ -62,8 +70,9 @@ def main() -> None:
     methods = {"unsupervised, 1 coarse round": ("unsupervised", single),
                "the same, fp32": ("unsupervised", {**single, "precision": "fp32"}),
                "unsupervised, default cascade": ("unsupervised", {"device": "cpu", "threads": args.threads}),
+               "auto (the default method)": ("auto", {"device": "cpu", "threads": args.threads}),
                "orb": ("orb", {}), "sift": ("sift", {})}
-    results = {}
+    results, errors = {}, {}
     for name, (method, options) in methods.items():
         estimator = create_estimator(method, **options)
         whole = []
@@ -71,12 +80,19 @@ def main() -> None:
             start = time.perf_counter()
             a = cv2.imdecode(jpeg_a, cv2.IMREAD_GRAYSCALE)
             b = cv2.imdecode(jpeg_b, cv2.IMREAD_GRAYSCALE)
-            estimator.estimate(a, b)
+            estimate = estimator.estimate(a, b)
             if i >= 3:  # warm-up
                 whole.append((time.perf_counter() - start) * 1e3)
+            found = estimate.homography if estimate.ok else np.eye(3)  # no answer: scored as no motion
+            # Scored where the pair was drawn, at the patch's corners (as `udh bench --mode full` does): the frame's
+            # own corners lie far outside the perturbed patch, where any error is magnified.
+            seen, true = geometry.transform_points(found, patch_corners[i]), geometry.transform_points(truths[i], patch_corners[i])
+            errors.setdefault(name, []).append(float(np.linalg.norm(seen - true, axis=1).mean()))
         results[name] = float(np.median(whole))
     for name, ms in results.items():
-        print(f"whole estimate, {name:>30}: median {ms:7.2f} ms per 320x240 pair  ({ms / results['sift']:.3f} x SIFT)")
+        error = np.array(errors[name])
+        print(f"whole estimate, {name:>30}: median {ms:7.2f} ms per 320x240 pair  ({ms / results['sift']:.3f} x SIFT); "
+              f"corner error median {np.median(error):.2f} px, {100 * np.mean(error > 10):.0f} % over 10 px")
 
 
 if __name__ == "__main__":

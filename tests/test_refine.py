@@ -407,3 +407,28 @@ def test_views_are_the_last_opinions_and_the_best_verified_one_is_kept():
     assert estimate.details["flipped"]["score"] < 0.3 and estimate.details["verified"]
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
     assert AutoEstimator.views == ("mirrored", "flipped", "swapped") and RefinedEstimator.views == ()
+
+
+def test_the_fallback_takes_its_role_options_unless_given_its_own():
+    """As auto's fallback SIFT keeps low-contrast keypoints and matches with FLANN; explicit options replace those."""
+    from udh_cli.estimators.refined import FALLBACK_OPTIONS
+
+    auto = AutoEstimator(initial="identity")
+    assert auto._fallback.contrast_threshold == FALLBACK_OPTIONS["sift"]["contrast_threshold"] == 0.002
+    assert auto._fallback.matcher == "flann" and auto._fallback.best_features == 10000
+    plain = AutoEstimator(initial="identity", fallback_options={})
+    assert plain._fallback.contrast_threshold == 0.02 and plain._fallback.matcher == "bf"  # SIFT's own defaults
+    assert AutoEstimator(initial="identity", fallback="orb")._fallback.name == "orb"  # no role options for orb
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"views": "mirrored"}, "views takes a list of names"),
+    ({"views": ["rotated"]}, "choose one of mirrored, flipped, swapped"),
+    ({"trusted_inliers": 3}, "must be at least 4"),
+    ({"fallback_options": {"colour": True}}, "does not take colour"),
+])
+def test_bad_auto_options_fail_when_it_is_made(options, message):
+    from udh_cli.errors import UdhError
+
+    with pytest.raises(UdhError, match=message):
+        AutoEstimator(initial="identity", **options)

@@ -55,7 +55,8 @@ class PyramidEcc:
             without ``findTransformECCWithMask``. A one-step robust weighting (0/1 weights): occluders, moving
             water and glints stop pulling the fit. Session 7, held-out pairs (median / p95): occluded rho 32
             0.21 -> 0.11 px median, rho 32 0.047 / 0.18 -> 0.040 / 0.13 px, rho 16 0.034 -> 0.026 px, failures
-            unchanged, about 1-2 ms more per pair. k = 3 gave 0.12 px on the occluded pairs, a second pass 0.10.
+            unchanged, 1-2 ms more per 128x128 pair (about 10 ms at 320x240: one more full-size ECC call).
+            k = 3 gave 0.12 px on the occluded pairs, a second pass 0.10.
         robust_iterations: the robust pass's iteration budget (it starts from a converged answer).
     """
 

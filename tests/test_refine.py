@@ -116,6 +116,10 @@ def test_local_contrast_normalisation_and_its_strong_perspective_bias():
 
 
 def test_pyramid_settings_are_checked():
+    with pytest.raises(ValueError, match="robust_iterations"):
+        PyramidEcc(robust_iterations=0)
+    with pytest.raises(ValueError, match="contrast_sigma"):
+        PyramidEcc(contrast_sigma=-1)
     with pytest.raises(ValueError, match="3 levels need"):
         PyramidEcc(blur=(3, 1))
     with pytest.raises(ValueError, match="odd and positive"):
@@ -416,6 +420,7 @@ def test_the_fallback_takes_its_role_options_unless_given_its_own():
     auto = AutoEstimator(initial="identity")
     assert auto._fallback.contrast_threshold == FALLBACK_OPTIONS["sift"]["contrast_threshold"] == 0.002
     assert auto._fallback.matcher == "flann" and auto._fallback.best_features == 10000
+    assert auto.fallback_options == FALLBACK_OPTIONS["sift"]  # recorded, so mosaic settings and caches say what ran
     plain = AutoEstimator(initial="identity", fallback_options={})
     assert plain._fallback.contrast_threshold == 0.02 and plain._fallback.matcher == "bf"  # SIFT's own defaults
     assert AutoEstimator(initial="identity", fallback="orb")._fallback.name == "orb"  # no role options for orb
@@ -426,9 +431,22 @@ def test_the_fallback_takes_its_role_options_unless_given_its_own():
     ({"views": ["rotated"]}, "choose one of mirrored, flipped, swapped"),
     ({"trusted_inliers": 3}, "must be at least 4"),
     ({"fallback_options": {"colour": True}}, "does not take colour"),
+    ({"min_score": 0.0}, r"must be in \(0, 1\]"),
 ])
 def test_bad_auto_options_fail_when_it_is_made(options, message):
     from udh_cli.errors import UdhError
 
     with pytest.raises(UdhError, match=message):
         AutoEstimator(initial="identity", **options)
+
+
+def test_a_polish_that_leaves_the_matches_is_dropped_and_the_details_say_so():
+    """ECC moving a matched answer by more than NEAR_PX is not kept, and what is returned is the matched answer."""
+    a, b, truth = known_pair(2)
+    off = geometry.translation(5.0, 0.0) @ truth  # ECC pulls this 5 px back towards the truth
+    auto = AutoEstimator(initial="identity")
+    wrong = Answers(geometry.translation(30.0, 20.0) @ truth)
+    auto._first, auto._second, auto._fallback, auto._views = wrong, wrong, Matches(off, inliers=8), []
+    estimate = auto.estimate(a, b)
+    assert estimate.details["fallback"]["refinement_kept"] is False
+    np.testing.assert_allclose(estimate.homography, off / off[2, 2], atol=1e-9)

@@ -76,6 +76,9 @@ class PyramidEcc:
                              f"(got {len(self.iterations)} and {len(self.blur)})")
         if any(size < 1 or size % 2 == 0 for size in self.blur):
             raise ValueError(f"PyramidEcc: blur sizes {self.blur} must be odd and positive")
+        if not (self.contrast_sigma >= 0 and self.robust_k >= 0 and self.robust_iterations >= 1):
+            raise ValueError(f"PyramidEcc: contrast_sigma ({self.contrast_sigma}) and robust_k ({self.robust_k}) must be "
+                             f"0 (off) or more, robust_iterations ({self.robust_iterations}) at least 1")
 
     def refine(self, image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.ndarray) -> tuple[np.ndarray, float]:
         """Returns the refined ``b_from_a`` (pixels of the given images) and the final correlation.

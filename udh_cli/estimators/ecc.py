@@ -55,6 +55,10 @@ class EccEstimator(Estimator):
         gray_a, gray_b = to_gray_float(image_a), to_gray_float(image_b)
         if float(gray_a.std()) < 1e-4 or float(gray_b.std()) < 1e-4:
             raise EstimationFailed("an image is constant; ECC needs texture")
+        if mask_b is not None:
+            if np.shape(mask_b) != gray_b.shape:
+                raise ValueError(f"mask_b has shape {np.shape(mask_b)}; image B is {gray_b.shape}")
+            mask_b = (np.asarray(mask_b) > 0).astype(np.uint8)
         start = np.eye(3) if b_from_a is None else np.asarray(b_from_a, dtype=np.float64)
         # findTransformECC(template, input, warp) finds warp with input(warp(x)) ~ template(x): with
         # template B and input A, warp is a_from_b, the inverse of our convention.
@@ -68,7 +72,7 @@ class EccEstimator(Estimator):
             else:
                 everywhere_a = np.ones(gray_a.shape, np.uint8)
                 correlation, warp = cv2.findTransformECCWithMask(
-                    gray_b, gray_a, mask_b.astype(np.uint8), everywhere_a, warp, cv2.MOTION_HOMOGRAPHY, criteria, self.gauss_filt_size
+                    gray_b, gray_a, mask_b, everywhere_a, warp, cv2.MOTION_HOMOGRAPHY, criteria, self.gauss_filt_size
                 )
         except cv2.error as exc:
             raise EstimationFailed(f"ECC did not converge ({_opencv_reason(exc)})") from None

@@ -61,7 +61,7 @@ class RefinedEstimator(Estimator):
             In session 2, escalating before the fallback and with the untiled score, a wrong escalated answer
             out-scored the right one on copr and the mosaic fell apart; neither happens now.
         fallback: registry name tried first when the answer is doubted (None: never).
-        fallback_options: the fallback's options; None: :data:`FALLBACK_OPTIONS` for its name. As the
+        fallback_options: the fallback's options; None: :data:`FALLBACK_OPTIONS` for its name (then recorded here). As the
             fallback, SIFT keeps keypoints of a tenth of its own default contrast (0.002, not 0.02): the
             faint texture of dark or smooth patches then survives next to bright occluders. On the held-out
             sets SIFT alone then failed on 0 % of the rho-32 pairs (2.3 % at 0.02), 2.0 % of the occluded ones
@@ -87,7 +87,9 @@ class RefinedEstimator(Estimator):
     """
 
     name: ClassVar[str] = "unsupervised+ecc"
-    verifies_itself: ClassVar[bool] = True  # its confidence is the NCC score of the aligned images
+    # Its confidence is the NCC score of the aligned images (or, for an answer matches verify, the higher of
+    # that and the matcher's confidence).
+    verifies_itself: ClassVar[bool] = True
     initial: str = "unsupervised"
     model: str | None = None
     device: str = "auto"
@@ -125,10 +127,13 @@ class RefinedEstimator(Estimator):
         if self._second is not None and len(self._second.rounds()) <= len(self._first.rounds()):
             self._second = None  # the first run is already as long: rerunning it would only repeat its answer
         if self.fallback:
-            options = FALLBACK_OPTIONS.get(self.fallback, {}) if self.fallback_options is None else self.fallback_options
-            self._fallback = create_estimator(self.fallback, **options)
+            if self.fallback_options is None:  # record what runs, so settings (mosaic sidecars, the pair cache) say it
+                self.fallback_options = dict(FALLBACK_OPTIONS.get(self.fallback, {}))
+            self._fallback = create_estimator(self.fallback, **self.fallback_options)
         else:
             self._fallback = None
+        if not 0.0 < self.min_score <= 1.0:
+            raise UdhError(f"method '{self.name}': min_score ({self.min_score}) must be in (0, 1]")
         if isinstance(self.views, str) or not all(isinstance(view, str) for view in self.views):
             raise UdhError(f"method '{self.name}': views takes a list of names ({', '.join(VIEWS)}), not {self.views!r}")
         network = self._second or self._first
@@ -204,15 +209,15 @@ class RefinedEstimator(Estimator):
                 break
             found = estimator.estimate(image_a, image_b)
             other, other_score, other_details = self._refine_and_score(image_a, image_b, found)
-            details[key] = {"method": estimator.name, "score": other_score, **other_details}
-            if found.ok and "inliers" in found.details:
+            matched = found.ok and "inliers" in found.details
+            if matched and not self._near(other, found.homography, image_a.shape):
                 # Matches agreeing on one answer say more than a photometric score that occluders, surf or a
-                # wrong shift of a smooth scene can fool; ECC's polish is kept only if it stays by them.
-                if self._near(other, found.homography, image_a.shape):
-                    supported = (other, max(other_score, found.confidence), used)
-                else:
-                    details[key]["refinement_kept"] = False
-                    supported = (found.homography, max(other_details.get("start_score", 0.0), found.confidence), used)
+                # wrong shift of a smooth scene can fool: ECC's polish stands only if it stays by them.
+                other, other_score = found.homography, other_details.get("start_score", 0.0)
+                other_details["refinement_kept"] = False
+            details[key] = {"method": estimator.name, "score": other_score, **other_details}
+            if matched:
+                supported = (other, max(other_score, found.confidence), used)
                 if found.details["inliers"] >= self.trusted_inliers:
                     homography, score, doubted = supported[0], supported[1], False
                     details["used"], details["verified_by"] = used, "matches"
@@ -227,18 +232,20 @@ class RefinedEstimator(Estimator):
             # RANSAC's support does.
             homography, score = supported[0], supported[1]
             details["used"], details["verified_by"] = supported[2], "matches"
-        details["verified"] = not doubted or "verified_by" in details  # False: the best answer found, unconfirmed
         failure = None if homography is not None else (start.failure or "no estimate")
         if homography is not None and score <= 0.0 and "verified_by" not in details:
             # No evidence at all: a score of 0 means constant tiles, too little overlap or anti-correlation.
             homography, failure = None, "no answer aligns the images (they may lack texture or not overlap)"
+        # False: the best answer found, unconfirmed (a low score or a diverged ECC, and no matches agree on it).
+        details["verified"] = homography is not None and (not doubted or "verified_by" in details)
         elapsed = first_ms + (time.perf_counter() - started) * 1e3
         return self._checked(homography, score, elapsed, failure, details, image_a.shape)
 
 
 @dataclass
 class AutoEstimator(RefinedEstimator):
-    """The verified combination: network + ECC; SIFT (+ ECC) when the result is doubted, then the full cascade."""
+    """The verified combination: network + ECC; while the answer is doubted, SIFT (+ ECC), the full cascade, then
+    the cascade on mirrored, flipped and swapped views; SIFT's RANSAC matches verify its answers (module docstring)."""
 
     name: ClassVar[str] = "auto"
     fallback: str | None = "sift"

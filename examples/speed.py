@@ -41,11 +41,7 @@ def main() -> None:
     batch = make_pairs(sources, args.pairs, PairConfig(rho=32), np.random.default_rng(0))
     frames = [(cv2.imencode(".jpg", (batch.context_a[i, 0] * 255).astype(np.uint8))[1],
                cv2.imencode(".jpg", sources[batch.source_index[i]])[1]) for i in range(args.pairs)]
-    # A shows the source at source_from_a(x) (make_pairs), and B is the source: the frames' b_from_a is source_from_a.
-    corners = geometry.image_corners(batch.patch_a.shape[2], batch.patch_a.shape[1])
-    truths = [geometry.homography_from_points(corners + origin, corners + origin + offsets)
-              for origin, offsets in zip(batch.origin.astype(np.float64), batch.offsets.astype(np.float64))]
-    patch_corners = [corners + origin for origin in batch.origin.astype(np.float64)]
+    patch_truths, patch_size = batch.homographies(), batch.patch_a.shape[1]
 
     networks = []
     for precision in ("int8", "fp32"):  # the shipped default (int8) and the float32 networks it was made from
@@ -86,8 +82,9 @@ def main() -> None:
             found = estimate.homography if estimate.ok else np.eye(3)  # no answer: scored as no motion
             # Scored where the pair was drawn, at the patch's corners (as `udh bench --mode full` does): the frame's
             # own corners lie far outside the perturbed patch, where any error is magnified.
-            seen, true = geometry.transform_points(found, patch_corners[i]), geometry.transform_points(truths[i], patch_corners[i])
-            errors.setdefault(name, []).append(float(np.linalg.norm(seen - true, axis=1).mean()))
+            x0, y0 = (float(v) for v in batch.origin[i])
+            in_patch = geometry.translation(-x0, -y0) @ found @ geometry.translation(x0, y0)
+            errors.setdefault(name, []).append(float(geometry.mace(in_patch, patch_truths[i], patch_size, patch_size)))
         results[name] = float(np.median(whole))
     for name, ms in results.items():
         error = np.array(errors[name])

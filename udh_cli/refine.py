@@ -109,23 +109,24 @@ class PyramidEcc:
                 continue  # a coarse level may lack texture; the finer ones still get their chance
             current = geometry.rescale_homography(refined, work_a, size_a, work_b, size_b)
         if self.robust_k > 0 and HAS_MASKED_ECC:
-            current, correlation = self._robust_pass(small_a, small_b, (size_a, size_b), current, correlation, self.robust_iterations, blurs[-1])
+            current, correlation = self._robust_pass(small_a, small_b, size_a, size_b, current, correlation, blurs[-1])
         start = np.asarray(b_from_a, dtype=np.float64)
         moved = float(geometry.corner_errors(current, start, *size_a).max())
         if not moved <= self.max_move * float(np.hypot(*size_a)):
             raise EstimationFailed(f"ECC moved a corner {moved:.0f} px from its start: it diverged")
         return current, correlation
 
-    def _robust_pass(self, small_a: np.ndarray, small_b: np.ndarray, sizes, current: np.ndarray, correlation: float,
-                     budget: int, blur: int) -> tuple[np.ndarray, float]:
+    def _robust_pass(self, small_a: np.ndarray, small_b: np.ndarray, size_a: tuple[int, int], size_b: tuple[int, int],
+                     current: np.ndarray, correlation: float, blur: int) -> tuple[np.ndarray, float]:
         """ECC once more at the finest level, on the pixels of B whose residual is under ``robust_k`` robust
         deviations (1.4826 x the median absolute residual): occluders, moving water and glints no longer pull.
 
-        ``small_a``, ``small_b``: the finest level's (normalised) images; ``sizes``: the original sizes of A and B.
+        ``small_a``, ``small_b``: the finest level's (normalised) images; ``size_a``, ``size_b``: the originals'
+        (width, height).
         Keeps ``current`` when too few pixels agree, ECC fails, or the pass moves a corner over
         :data:`ROBUST_MAX_MOVE_PX` (it polishes a converged answer, it does not search).
         """
-        (size_a, size_b), work_a, work_b = sizes, (small_a.shape[1], small_a.shape[0]), (small_b.shape[1], small_b.shape[0])
+        work_a, work_b = (small_a.shape[1], small_a.shape[0]), (small_b.shape[1], small_b.shape[0])
         start = geometry.rescale_homography(current, size_a, work_a, size_b, work_b)
         warped = cv2.warpPerspective(small_a, start, work_b, flags=cv2.INTER_LINEAR)
         inside = cv2.warpPerspective(np.ones_like(small_a), start, work_b, flags=cv2.INTER_NEAREST) > 0.5
@@ -135,7 +136,7 @@ class PyramidEcc:
         agree = inside & (residual <= self.robust_k * 1.4826 * float(np.median(residual[inside])))
         if agree.mean() < ROBUST_MIN_SHARE:
             return current, correlation
-        ecc = EccEstimator(iterations=budget, eps=self.eps, gauss_filt_size=blur, min_correlation=0.0)
+        ecc = EccEstimator(iterations=self.robust_iterations, eps=self.eps, gauss_filt_size=blur, min_correlation=0.0)
         try:
             refined, robust_correlation, _ = ecc.refine(small_a, small_b, start, mask_b=agree)
         except EstimationFailed:

@@ -121,6 +121,10 @@ def train(
     small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = 0.3,
     illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.")] = True,
     occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = 0.0,
+    motion: Annotated[str, typer.Option(help="paper (corner perturbation by --rho) or flight (whole frames with real flight motion; --rho is then the perspective jitter).")] = "paper",
+    max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = 100.0,
+    max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = 1.6,
+    max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = 0.5,
     eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = 250,
     seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = 0,
     threads: Annotated[Optional[int], typer.Option(help="torch CPU threads (default: torch's choice).")] = None,
@@ -131,7 +135,8 @@ def train(
 
     config = TrainConfig(
         mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, arch=arch, rho=rho, small_motion_fraction=small_motion,
-        illumination=illumination, occluders=occluders, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
+        illumination=illumination, occluders=occluders, motion=motion, max_heading=max_heading, max_scale=max_scale,
+        max_shift=max_shift, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
         checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),
     )
     last = run_training(config, resume=resume, threads=threads)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Callable
 
 import cv2
 import numpy as np
@@ -32,6 +33,9 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES, read_image, to_gray_u8
+
+if TYPE_CHECKING:
+    from udh_cli.flight_motion import MotionConfig
 
 SOURCE_SIZE = (320, 240)  # (width, height) every source image is resized to, as in DeTone et al.
 OVERLAP_TO_RHO = {85: 16, 75: 32, 65: 45}  # the paper's overlap levels, in percent, and their rho in pixels
@@ -55,6 +59,8 @@ class PairConfig:
             being rho; it teaches a network the small residuals that iterative refinement asks about.
         illumination: random brightness, contrast and gamma per patch.
         occluders: share of pairs (0 to 1) whose patches get random textured blobs; ``True`` means all.
+        motion: None for the paper's corner perturbation; a :class:`~udh_cli.flight_motion.MotionConfig`
+            for real flight motion (whole frames, any heading, scale, low overlap; ``rho`` is then unused).
     """
 
     patch_size: int = 128
@@ -62,6 +68,7 @@ class PairConfig:
     small_motion_fraction: float = 0.0
     illumination: bool = True
     occluders: float = 0.0
+    motion: "MotionConfig | None" = None
 
 
 @dataclass
@@ -118,15 +125,20 @@ def split_holdout(paths: list[Path], every: int = 10) -> tuple[list[Path], list[
     return train, held_out
 
 
-def load_sources(paths: list[Path], min_count: int = 1) -> list[np.ndarray]:
-    """Read images as 320x240 grey uint8. Unreadable files are skipped; fewer than ``min_count`` is an error."""
+def load_sources(paths: list[Path], min_count: int = 1,
+                 size_for: Callable[[int, int], tuple[int, int]] | None = None) -> list[np.ndarray]:
+    """Read images as grey uint8, resized to 320x240 or to ``size_for(width, height)``.
+
+    Unreadable files are skipped; fewer than ``min_count`` is an error.
+    """
     sources = []
     for path in paths:
         try:
             image = to_gray_u8(read_image(path))
         except UdhError:
             continue
-        sources.append(cv2.resize(image, SOURCE_SIZE, interpolation=cv2.INTER_AREA))
+        size = SOURCE_SIZE if size_for is None else size_for(image.shape[1], image.shape[0])
+        sources.append(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
     if len(sources) < min_count:
         raise UdhError(f"found {len(sources)} usable images; need at least {min_count} (JPEG, PNG or TIFF)")
     return sources

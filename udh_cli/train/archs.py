@@ -7,6 +7,7 @@ patch size, 128) and returns ``(N, 4, 2)`` offsets in pixels of the S x S patch,
 
 from __future__ import annotations
 
+import math
 from functools import partial
 from typing import Callable
 
@@ -15,6 +16,7 @@ from torch import nn
 import torch.nn.functional as F
 
 OFFSET_SCALE = 32.0  # the heads predict offsets / 32 px, so initial outputs sit in a sensible range
+GLOBAL_CHANNELS = 3  # corr-global's extra volume channels: displacement x, y and the best match's weight
 
 
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
@@ -61,6 +63,10 @@ class CorrelationNet(nn.Module):
     - ``corr-lite``: ``corr`` with a slimmer encoder (16, 24, 32, 32 channels) and a 1x1 first regressor
       layer over the volume. Those two layers were 0.8 ms of corr's 2 ms batch-1 pass on one core; the
       lite network takes about 0.7 ms.
+    - ``corr-global`` (``global_match=True``): ``corr`` plus three channels from a global correlation
+      (:meth:`global_matches`), so that motion beyond the local window (turns, climbs, low overlap) has
+      direct evidence. The first regressor layer is the only one whose shape differs from ``corr``'s, so a
+      ``corr`` network initialises it exactly (:func:`widen_from`).
     - ``corr-fine`` (``fine=True``, radius 3, width 32): full resolution with a stride-2 first layer (a
       3x3 conv at 128x128 cost more than everything else), 32x32 cells of 4 px, shifts up to 12 px. A
       refinement stage, run on A pre-warped by the coarse stage, for the residual motion; about 3x the
@@ -76,19 +82,22 @@ class CorrelationNet(nn.Module):
             later one follows a 2x max-pool (one more 128-channel layer is added while cells remain).
         volume_kernel: kernel side of the first regressor layer (3, or 1 for speed).
         fine: full-resolution input with a stride-2 first layer, 4-px cells (see corr-fine).
+        global_match: add the global-correlation channels (see ``corr-global``).
     """
 
     def __init__(self, patch_size: int = 128, radius: int = 4, encoder_widths: tuple[int, ...] = (16, 32, 64, 64),
-                 regressor_widths: tuple[int, ...] = (64, 128, 128), volume_kernel: int = 3, fine: bool = False):
+                 regressor_widths: tuple[int, ...] = (64, 128, 128), volume_kernel: int = 3, fine: bool = False,
+                 global_match: bool = False):
         super().__init__()
         self.radius = radius
         self.fine = fine
+        self.global_match = global_match
         e1, e2, e3, e4 = encoder_widths
         self.encoder = nn.Sequential(
             _conv(1, e1, stride=2 if fine else 1), nn.Identity() if fine else nn.MaxPool2d(2),
             _conv(e1, e2), nn.MaxPool2d(2), _conv(e2, e3), _conv(e3, e4),
         )
-        shifts = (2 * radius + 1) ** 2
+        shifts = (2 * radius + 1) ** 2 + (GLOBAL_CHANNELS if global_match else 0)
         cells = patch_size // (4 if fine else 8)
         first = regressor_widths[0]
         regressor: list[nn.Module] = [nn.Sequential(nn.Conv2d(shifts, first, volume_kernel, padding=volume_kernel // 2, bias=False),
@@ -106,6 +115,12 @@ class CorrelationNet(nn.Module):
         index, inside = self._window_index(feature_side, feature_side)
         self.register_buffer("window_index", index, persistent=False)
         self.register_buffer("window_inside", inside, persistent=False)
+        if global_match:
+            ys, xs = torch.meshgrid(torch.arange(feature_side), torch.arange(feature_side), indexing="ij")
+            cells_xy = torch.stack([xs.flatten(), ys.flatten()], -1).float() / feature_side  # hw, 2 in [0, 1)
+            self.register_buffer("cell_positions", cells_xy, persistent=False)
+            # Softmax sharpness over cosine similarities; learnt, starting where one clear peak dominates.
+            self.log_match_sharpness = nn.Parameter(torch.tensor(math.log(20.0)))
 
     def _window_index(self, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
         """For every A cell and shift: the flat index of the B cell, and whether it lies inside."""
@@ -124,27 +139,81 @@ class CorrelationNet(nn.Module):
         was 30x faster to train on the CPU than unfold, and 300x faster than a loop of slices.
         """
         n, c, h, w = feat_a.shape
-        index, inside = self.window_index, self.window_inside  # the head's size fixes h and w anyway
         all_pairs = torch.bmm(feat_a.flatten(2).transpose(1, 2), feat_b.flatten(2))  # N, hw, hw
+        return self.local_volume(all_pairs, h, w)
+
+    def local_volume(self, all_pairs: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        """(N, hw, hw) all-pairs similarities -> (N, (2r+1)^2, h, w): each A cell's window of shifts."""
+        n = all_pairs.shape[0]
+        index, inside = self.window_index, self.window_inside  # the head's size fixes h and w anyway
         local = all_pairs.gather(2, index.unsqueeze(0).expand(n, -1, -1)) * inside  # N, hw, k*k
         return local.transpose(1, 2).reshape(n, -1, h, w)
+
+    def global_matches(self, all_pairs: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        """(N, hw_A, hw_B) similarities -> (N, 3, h, w): each A cell's expected B position minus its own
+        (soft-argmax over every B cell, in patch widths) and the weight of its best match.
+
+        Why: the local window sees shifts up to ``radius`` cells (32 px at 128); a turn or a climb moves
+        corners by a whole patch. The soft-argmax over all cells reaches anywhere in B (IHN/RAFT's global
+        correlation), at the cost of one softmax over the similarities the local volume already computed.
+        """
+        n = all_pairs.shape[0]
+        weights = torch.softmax(all_pairs * self.log_match_sharpness.exp(), dim=2)  # N, hw, hw
+        expected = weights @ self.cell_positions  # N, hw, 2
+        displacement = expected - self.cell_positions
+        peak = weights.amax(dim=2, keepdim=True)
+        return torch.cat([displacement, peak], 2).transpose(1, 2).reshape(n, GLOBAL_CHANNELS, h, w)
 
     def forward(self, patches: torch.Tensor) -> torch.Tensor:
         n = patches.shape[0]
         pooled = patches if self.fine else F.avg_pool2d(patches, 2)
         both = torch.cat([pooled[:, 0:1], pooled[:, 1:2]], 0)  # 2N images: one pass, shared weights
         features = F.normalize(self.encoder(both), dim=1)
-        volume = self.correlation(features[:n], features[n:])
+        feat_a, feat_b = features[:n], features[n:]
+        _, c, h, w = feat_a.shape
+        all_pairs = torch.bmm(feat_a.flatten(2).transpose(1, 2), feat_b.flatten(2))  # N, hw, hw
+        volume = self.local_volume(all_pairs, h, w)
+        if self.global_match:
+            volume = torch.cat([volume, self.global_matches(all_pairs, h, w)], 1)
         return self.head(self.regressor(volume)).view(-1, 4, 2) * OFFSET_SCALE
 
 
 ARCHS: dict[str, Callable[..., nn.Module]] = {
     "corr": CorrelationNet,
     "corr-lite": partial(CorrelationNet, encoder_widths=(16, 24, 32, 32), regressor_widths=(64, 96, 128), volume_kernel=1),
+    "corr-global": partial(CorrelationNet, global_match=True),
     "corr-fine": partial(CorrelationNet, fine=True, radius=3, encoder_widths=(16, 32, 32, 32), regressor_widths=(64, 128, 128, 128)),
     "vgg-paper": PaperVGG,
 }
 DEFAULT_ARCH = "corr"
+
+
+def widen_from(model: nn.Module, state: dict[str, torch.Tensor]) -> list[str]:
+    """Load ``state`` into ``model`` where a tensor is wider in ``model`` along input channels only.
+
+    Such tensors get the old weights in their first channels and zeros in the new ones, so the widened
+    network computes exactly what the old one did until training teaches it to use the new inputs.
+    Returns the names of the widened tensors. Used to start ``corr-global`` from a trained ``corr``.
+    """
+    own = model.state_dict()
+    widened = []
+    merged = dict(own)
+    for name, tensor in state.items():
+        if name not in own:
+            raise KeyError(f"unexpected weight '{name}'")
+        target = own[name]
+        if target.shape == tensor.shape:
+            merged[name] = tensor
+        elif target.dim() == tensor.dim() and target.dim() > 1 and target.shape[0] == tensor.shape[0] and target.shape[2:] == tensor.shape[2:] \
+                and target.shape[1] > tensor.shape[1]:
+            grown = torch.zeros_like(target)
+            grown[:, : tensor.shape[1]] = tensor
+            merged[name] = grown
+            widened.append(name)
+        else:
+            raise KeyError(f"weight '{name}' has shape {tuple(tensor.shape)}, the network wants {tuple(target.shape)}")
+    model.load_state_dict(merged)
+    return widened
 
 
 def create_model(arch: str, patch_size: int = 128) -> nn.Module:

@@ -18,6 +18,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.homography_files import homography_from_values, parse_numbers
+from udh_cli.flight_motion import make_motion_pairs, source_size
 from udh_cli.images import read_image, to_gray_u8
 from udh_cli.synthetic import PairConfig, illuminate, list_images, load_sources, make_pairs, split_holdout
 
@@ -50,18 +51,25 @@ class PoolData:
         if len(train_paths) < 2 or not held_out:
             raise UdhError(f"found {len(paths)} images in {', '.join(map(str, folders))}; need at least 3 to train and hold one out")
         self.config = config
-        self.train = load_sources(train_paths, min_count=2)
-        self.held_out = load_sources(held_out, min_count=1)
+        size_for = source_size if config.motion is not None else None
+        self.train = load_sources(train_paths, min_count=2, size_for=size_for)
+        self.held_out = load_sources(held_out, min_count=1, size_for=size_for)
         self.description = f"{len(self.train)} pool images ({len(self.held_out)} held out)"
 
+    def _pairs(self, sources: list[np.ndarray], size: int, config: PairConfig, rng: np.random.Generator, with_context: bool):
+        if config.motion is None:
+            return make_pairs(sources, size, config, rng, with_context=with_context)
+        return make_motion_pairs(sources, size, config.motion, rng, config.patch_size, config.small_motion_fraction,
+                                 config.illumination, config.occluders, with_context=with_context)
+
     def batch(self, rng: np.random.Generator, size: int, unsupervised: bool) -> Batch:
-        pairs = make_pairs(self.train, size, self.config, rng, with_context=unsupervised)
+        pairs = self._pairs(self.train, size, self.config, rng, with_context=unsupervised)
         return Batch(np.stack([pairs.patch_a, pairs.patch_b], 1), pairs.offsets, pairs.context_a, pairs.origin, pairs.clean_b)
 
     def validation(self, size: int, seed: int = 12345) -> Batch:
-        """A fixed set from the held-out images at the full rho, with illumination: the benchmark protocol."""
-        config = PairConfig(self.config.patch_size, self.config.rho, 0.0, True, False)
-        pairs = make_pairs(self.held_out, size, config, np.random.default_rng(seed), with_context=False)
+        """A fixed set from the held-out images at the full motion, with illumination: the benchmark protocol."""
+        config = PairConfig(self.config.patch_size, self.config.rho, 0.0, True, False, self.config.motion)
+        pairs = self._pairs(self.held_out, size, config, np.random.default_rng(seed), with_context=False)
         return Batch(np.stack([pairs.patch_a, pairs.patch_b], 1), pairs.offsets, pairs.context_a, pairs.origin, pairs.clean_b)
 
 

@@ -17,11 +17,15 @@ import torch
 from udh_cli.errors import UdhError
 from udh_cli.synthetic import PairConfig
 from udh_cli.train import losses
-from udh_cli.train.archs import DEFAULT_ARCH, create_model
+from udh_cli.flight_motion import MotionConfig
+from udh_cli.train.archs import DEFAULT_ARCH, create_model, widen_from
 from udh_cli.train.checkpoint import load_checkpoint, save_checkpoint
 from udh_cli.train.data import Batch, open_data
 
 PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learning rates
+MOTIONS = ("paper", "flight")
+# (from, to) architectures where --init widens the first regressor layer (new channels start at zero).
+WIDENINGS = {("corr", "corr-global")}
 DEFAULT_STEPS = 20000
 
 
@@ -40,6 +44,10 @@ class TrainConfig:
         illumination: random brightness/contrast/gamma on the inputs; occluders: the share of pairs
             (0 to 1) with textured blobs pasted on the inputs. Both are input augmentations: the losses
             see the clean images.
+        motion: "paper" (corner perturbation by ``rho``, the paper's) or "flight" (whole frames with real
+            flight motion, :mod:`udh_cli.flight_motion`; ``rho`` is then the perspective jitter).
+        max_heading: flight motion's largest turn, degrees; max_scale: its largest scale change (a factor,
+            both ways); max_shift: its largest translation, as a fraction of the frame.
         steps: total optimiser steps (None: :data:`DEFAULT_STEPS`, or on resume the run's own total);
             batch: pairs per step and per process.
         lr: Adam learning rate (None: the paper's, 1e-4 unsupervised, 5e-4 supervised).
@@ -63,6 +71,10 @@ class TrainConfig:
     small_motion_fraction: float = 0.3
     illumination: bool = True
     occluders: float = 0.0
+    motion: str = "paper"
+    max_heading: float = 100.0
+    max_scale: float = 1.6
+    max_shift: float = 0.5
     steps: int | None = None
     batch: int = 32
     lr: float | None = None
@@ -152,7 +164,8 @@ class Trainer:
         self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
         if not config.data:
             raise UdhError("no --data given; name one or more folders of images or flights")
-        pair_config = PairConfig(config.patch_size, config.rho, config.small_motion_fraction, config.illumination, config.occluders)
+        pair_config = PairConfig(config.patch_size, config.rho, config.small_motion_fraction, config.illumination, config.occluders,
+                                 motion_config(config))
         self.data = open_data([Path(d) for d in config.data], config.data_kind, pair_config)
         if config.mode == "supervised" and not self.data.has_labels:
             raise UdhError("supervised training needs synthetic pairs from image pools; flights have no labels (use --mode unsupervised)")
@@ -168,10 +181,14 @@ class Trainer:
             self._restore(saved)
         elif config.init:
             init = load_checkpoint(resolve_init(config.init))
-            if init["config"]["arch"] != config.arch or int(init["config"]["patch_size"]) != config.patch_size:
+            widening = (init["config"]["arch"], config.arch) in WIDENINGS
+            if (init["config"]["arch"] != config.arch and not widening) or int(init["config"]["patch_size"]) != config.patch_size:
                 raise UdhError(f"--init {config.init} is a {init['config']['arch']} network for {init['config']['patch_size']}px patches; "
                                f"pass --arch {init['config']['arch']}")
-            _load_weights(self.model, init, f"--init {config.init}")
+            if widening:
+                widen_from(self.model, init["model"])
+            else:
+                _load_weights(self.model, init, f"--init {config.init}")
             # The network's weights only make sense with the normalisation they were trained with.
             self.normalization = dict(init["normalization"])
             self.trained_before = {"init": str(config.init), "init_steps": int(init["step"]), "init_data": init["config"]["data"]}
@@ -361,6 +378,14 @@ class Trainer:
                 "trained_before": self.trained_before, "data_description": self.data.description, "best_val": self.best_val}
 
 
+def motion_config(config: TrainConfig) -> MotionConfig | None:
+    """The flight-motion distribution a run trains on, or None for the paper's corner perturbation."""
+    if config.motion == "paper":
+        return None
+    return MotionConfig(max_heading=config.max_heading, scale_range=(1.0 / config.max_scale, config.max_scale),
+                        max_shift=config.max_shift, perspective=config.rho)
+
+
 def _load_weights(model: torch.nn.Module, state: dict[str, Any], source: str) -> None:
     """Load a checkpoint's weights into ``model``; weights that do not fit are a clear error, not a traceback."""
     try:
@@ -380,6 +405,11 @@ def _check_config(config: TrainConfig, out: Path) -> None:
         raise UdhError("--teacher distils without labels; it needs --mode unsupervised (supervised training has the true labels)")
     if not config.rho > 0:
         raise UdhError(f"--rho {config.rho}: must be positive")
+    if config.motion not in MOTIONS:
+        raise UdhError(f"--motion {config.motion}: choose one of {', '.join(MOTIONS)}")
+    if not (0 <= config.max_heading <= 180 and 1 <= config.max_scale <= 4 and 0 <= config.max_shift <= 1):
+        raise UdhError(f"flight motion out of range: --max-heading {config.max_heading} (0-180 degrees), "
+                       f"--max-scale {config.max_scale} (1-4), --max-shift {config.max_shift} (0-1 of the frame)")
     if out.exists() and not out.is_dir():
         raise UdhError(f"--out {out}: is a file; give a folder for the run")
     # Nothing is created until training starts, so a bad --data leaves no empty run folder behind.

@@ -16,6 +16,7 @@ from rich.table import Table
 from udh_cli import __version__, geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators.registry import DEFAULT_METHOD
+from udh_cli.flight_motion import MotionConfig as _MotionDefaults
 
 app = typer.Typer(
     name="udh",
@@ -117,14 +118,16 @@ def train(
     teacher: Annotated[Optional[str], typer.Option(help="Distil from this checkpoint or shipped model (unsupervised mode): its answers join the loss, no labels.")] = None,
     teacher_weight: Annotated[float, typer.Option(help="Weight of the mean |offset - teacher's offset| (px) beside the photometric loss.")] = 0.01,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the run in --out (without it, a folder holding a run is refused).")] = False,
     data_kind: Annotated[str, typer.Option(help="auto, pool or flight.")] = "auto",
     small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = 0.3,
     illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.")] = True,
     occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = 0.0,
     motion: Annotated[str, typer.Option(help="paper (corner perturbation by --rho) or flight (whole frames with real flight motion; --rho is then the perspective jitter).")] = "paper",
-    max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = 100.0,
-    max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = 1.6,
-    max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = 0.5,
+    max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = _MotionDefaults.max_heading,
+    max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = _MotionDefaults.scale_range[1],
+    max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = _MotionDefaults.max_shift,
+    min_overlap: Annotated[float, typer.Option(help="Flight motion: least share of B that A's view covers.")] = _MotionDefaults.min_overlap,
     eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = 250,
     seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = 0,
     threads: Annotated[Optional[int], typer.Option(help="torch CPU threads (default: torch's choice).")] = None,
@@ -136,10 +139,10 @@ def train(
     config = TrainConfig(
         mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, arch=arch, rho=rho, small_motion_fraction=small_motion,
         illumination=illumination, occluders=occluders, motion=motion, max_heading=max_heading, max_scale=max_scale,
-        max_shift=max_shift, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
+        max_shift=max_shift, min_overlap=min_overlap, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
         checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),
     )
-    last = run_training(config, resume=resume, threads=threads)
+    last = run_training(config, resume=resume, threads=threads, overwrite=overwrite, on_note=lambda note: err_console.print(f"note: {note}"))
     summary = ", ".join(f"{k} {v:.4g}" for k, v in last.items() if isinstance(v, float))
     console.print(f"done at step {last.get('step')}: {summary}; checkpoints in {out}")
 

@@ -53,11 +53,14 @@ class MotionConfig:
         lighting: probability of each real-flight lighting effect (shadow, vignette, blur, noise, JPEG).
     """
 
-    max_heading: float = 180.0
-    scale_range: tuple[float, float] = (0.6, 1.6)
-    max_shift: float = 0.5
+    # Measured on real consecutive pairs (SIFT references): copr and brighton-beach turn by at most 27 degrees
+    # and shift by up to 0.45-0.8 of the frame; the half turns of a survey's strip ends are left to the
+    # estimator's heading search (DeepEstimator.headings).
+    max_heading: float = 30.0
+    scale_range: tuple[float, float] = (1 / 1.35, 1.35)
+    max_shift: float = 0.6
     perspective: float = 12.0
-    min_overlap: float = 0.4
+    min_overlap: float = 0.3
     lighting: float = 0.3
 
     def scaled(self, amount: float) -> "MotionConfig":

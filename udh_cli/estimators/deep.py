@@ -13,6 +13,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators.base import Estimate, Estimator
+from udh_cli.estimators.tiles import refine_with_tiles
 from udh_cli.images import check_image, to_gray_float
 from udh_cli.onnx_model import OnnxHomographyModel
 from udh_cli.verify import alignment_ncc
@@ -50,6 +51,12 @@ class DeepEstimator(Estimator):
         precision: which shipped networks to load for those not given as ``model`` / ``refine_model`` files:
             "int8" (`udh quantize` copies: a network pass 1.7 -> 1.1 ms on one core, the same median accuracy
             on the bench, tails slightly worse), "fp32", or ``None``: int8 where shipped, else float32.
+        headings: 1 runs the network on B as given; 2 also on B turned half a turn, keeping the better-scoring
+            answer. Why: a survey's strips alternate direction, and the network is trained for turns of up
+            to 100 degrees; half a turn keeps the frame's shape (a quarter turn of a 4:3 frame would not).
+        tiles: refine the answer on 128x128 tiles at finer levels up to full resolution with the last
+            network of the cascade (:mod:`udh_cli.estimators.tiles`): the network alone is then sub-pixel
+            at any frame size. None: on when the cascade has a refinement stage.
         batch_size: pairs per onnxruntime call in :meth:`estimate_many`.
         threads: onnxruntime intra-op threads (None: onnxruntime's default).
 
@@ -65,6 +72,8 @@ class DeepEstimator(Estimator):
     search: int = 0
     search_below: float = 0.5
     precision: str | None = None
+    headings: int = 1
+    tiles: bool | None = None
     batch_size: int = 64
     threads: int | None = None
     network: OnnxHomographyModel = field(init=False, repr=False)
@@ -82,6 +91,8 @@ class DeepEstimator(Estimator):
             raise UdhError(f"method '{self.name}': search ({self.search}) must be 0 (off) or more")
         if self.refine_rounds < 0:
             raise UdhError(f"method '{self.name}': refine_rounds ({self.refine_rounds}) must be 0 or more")
+        if self.headings not in (1, 2):
+            raise UdhError(f"method '{self.name}': headings ({self.headings}) must be 1 (as given) or 2 (also half a turn)")
         check_precision(self.precision)
 
         path = self.model if self.model is not None else shipped_onnx(self.name, self.precision)
@@ -94,6 +105,8 @@ class DeepEstimator(Estimator):
                 raise UdhError(f"{refine_path}: the refinement network takes {refiner.input_size}px inputs but "
                                f"{path} takes {self.network.input_size}px; give two models of the same input size")
             self.stages.append((refiner, self.refine_rounds))
+        if self.tiles is None:
+            self.tiles = len(self.stages) > 1
         loaded = self.loaded_precision()
         if self.precision is None and loaded in PRECISIONS:
             # Record what was chosen, so that settings (mosaic sidecars, the pair cache) say what ran and
@@ -166,8 +179,7 @@ class DeepEstimator(Estimator):
         start = time.perf_counter()
         small_a = np.stack([self._small(a) for a, _ in pairs])
         small_b = np.stack([self._small(b) for _, b in pairs])
-        small_h = self.predict_small(small_a, small_b)
-        scores = [self.score(sa, sb, h) for sa, sb, h in zip(small_a, small_b, small_h)]
+        small_h, scores = self._predict_headings(small_a, small_b)
         searched = [False] * len(pairs)
         doubtful = [i for i, score in enumerate(scores) if score < self.search_below] if self.search else []
         if doubtful:
@@ -180,13 +192,39 @@ class DeepEstimator(Estimator):
         precision = self.loaded_precision()
         out = []
         for (a, b), h, confidence, was_searched in zip(pairs, small_h, scores, searched):
+            pair_start = time.perf_counter()
             valid = geometry.is_valid_homography(h, s, s)
             full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
             failure = None if valid else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
                        "precision": precision}
-            out.append(self._checked(full, confidence, per_pair_ms, failure, details, a.shape))
+            if full is not None and self.tiles:
+                refined = refine_with_tiles(self.stages[-1][0], to_gray_float(a), to_gray_float(b), full)
+                full = refined.b_from_a
+                details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
+                               tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
+            elapsed = per_pair_ms + (time.perf_counter() - pair_start) * 1e3
+            out.append(self._checked(full, confidence, elapsed, failure, details, a.shape))
         return out
+
+    def _predict_headings(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
+        """The cascade on every pair, from B as given and (``headings`` 2) from B turned half a turn: the
+        better-scoring answer of each pair, (N, 3, 3) ``b_from_a`` of the S x S images, and its score."""
+        n, s = len(small_a), self.network.input_size
+        if self.headings == 1:
+            small_h = self.predict_small(small_a, small_b)
+            return small_h, [self.score(sa, sb, h) for sa, sb, h in zip(small_a, small_b, small_h)]
+        turned = np.ascontiguousarray(small_b[:, ::-1, ::-1])
+        both = self.predict_small(np.concatenate([small_a, small_a]), np.concatenate([small_b, turned]))
+        half_turn = np.array([[-1.0, 0.0, s - 1.0], [0.0, -1.0, s - 1.0], [0.0, 0.0, 1.0]])  # its own inverse
+        found, scores = [], []
+        for i in range(n):
+            candidates = [both[i], half_turn @ both[n + i]]
+            ranked = [(self.score(small_a[i], small_b[i], h), -k, h) for k, h in enumerate(candidates)]
+            score, _, h = max(ranked, key=lambda c: (c[0], c[1]))
+            found.append(h / h[2, 2] if np.isfinite(h).all() and abs(h[2, 2]) > 1e-12 else h)
+            scores.append(score)
+        return np.stack(found), scores
 
     def _search(self, pairs, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
         """Large-motion search: for every pair, run the network from each translation hypothesis of a
@@ -275,9 +313,12 @@ def _safe_dlt(offsets: np.ndarray, size: int) -> np.ndarray:
 
 @dataclass
 class UnsupervisedEstimator(DeepEstimator):
-    """The paper's unsupervised network (photometric L1 training)."""
+    """The paper's unsupervised network (photometric L1 training), as a whole learned pipeline: the coarse
+    and refinement cascade on the whole frames from both headings, then the tile stage to full resolution.
+    ``iterations=1, refine_rounds=0, headings=1, tiles=False`` is the paper's single 128x128 pass."""
 
     name: ClassVar[str] = "unsupervised"
+    headings: int = 2
 
 
 @dataclass

@@ -2,19 +2,21 @@
 
 A split run writes ``NAME.part1.png``, ``NAME.part2.png``... and a preview of each. Each is first written
 under a hidden temporary name (:class:`StagedFiles`); only when every part has been written are they
-renamed to their own names, and the sidecar is written after them. A run that fails in its third part so
+renamed to their own names together with the sidecar, which comes last. A run that fails in its third part so
 leaves the outputs of the previous run as they were, not a mix of both. Part files of this output name
 that the new run does not produce (an earlier run had more parts) are removed (:func:`stale_part_files`).
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import secrets
 from pathlib import Path
 
 from udh_cli.errors import UdhError
+from udh_cli.images import IMAGE_SUFFIXES
 
 PREVIEW_SUFFIX = ".preview.jpg"
 
@@ -32,6 +34,53 @@ def sidecar_path(output: Path) -> Path:
 
 def preview_path(mosaic_file: Path) -> Path:
     return mosaic_file.with_name(f"{mosaic_file.stem}{PREVIEW_SUFFIX}")
+
+
+def _is_udh_json(path: Path, formats: tuple[str, ...]) -> bool:
+    """Whether ``path`` is a JSON file udh wrote (its ``format`` starts with one of ``formats``)."""
+    try:
+        if path.stat().st_size > 256 * 2**20:  # no sidecar or pair cache of ours is this large
+            return False
+        data = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(data, dict) and isinstance(data.get("format"), str) and data["format"].startswith(formats)
+
+
+def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: Path) -> None:
+    """Refuse, before any work, outputs that would replace a user's file rather than an earlier run's.
+
+    ``files`` names every file the run may write (``{"mosaic": path, "sidecar": path, ...}``). Refused: any
+    of them that is the input video or an existing frame of ``source`` (unless ``sidecar`` is an earlier
+    udh run's, which wrote it), and a ``.json`` of ours that exists and was not written by udh.
+    """
+    sources = {source.resolve()} if source.is_file() else set()
+    earlier_run = sidecar.is_file() and _is_udh_json(sidecar, ("udh-mosaic/",))
+    for role, path in files.items():
+        if not path.exists():
+            continue
+        resolved = path.resolve()
+        is_frame = source.is_dir() and resolved.parent == source.resolve() and path.suffix.lower() in IMAGE_SUFFIXES
+        if resolved in sources or (is_frame and not earlier_run):
+            raise UdhError(f"{path}: the {role} would replace an input file of {source}; choose another output name")
+        if path.suffix.lower() == ".json" and not _is_udh_json(path, ("udh-mosaic",)):
+            raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
+
+
+def remove_stale_staged(output: Path) -> list[Path]:
+    """Hidden temporary files of ``output``'s names (``.staged`` and ``.part``) that a run killed while
+    writing left behind; removed. Only hidden files named after ``output``'s stem match."""
+    pattern = re.compile(rf"\.+{re.escape(output.stem)}\..*(\.staged\.[A-Za-z0-9]+|\.part)")
+    removed = []
+    try:
+        candidates = list(output.parent.iterdir())
+    except OSError:
+        return removed
+    for path in candidates:
+        if pattern.fullmatch(path.name) and path.is_file() and not path.is_symlink():
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
 
 
 def stale_part_files(output: Path, produced: list[Path]) -> list[Path]:

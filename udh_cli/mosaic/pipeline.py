@@ -22,7 +22,8 @@ from udh_cli.mosaic import composite as compositing
 from udh_cli.mosaic.frames import ORDERS, FrameSet, open_frames
 from udh_cli.mosaic.gains import solve_gains
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
-from udh_cli.mosaic.outputs import StagedFiles, output_paths, preview_path, sidecar_path, stale_part_files
+from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
+                                   sidecar_path, stale_part_files)
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
@@ -182,6 +183,9 @@ def run_mosaic(
     source, output = Path(source), Path(output)
     check_output(output)
     check_config(config)
+    check_outputs_are_not_inputs(source, {"mosaic": output, "sidecar": sidecar_path(output), "preview": preview_path(output),
+                                          "pair cache": cache_path(output)}, sidecar_path(output))
+    remove_stale_staged(output)
     started = time.perf_counter()
     truth = _load_truth(source, ground_truth)
     estimator = estimator or create_estimator(config.method, **mosaic_method_options(config.method, config.method_options))
@@ -210,14 +214,16 @@ def run_mosaic(
             _composite_part(frameset, part, gains, config, reporter, staged)
         _warn_about_earlier_output(output, parts, reporter)
         report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter)
+        report["pair_cache"] = str(cache.path)
+        report["summary"]["pairs_from_cache"] = cache.hits
+        report["timings_s"]["total"] = time.perf_counter() - started
+        # The sidecar is staged with the images and renamed last: a run that fails while writing leaves
+        # the earlier run's files, all of them, and never new images beside an old sidecar.
+        atomic_write_bytes(staged.path_for(sidecar_path(output)), (json.dumps(report, indent=1) + "\n").encode())
         staged.publish()
     finally:
         staged.discard()  # after a failure; nothing is left to discard after publish()
     _remove_stale_parts(output, parts, reporter)
-    report["pair_cache"] = str(cache.path)
-    report["summary"]["pairs_from_cache"] = cache.hits
-    report["timings_s"]["total"] = time.perf_counter() - started
-    atomic_write_bytes(sidecar_path(output), (json.dumps(report, indent=1) + "\n").encode())  # last: the run is complete
     report["sidecar"] = str(sidecar_path(output))
     return report
 

@@ -16,7 +16,14 @@ CHECKPOINT_FORMAT = "udh-checkpoint-1"
 
 
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
-    """Write ``state`` (tensors, numbers, strings, lists and dicts only) to ``path`` atomically."""
+    """Write ``state`` (tensors, numbers, strings, lists and dicts only) to ``path`` atomically.
+
+    Weights that are NaN or infinite are refused before anything is written, so a diverged run never
+    replaces its last good checkpoint.
+    """
+    for name, tensor in state.get("model", {}).items():
+        if torch.is_floating_point(tensor) and not torch.isfinite(tensor).all():
+            raise UdhError(f"weight '{name}' became NaN or infinite; {path} is kept as it was: continue with --resume and a lower --lr")
     buffer = io.BytesIO()
     torch.save({"format": CHECKPOINT_FORMAT, **state}, buffer)
     atomic_write_bytes(path, buffer.getvalue())

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from udh_cli.errors import UdhError
-from udh_cli.images import atomic_write_bytes
+from udh_cli.images import atomic_write_bytes, check_output_path
 from udh_cli.onnx_model import MODEL_FORMAT, write_metadata
 from udh_cli.train.archs import create_model
 from udh_cli.train.checkpoint import load_checkpoint
@@ -40,6 +40,12 @@ def model_metadata(state: dict[str, Any]) -> dict[str, str]:
         "data_description": str(state.get("data_description", "")),
         "trained_before": json.dumps(state.get("trained_before", {})),
         "best_val_mace": repr(float(state.get("best_val", float("nan")))),
+        # What motion the network saw, so that a user (and the model card) can tell what it was trained for;
+        # models exported before these keys existed were trained on the paper's corner perturbation.
+        "motion": str(config.get("motion", "paper")),
+        "max_heading": repr(float(config.get("max_heading", 0.0))) if config.get("motion", "paper") == "flight" else "0.0",
+        "max_scale": repr(float(config.get("max_scale", 1.0))) if config.get("motion", "paper") == "flight" else "1.0",
+        "max_shift": repr(float(config.get("max_shift", 0.0))) if config.get("motion", "paper") == "flight" else "0.0",
         "convention": "offsets[i] = b_from_a(corner_i) - corner_i, corners TL,TR,BR,BL at pixel centres of the SxS input",
     }
 
@@ -54,6 +60,11 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
     import onnx
     import onnxruntime as ort
 
+    if Path(output).suffix.lower() != ".onnx":
+        raise UdhError(f"{output}: give the exported model a .onnx name")
+    if Path(output).exists() and Path(checkpoint).exists() and Path(output).resolve() == Path(checkpoint).resolve():
+        raise UdhError(f"{output}: is the checkpoint being exported; choose another output name")
+    check_output_path(output)
     state = load_checkpoint(checkpoint)
     size = int(state["config"]["patch_size"])
     model = create_model(state["config"]["arch"], size)

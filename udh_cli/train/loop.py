@@ -9,7 +9,7 @@ import signal
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -47,7 +47,8 @@ class TrainConfig:
         motion: "paper" (corner perturbation by ``rho``, the paper's) or "flight" (whole frames with real
             flight motion, :mod:`udh_cli.flight_motion`; ``rho`` is then the perspective jitter).
         max_heading: flight motion's largest turn, degrees; max_scale: its largest scale change (a factor,
-            both ways); max_shift: its largest translation, as a fraction of the frame.
+            both ways); max_shift: its largest translation, as a fraction of the frame; min_overlap: the least
+            share of B that A's view covers.
         steps: total optimiser steps (None: :data:`DEFAULT_STEPS`, or on resume the run's own total);
             batch: pairs per step and per process.
         lr: Adam learning rate (None: the paper's, 1e-4 unsupervised, 5e-4 supervised).
@@ -72,9 +73,10 @@ class TrainConfig:
     illumination: bool = True
     occluders: float = 0.0
     motion: str = "paper"
-    max_heading: float = 100.0
-    max_scale: float = 1.6
-    max_shift: float = 0.5
+    max_heading: float = MotionConfig.max_heading
+    max_scale: float = MotionConfig.scale_range[1]
+    max_shift: float = MotionConfig.max_shift
+    min_overlap: float = MotionConfig.min_overlap
     steps: int | None = None
     batch: int = 32
     lr: float | None = None
@@ -134,7 +136,8 @@ def resolve_init(init: str) -> Path:
 class Trainer:
     """One training run. ``run()`` trains to ``config.steps``, resuming from ``out/checkpoint.pt`` if asked."""
 
-    def __init__(self, config: TrainConfig, resume: bool = False, threads: int | None = None, progress: bool = True):
+    def __init__(self, config: TrainConfig, resume: bool = False, threads: int | None = None, progress: bool = True,
+                 overwrite: bool = False):
         if config.mode not in PAPER_LR:
             raise UdhError(f"unknown --mode '{config.mode}'; choose unsupervised or supervised")
         self.rank, self.world = _distributed()
@@ -143,6 +146,9 @@ class Trainer:
         self.metrics_path = self.out / "metrics.jsonl"
         self.progress = progress and self.rank == 0
         saved = None
+        self.notes: list[str] = []
+        if not resume and self.rank == 0:
+            _check_fresh_out(self.out, overwrite)
         if resume:
             if not self.checkpoint_path.is_file():
                 raise UdhError(f"--resume: no checkpoint at {self.checkpoint_path}; start without --resume or give the run's --out")
@@ -151,7 +157,13 @@ class Trainer:
             stored["betas"] = tuple(stored["betas"])
             # The stored run defines everything except how long to train and where the data lies now.
             steps = config.steps if config.steps is not None else stored["steps"]
-            config = TrainConfig(**{**stored, "steps": max(steps, int(saved["step"])), "data": config.data or stored["data"], "out": config.out})
+            lr = stored["lr"]
+            if config.lr is not None and config.lr != stored["lr"]:
+                # Lowering the rate is the advice after a diverged run, so a new --lr is honoured, and said.
+                self.notes.append(f"--lr {config.lr} replaces the run's {stored['lr']} from step {int(saved['step'])} on")
+                lr = config.lr
+            config = TrainConfig(**{**stored, "steps": max(steps, int(saved["step"])), "lr": lr, "data": config.data or stored["data"],
+                                    "out": config.out})
         elif config.steps is None:
             config = replace(config, steps=DEFAULT_STEPS)
         self.config = config
@@ -320,20 +332,29 @@ class Trainer:
             from udh_cli.images import atomic_write_bytes
 
             atomic_write_bytes(self.out / "config.json", json.dumps(asdict(c), indent=2).encode())
-        previous = signal.signal(signal.SIGTERM, _raise_interrupt) if self.rank == 0 else None
+        # SIGTERM and Ctrl-C ask the loop to stop at the next step boundary, after that step's validation,
+        # log line and a checkpoint: saving mid-step would record a half-done step and resume inexactly.
+        # A second signal stops at once, from the last checkpoint (as SIGKILL would).
+        self._stop_requested = False
+        previous = {sig: signal.signal(sig, self._request_stop) for sig in (signal.SIGTERM, signal.SIGINT)} if self.rank == 0 else {}
         last: dict[str, Any] = {}
-        if self.step == 0 and self.validation is not None:
-            last = {"step": 0, **self.evaluate(), "time_s": 0.0}
-            self._log(last)
+        lock = _lock_run_folder(self.out) if self.rank == 0 else None
         try:
+            if self.step == 0 and self.validation is not None:
+                last = {"step": 0, **self.evaluate(), "time_s": 0.0}
+                self._log(last)
             last = self._train_steps(last)
-        except KeyboardInterrupt:
-            self.save()
-            raise
         finally:
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+            if lock is not None:
+                lock.close()
         return last
+
+    def _request_stop(self, signum, frame) -> None:  # noqa: ARG002 - signal handler signature
+        if self._stop_requested:
+            raise KeyboardInterrupt
+        self._stop_requested = True
 
     def _train_steps(self, last: dict[str, Any]) -> dict[str, Any]:
         c = self.config
@@ -349,14 +370,18 @@ class Trainer:
                 tensors = _to_tensors(batch, self.device)
                 for group in self.optimizer.param_groups:
                     group["lr"] = self._learning_rate()
-                offsets = self.model(_standardise(tensors["patches"], self.normalization))
-                loss = self._loss(tensors, offsets)
+                try:
+                    offsets = self.model(_standardise(tensors["patches"], self.normalization))
+                    loss = self._loss(tensors, offsets)
+                except torch.linalg.LinAlgError:  # a diverged network's corners fall on a line: the DLT is singular
+                    loss = torch.tensor(float("nan"))
                 if not torch.isfinite(loss):
-                    raise UdhError(f"the loss became {loss.item()} at step {self.step + 1}; the last good checkpoint "
-                                   f"{self.checkpoint_path} is kept: lower --lr and continue with --resume")
+                    self._diverged(f"the loss became {loss.item()}")
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 self.optimizer.step()
+                if not all(torch.isfinite(p).all() for p in self.model.parameters()):
+                    self._diverged("the weights became NaN or infinite")
                 self.step += 1
                 running_loss += float(loss.detach())
                 seen += 1
@@ -368,10 +393,16 @@ class Trainer:
                     if last.get("val_mace_mean", math.inf) < self.best_val and self.rank == 0:
                         self.best_val = last["val_mace_mean"]
                         save_checkpoint(self.out / "best.pt", {**self._model_only_state(), "step": self.step})
-                if self.step % c.checkpoint_every == 0 or self.step == c.steps:
+                if self.step % c.checkpoint_every == 0 or self.step == c.steps or self._stop_requested:
                     self.save()
                 bar.update(self.step, float(loss.detach()), last.get("val_mace_median"))
+                if self._stop_requested and self.step < c.steps:
+                    raise KeyboardInterrupt
         return last
+
+    def _diverged(self, what: str) -> None:
+        raise UdhError(f"{what} at step {self.step + 1}; the last good checkpoint {self.checkpoint_path} is kept: "
+                       f"continue with --resume and a lower --lr")
 
     def _model_only_state(self) -> dict[str, Any]:
         return {"model": self._bare_model().state_dict(), "config": asdict(self.config), "normalization": self.normalization,
@@ -383,7 +414,8 @@ def motion_config(config: TrainConfig) -> MotionConfig | None:
     if config.motion == "paper":
         return None
     return MotionConfig(max_heading=config.max_heading, scale_range=(1.0 / config.max_scale, config.max_scale),
-                        max_shift=config.max_shift, perspective=config.rho)
+                        max_shift=config.max_shift, perspective=config.rho,
+                        min_overlap=config.min_overlap)
 
 
 def _load_weights(model: torch.nn.Module, state: dict[str, Any], source: str) -> None:
@@ -407,9 +439,10 @@ def _check_config(config: TrainConfig, out: Path) -> None:
         raise UdhError(f"--rho {config.rho}: must be positive")
     if config.motion not in MOTIONS:
         raise UdhError(f"--motion {config.motion}: choose one of {', '.join(MOTIONS)}")
-    if not (0 <= config.max_heading <= 180 and 1 <= config.max_scale <= 4 and 0 <= config.max_shift <= 1):
+    if not (0 <= config.max_heading <= 180 and 1 <= config.max_scale <= 4 and 0 <= config.max_shift <= 1 and 0.05 <= config.min_overlap <= 1):
         raise UdhError(f"flight motion out of range: --max-heading {config.max_heading} (0-180 degrees), "
-                       f"--max-scale {config.max_scale} (1-4), --max-shift {config.max_shift} (0-1 of the frame)")
+                       f"--max-scale {config.max_scale} (1-4), --max-shift {config.max_shift} (0-1 of the frame), "
+                       f"--min-overlap {config.min_overlap} (0.05-1)")
     if out.exists() and not out.is_dir():
         raise UdhError(f"--out {out}: is a file; give a folder for the run")
     # Nothing is created until training starts, so a bad --data leaves no empty run folder behind.
@@ -418,13 +451,51 @@ def _check_config(config: TrainConfig, out: Path) -> None:
         raise UdhError(f"--out {out}: {existing} is not a writable folder; choose another path")
 
 
-def _raise_interrupt(signum, frame):  # noqa: ARG001 - signal handler signature
-    raise KeyboardInterrupt
+def _check_fresh_out(out: Path, overwrite: bool) -> None:
+    """A new run never mixes into an earlier one: an ``--out`` that holds a run needs --resume or --overwrite."""
+    found = [name for name in ("checkpoint.pt", "best.pt", "metrics.jsonl") if (out / name).is_file()]
+    if not found:
+        return
+    if not overwrite:
+        raise UdhError(f"--out {out} holds a run ({', '.join(found)}); add --resume to continue it, --overwrite to replace it, "
+                       f"or choose another --out")
+    lock = _lock_run_folder(out)  # never delete a run that another process is writing
+    try:
+        for name in found:
+            (out / name).unlink()
+    finally:
+        lock.close()
 
 
-def train(config: TrainConfig, resume: bool = False, threads: int | None = None, progress: bool = True) -> dict[str, Any]:
-    """Library entry point of ``udh train``: returns the final metrics record."""
-    last = Trainer(config, resume=resume, threads=threads, progress=progress).run()
+def _lock_run_folder(out: Path):
+    """An exclusive lock on ``out/.lock`` for this process; a second run into the same folder is refused.
+
+    The operating system drops the lock when the process ends, however it ends, so a killed run never
+    leaves a stale lock. Where ``fcntl`` does not exist (Windows) there is no lock.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    handle = open(out / ".lock", "a+")  # noqa: SIM115 - held open for the run's lifetime
+    try:
+        import fcntl
+    except ImportError:
+        return handle
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.close()
+        raise UdhError(f"--out {out}: another training is writing to this folder; wait for it or choose another --out") from None
+    return handle
+
+
+def train(config: TrainConfig, resume: bool = False, threads: int | None = None, progress: bool = True,
+          overwrite: bool = False, on_note: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Library entry point of ``udh train``: returns the final metrics record. ``on_note`` is told, before
+    training starts, what the run changes of the user's request (a new --lr on resume)."""
+    trainer = Trainer(config, resume=resume, threads=threads, progress=progress, overwrite=overwrite)
+    for note in trainer.notes:
+        if on_note is not None:
+            on_note(note)
+    last = trainer.run()
     if torch.distributed.is_initialized():
         # Every rank leaves together: once in CI, under load, a gloo rank aborted (SIGABRT) when its peer,
         # rank 0, which hosts the rendezvous store, had already exited.

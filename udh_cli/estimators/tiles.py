@@ -1,0 +1,171 @@
+"""Full-resolution precision from the network itself: refine a homography on tiles at finer pyramid levels.
+
+A network that sees a whole 1600 px frame at 128x128 can be no better than about 1/128 of the frame
+(12 px at 1600 px), however well it is trained. Here A is pre-warped by the current estimate, and the
+refinement network (trained on small residual motion of 128x128 patches) runs on 128x128 tiles cut from
+B and the warped A at finer levels, ending at full resolution. Each tile's 4-point answer gives four
+local correspondences; a RANSAC fit over all tiles gives the new homography, and the tiles that agree
+give its support. No features and no ECC: only network passes, warps of small tiles and a 3x3 fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from udh_cli import geometry
+from udh_cli.images import scaled_size
+from udh_cli.onnx_model import OnnxHomographyModel
+
+
+@dataclass(frozen=True)
+class TileRefinement:
+    """Settings of the tile stage (one reason each).
+
+    Attributes:
+        levels: longer side (pixels) of each pyramid level, coarse to fine; 0 means full resolution. Levels
+            at least as large as the images run at full resolution once.
+        tiles: most tiles per level: enough to outvote bad tiles, few enough to stay within a few ms.
+        inlier_px: RANSAC threshold, pixels of the level: the refinement network's median error on a tile.
+        max_move: largest corner move, pixels of the level, that a level may make: a tile network trained on
+            small residuals is not trusted with more (its training motion was 16 px).
+        min_tiles: fewest agreeing tiles for a level's fit to replace the current estimate.
+    """
+
+    levels: tuple[int, ...] = (480, 0)
+    tiles: int = 12
+    inlier_px: float = 1.5
+    max_move: float = 16.0
+    min_tiles: int = 4
+
+
+@dataclass(frozen=True)
+class TileResult:
+    """What the tile stage found.
+
+    Attributes:
+        b_from_a: (3, 3) refined homography, pixels of the images given.
+        levels_used: levels whose fit was accepted.
+        agreeing: share of the finest accepted level's tiles that agreed with its fit (0 when none was).
+        residual_px: median corner residual of the agreeing tiles at the finest accepted level, in pixels
+            of the full-resolution B (nan when no level was accepted).
+    """
+
+    b_from_a: np.ndarray
+    levels_used: int
+    agreeing: float
+    residual_px: float
+
+
+def _level_sizes(size_a: tuple[int, int], size_b: tuple[int, int], side: int) -> tuple[tuple[int, int], tuple[int, int]]:
+    longest = max(*size_a, *size_b)
+    scale = 1.0 if side <= 0 or side >= longest else side / longest
+    return scaled_size(size_a, scale), scaled_size(size_b, scale)
+
+
+def _tile_origins(size_b: tuple[int, int], tile: int) -> list[tuple[int, int]]:
+    """Top-left corners of tiles on a grid with half-tile overlap covering B."""
+    width, height = size_b
+    xs = np.unique(np.linspace(0, width - tile, max(1, int(np.ceil((width - tile) / (tile / 2))) + 1)).round().astype(int))
+    ys = np.unique(np.linspace(0, height - tile, max(1, int(np.ceil((height - tile) / (tile / 2))) + 1)).round().astype(int))
+    return [(int(x), int(y)) for y in ys for x in xs]
+
+
+def _choose_tiles(gray_b: np.ndarray, a_from_b: np.ndarray, size_a: tuple[int, int], tile: int, count: int) -> list[tuple[int, int]]:
+    """Tiles of B wholly seen in A, textured, spread over the overlap: at most ``count``."""
+    width_a, height_a = size_a
+    origins = np.array(_tile_origins((gray_b.shape[1], gray_b.shape[0]), tile), np.float64)  # T, 2
+    probe = np.array([[0, 0], [tile - 1, 0], [tile - 1, tile - 1], [0, tile - 1], [(tile - 1) / 2, (tile - 1) / 2]], np.float64)
+    seen = geometry.transform_points(a_from_b, (origins[:, None, :] + probe[None]).reshape(-1, 2)).reshape(len(origins), -1, 2)
+    inside = (np.isfinite(seen).all((1, 2)) & (seen > -0.5).all((1, 2))
+              & (seen[..., 0] < width_a - 0.5).all(1) & (seen[..., 1] < height_a - 0.5).all(1))
+    if not inside.any():
+        return []
+    origins = origins[inside].astype(int)
+    # Tile standard deviations from two integral images: O(1) per tile instead of a pass over its pixels.
+    total, squares = cv2.integral2(gray_b, sdepth=cv2.CV_64F)[:2]
+    x0, y0 = origins[:, 0], origins[:, 1]
+    x1, y1 = x0 + tile, y0 + tile
+
+    def box(table):
+        return table[y1, x1] - table[y0, x1] - table[y1, x0] + table[y0, x0]
+
+    area = float(tile * tile)
+    mean = box(total) / area
+    texture = np.sqrt(np.maximum(box(squares) / area - mean * mean, 0.0))
+    # Flat tiles (water, bare sand, sky) give the network nothing to align; keep the better-textured ones.
+    keep = texture >= max(0.01, 0.5 * float(np.median(texture)))
+    kept = origins[keep]
+    if len(kept) > count:  # evenly through the raster order: spread over the overlap, not clustered
+        kept = kept[np.linspace(0, len(kept) - 1, count).round().astype(int)]
+    return [(int(x), int(y)) for x, y in kept]
+
+
+def refine_level(network: OnnxHomographyModel, level_a: np.ndarray, level_b: np.ndarray, b_from_a: np.ndarray,
+                 config: TileRefinement) -> tuple[np.ndarray, int, float, float] | None:
+    """One level: tiles, one network pass each, a RANSAC fit. Images are (H, W) float32 grey in [0, 1].
+
+    Returns ``(b_from_a, tiles, agreeing share, median residual px)`` at this level, or None when too few
+    tiles could be used or agreed.
+    """
+    tile = network.input_size
+    if min(level_b.shape) < tile or min(level_a.shape) < tile:
+        return None
+    size_a = (level_a.shape[1], level_a.shape[0])
+    a_from_b = np.linalg.inv(b_from_a)
+    origins = _choose_tiles(level_b, a_from_b, size_a, tile, config.tiles)
+    if len(origins) < config.min_tiles:
+        return None
+    warped, seen_b = [], []
+    for x0, y0 in origins:
+        # WARP_INVERSE_MAP: tile pixel q samples A at a_from_b (q + origin): A pre-warped into B's frame.
+        warped.append(cv2.warpPerspective(level_a, a_from_b @ geometry.translation(x0, y0), (tile, tile),
+                                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE))
+        seen_b.append(level_b[y0 : y0 + tile, x0 : x0 + tile])
+    offsets = network.predict_offsets(np.stack([np.stack(warped), np.stack(seen_b)], 1))  # N, 4, 2
+    corners = geometry.image_corners(tile, tile)
+    shifts = np.array(origins, np.float64)[:, None, :]
+    points_b = (corners[None] + shifts + offsets).reshape(-1, 2)
+    points_a = geometry.transform_points(a_from_b, (corners[None] + shifts).reshape(-1, 2))
+    fitted, mask = cv2.findHomography(points_a, points_b, cv2.RANSAC, config.inlier_px, maxIters=500, confidence=0.999)
+    if fitted is None or mask is None:
+        return None
+    per_tile = mask.reshape(-1, 4).sum(1) >= 3  # a tile agrees when three of its four corners do
+    if per_tile.sum() < config.min_tiles or not geometry.is_valid_homography(fitted, *size_a):
+        return None
+    move = geometry.corner_errors(fitted, b_from_a, *size_a).max()
+    if not move <= config.max_move:
+        return None
+    residual = np.linalg.norm(geometry.transform_points(fitted, points_a) - points_b, axis=1).reshape(-1, 4)[per_tile]
+    return fitted / fitted[2, 2], len(origins), float(per_tile.mean()), float(np.median(residual))
+
+
+def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray,
+                      config: TileRefinement = TileRefinement()) -> TileResult:
+    """Refine ``b_from_a`` (3x3, pixels of ``gray_a``/``gray_b``, (H, W) float32 in [0, 1]) level by level.
+
+    A level whose fit fails or moves too far leaves the estimate as it was; finer levels still run.
+    """
+    size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
+    current = np.asarray(b_from_a, np.float64)
+    used, agreeing, residual = 0, 0.0, float("nan")
+    done_sizes = set()
+    for side in config.levels:
+        level_size_a, level_size_b = _level_sizes(size_a, size_b, side)
+        if (level_size_a, level_size_b) in done_sizes:
+            continue
+        done_sizes.add((level_size_a, level_size_b))
+        full = level_size_a == size_a and level_size_b == size_b
+        level_a = gray_a if full else cv2.resize(gray_a, level_size_a, interpolation=cv2.INTER_AREA)
+        level_b = gray_b if full else cv2.resize(gray_b, level_size_b, interpolation=cv2.INTER_AREA)
+        start = geometry.rescale_homography(current, size_a, level_size_a, size_b, level_size_b)
+        found = refine_level(network, level_a, level_b, start, config)
+        if found is None:
+            continue
+        fitted, _, agreeing, residual_level = found
+        current = geometry.rescale_homography(fitted, level_size_a, size_a, level_size_b, size_b)
+        residual = residual_level * size_b[0] / level_size_b[0]
+        used += 1
+    return TileResult(current / current[2, 2], used, agreeing, residual)

@@ -112,3 +112,35 @@ def test_staged_files_keep_the_permissions_of_the_file_they_replace(tmp_path):
     staged.publish()
     assert final.read_bytes() == b"new" and final.stat().st_mode & 0o777 == 0o640
     assert [p.name for p in tmp_path.iterdir()] == ["m.png"]
+
+
+def test_an_output_named_as_an_input_frame_is_refused_before_any_work(flight, tmp_path):
+    folder, _ = flight
+    frame = sorted(p for p in folder.iterdir() if p.suffix in (".png", ".jpg"))[2]
+    before = frame.read_bytes()
+    with pytest.raises(UdhError, match="would replace an input file"):
+        run_mosaic(folder, frame, FAST)
+    assert frame.read_bytes() == before
+
+
+def test_a_foreign_json_beside_the_output_is_never_replaced(flight, tmp_path):
+    folder, _ = flight
+    foreign = tmp_path / "package.json"
+    foreign.write_text('{"name": "not udh"}')
+    with pytest.raises(UdhError, match="did not write"):
+        run_mosaic(folder, tmp_path / "package.png", FAST)
+    assert foreign.read_text() == '{"name": "not udh"}'
+    assert not (tmp_path / "package.png").exists()
+
+
+def test_temporary_files_of_a_killed_run_are_removed_by_the_next(flight, tmp_path):
+    folder, _ = flight
+    leftovers = [tmp_path / ".m.0a1b2c3d.staged.png", tmp_path / ".m.json.x7_k2m9q.part", tmp_path / ".m.part2.preview.0a1b2c3d.staged.jpg"]
+    unrelated = [tmp_path / ".other.0a1b2c3d.staged.png", tmp_path / "m.part"]
+    for path in leftovers + unrelated:
+        path.write_bytes(b"x" * 100)
+    report = run_mosaic(folder, tmp_path / "m.png", FAST)
+    assert report["summary"]["placed"] >= 2
+    assert not any(p.exists() for p in leftovers)
+    assert all(p.exists() for p in unrelated)
+    assert json.loads((tmp_path / "m.json").read_text())["format"].startswith("udh-mosaic/")

@@ -249,3 +249,114 @@ def test_distillation_pulls_the_student_towards_the_teacher(pool, tmp_path):
     for weight in (-1.0, 0.0):
         with pytest.raises(UdhError, match="--teacher-weight"):
             Trainer(tiny_config(pool, tmp_path / "neg", teacher=str(teacher_ckpt), teacher_weight=weight), progress=False)
+
+
+def test_sigterm_stops_at_a_step_boundary_and_resume_is_bit_identical(pool, tmp_path):
+    """SIGTERM mid-run saves after a whole step (not mid-step); --resume then ends exactly as a straight run."""
+    straight = tmp_path / "straight"
+    train(tiny_config(pool, straight, steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False)
+
+    stopped = tmp_path / "stopped"
+    script = (
+        "import sys; sys.path.insert(0, %r); from test_train import tiny_config; from pathlib import Path;"
+        "from udh_cli.train.loop import train;"
+        "train(tiny_config(Path(%r), Path(%r), steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False)"
+    ) % (str(Path(__file__).parent), str(pool), str(stopped))
+    process = subprocess.Popen([sys.executable, "-c", script], cwd=REPO, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline and not (stopped / "checkpoint.pt").exists():
+        time.sleep(0.02)
+    process.send_signal(signal.SIGTERM)
+    assert process.wait(timeout=120) != 0
+    interrupted_at = load_checkpoint(stopped / "checkpoint.pt")["step"]
+    assert 20 <= interrupted_at < 60
+
+    train(tiny_config(pool, stopped, steps=None), resume=True, threads=1, progress=False)
+    a, b = load_checkpoint(straight / "checkpoint.pt"), load_checkpoint(stopped / "checkpoint.pt")
+    assert a["step"] == b["step"] == 60
+    for name, tensor in a["model"].items():
+        assert torch.equal(tensor, b["model"][name]), name
+    for key, value in a["optimizer"]["state"].items():
+        for field, tensor in value.items():
+            assert torch.equal(tensor, b["optimizer"]["state"][key][field]), (key, field)
+    assert [m["step"] for m in read_metrics(stopped)] == [m["step"] for m in read_metrics(straight)]
+
+
+def test_an_out_holding_a_run_needs_resume_or_overwrite_and_one_run_at_a_time(pool, tmp_path):
+    out = tmp_path / "run"
+    train(tiny_config(pool, out, steps=10, eval_every=10, checkpoint_every=10), threads=1, progress=False)
+    before = (out / "checkpoint.pt").read_bytes()
+    with pytest.raises(UdhError, match="holds a run"):
+        Trainer(tiny_config(pool, out, steps=5), progress=False)
+    assert (out / "checkpoint.pt").read_bytes() == before  # refused before anything was touched
+    from udh_cli.train.loop import _lock_run_folder
+
+    held = _lock_run_folder(out)  # another process's run, as far as flock is concerned
+    try:
+        with pytest.raises(UdhError, match="another training"):
+            Trainer(tiny_config(pool, out, steps=5), progress=False, overwrite=True)
+    finally:
+        held.close()
+    train(tiny_config(pool, out, steps=5, eval_every=5, checkpoint_every=5), threads=1, progress=False, overwrite=True)
+    assert load_checkpoint(out / "checkpoint.pt")["step"] == 5
+    assert [m["step"] for m in read_metrics(out)] == [0, 5]  # no lines of the replaced run
+
+
+def test_diverging_weights_stop_the_run_and_are_never_saved(pool, tmp_path):
+    out = tmp_path / "run"
+    train(tiny_config(pool, out, steps=10, eval_every=10, checkpoint_every=10), threads=1, progress=False)
+    with pytest.raises(UdhError, match="NaN|nan|inf"):
+        train(tiny_config(pool, out, steps=30, lr=float("inf")), resume=True, threads=1, progress=False)
+    kept = load_checkpoint(out / "checkpoint.pt")  # load_checkpoint refuses non-finite weights
+    assert kept["step"] == 10
+
+
+def test_a_new_lr_on_resume_is_honoured_and_said(pool, tmp_path):
+    out = tmp_path / "run"
+    train(tiny_config(pool, out, steps=10, eval_every=10, checkpoint_every=10), threads=1, progress=False)
+    said: list[str] = []
+    train(tiny_config(pool, out, steps=20, lr=1e-4), resume=True, threads=1, progress=False, on_note=said.append)
+    assert load_checkpoint(out / "checkpoint.pt")["config"]["lr"] == 1e-4
+    assert len(said) == 1 and "1e-04" in said[0].replace("0.0001", "1e-04")
+
+
+def test_corr_global_starts_exactly_as_the_corr_network_it_widens():
+    from udh_cli.train.archs import create_model, widen_from
+
+    torch.manual_seed(0)
+    old = create_model("corr", 64).eval()
+    new = create_model("corr-global", 64).eval()
+    assert widen_from(new, old.state_dict()) == ["regressor.0.0.weight"]
+    patches = torch.rand(3, 2, 64, 64)
+    assert torch.equal(old(patches), new(patches))
+    with pytest.raises(KeyError):
+        widen_from(create_model("corr-lite", 64), old.state_dict())
+
+
+def test_flight_motion_training_runs_and_records_its_motion(pool, tmp_path):
+    out = tmp_path / "flight"
+    last = train(tiny_config(pool, out, patch_size=64, motion="flight", max_heading=20.0, arch="corr-global", steps=4,
+                             eval_every=2, checkpoint_every=2, val_pairs=8, batch=4), threads=1, progress=False)
+    assert last["step"] == 4 and np.isfinite(last["val_mace_median"])
+    assert load_checkpoint(out / "checkpoint.pt")["config"]["max_heading"] == 20.0
+    with pytest.raises(UdhError, match="flight motion out of range"):
+        Trainer(tiny_config(pool, tmp_path / "bad", motion="flight", max_heading=200.0), progress=False)
+
+
+def test_export_refuses_its_own_checkpoint_and_a_non_onnx_name(tmp_path):
+    from conftest import export_tiny_network
+    from udh_cli.train.export import export_onnx
+
+    onnx_path = export_tiny_network(tmp_path, "corr-global", seed=0)  # the widened network exports and matches torch
+    checkpoint = tmp_path / "corr-global.pt"
+    before = checkpoint.read_bytes()
+    with pytest.raises(UdhError, match=r"\.onnx name"):
+        export_onnx(checkpoint, checkpoint)
+    same = tmp_path / "same.onnx"
+    same.write_bytes(before)
+    with pytest.raises(UdhError, match="is the checkpoint being exported"):
+        export_onnx(same, same)
+    assert checkpoint.read_bytes() == before and same.read_bytes() == before
+    from udh_cli.onnx_model import OnnxHomographyModel
+
+    assert OnnxHomographyModel.load(onnx_path).metadata["motion"] == "paper"

@@ -199,7 +199,8 @@ class DeepEstimator(Estimator):
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
                        "precision": precision}
             if full is not None and self.tiles:
-                refined = refine_with_tiles(self.stages[-1][0], to_gray_float(a), to_gray_float(b), full)
+                refined = refine_with_tiles(self.stages[-1][0], to_gray_float(a), to_gray_float(b), full,
+                                            coarse_network=self.network if len(self.stages) > 1 else None)
                 full = refined.b_from_a
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
                                tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))

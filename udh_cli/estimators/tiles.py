@@ -20,6 +20,9 @@ from udh_cli.images import scaled_size
 from udh_cli.onnx_model import OnnxHomographyModel
 
 
+MIN_SEEN_PROBES = 6  # of the 3x3 probes of a tile that must fall inside A
+
+
 @dataclass(frozen=True)
 class TileRefinement:
     """Settings of the tile stage (one reason each).
@@ -32,13 +35,20 @@ class TileRefinement:
         max_move: largest corner move, pixels of the level, that a level may make: a tile network trained on
             small residuals is not trusted with more (its training motion was 16 px).
         min_tiles: fewest agreeing tiles for a level's fit to replace the current estimate.
+        coarse_side: longer side of a first level where the coarse network runs on the tiles (0: none). Why:
+            a whole frame squashed to 128x128 leaves the coarse answer up to 10-15 px off in that view on
+            low-overlap, repetitive scenes (tree canopy), beyond the refinement network's reach; tiles of a
+            256 px level see the scene twice as large, and the coarse network reaches 32 px and more.
+        coarse_move: largest corner move, pixels of the coarse level, that it may make.
     """
 
     levels: tuple[int, ...] = (480, 0)
     tiles: int = 12
-    inlier_px: float = 1.5
+    inlier_px: float = 3.0
     max_move: float = 16.0
-    min_tiles: int = 4
+    min_tiles: int = 3
+    coarse_side: int = 256
+    coarse_move: float = 48.0
 
 
 @dataclass(frozen=True)
@@ -77,10 +87,14 @@ def _choose_tiles(gray_b: np.ndarray, a_from_b: np.ndarray, size_a: tuple[int, i
     """Tiles of B wholly seen in A, textured, spread over the overlap: at most ``count``."""
     width_a, height_a = size_a
     origins = np.array(_tile_origins((gray_b.shape[1], gray_b.shape[0]), tile), np.float64)  # T, 2
-    probe = np.array([[0, 0], [tile - 1, 0], [tile - 1, tile - 1], [0, tile - 1], [(tile - 1) / 2, (tile - 1) / 2]], np.float64)
+    steps = np.linspace(0, tile - 1, 3)
+    probe = np.array([[x, y] for y in steps for x in steps], np.float64)  # a 3x3 grid over the tile
     seen = geometry.transform_points(a_from_b, (origins[:, None, :] + probe[None]).reshape(-1, 2)).reshape(len(origins), -1, 2)
-    inside = (np.isfinite(seen).all((1, 2)) & (seen > -0.5).all((1, 2))
-              & (seen[..., 0] < width_a - 0.5).all(1) & (seen[..., 1] < height_a - 0.5).all(1))
+    seen_inside = (np.isfinite(seen).all(2) & (seen[..., 0] > -0.5) & (seen[..., 1] > -0.5)
+                   & (seen[..., 0] < width_a - 0.5) & (seen[..., 1] < height_a - 0.5))
+    # Most of the tile must be seen in A (the centre and 6 of 9 probes): at coarse levels and low overlap
+    # no tile is wholly inside, and the network copes with a margin of A's replicated border.
+    inside = seen_inside[:, 4] & (seen_inside.sum(1) >= MIN_SEEN_PROBES)
     if not inside.any():
         return []
     origins = origins[inside].astype(int)
@@ -104,7 +118,7 @@ def _choose_tiles(gray_b: np.ndarray, a_from_b: np.ndarray, size_a: tuple[int, i
 
 
 def refine_level(network: OnnxHomographyModel, level_a: np.ndarray, level_b: np.ndarray, b_from_a: np.ndarray,
-                 config: TileRefinement) -> tuple[np.ndarray, int, float, float] | None:
+                 config: TileRefinement, max_move: float | None = None) -> tuple[np.ndarray, int, float, float] | None:
     """One level: tiles, one network pass each, a RANSAC fit. Images are (H, W) float32 grey in [0, 1].
 
     Returns ``(b_from_a, tiles, agreeing share, median residual px)`` at this level, or None when too few
@@ -136,15 +150,16 @@ def refine_level(network: OnnxHomographyModel, level_a: np.ndarray, level_b: np.
     if per_tile.sum() < config.min_tiles or not geometry.is_valid_homography(fitted, *size_a):
         return None
     move = geometry.corner_errors(fitted, b_from_a, *size_a).max()
-    if not move <= config.max_move:
+    if not move <= (config.max_move if max_move is None else max_move):
         return None
     residual = np.linalg.norm(geometry.transform_points(fitted, points_a) - points_b, axis=1).reshape(-1, 4)[per_tile]
     return fitted / fitted[2, 2], len(origins), float(per_tile.mean()), float(np.median(residual))
 
 
 def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray,
-                      config: TileRefinement = TileRefinement()) -> TileResult:
-    """Refine ``b_from_a`` (3x3, pixels of ``gray_a``/``gray_b``, (H, W) float32 in [0, 1]) level by level.
+                      config: TileRefinement = TileRefinement(), coarse_network: OnnxHomographyModel | None = None) -> TileResult:
+    """Refine ``b_from_a`` (3x3, pixels of ``gray_a``/``gray_b``, (H, W) float32 in [0, 1]) level by level:
+    ``coarse_network`` on tiles of a ``config.coarse_side`` level first (when given), then ``network``.
 
     A level whose fit fails or moves too far leaves the estimate as it was; finer levels still run.
     """
@@ -152,7 +167,10 @@ def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: 
     current = np.asarray(b_from_a, np.float64)
     used, agreeing, residual = 0, 0.0, float("nan")
     done_sizes = set()
-    for side in config.levels:
+    plan = [(side, network, config.max_move) for side in config.levels]
+    if coarse_network is not None and config.coarse_side > 0:
+        plan.insert(0, (config.coarse_side, coarse_network, config.coarse_move))
+    for side, level_network, max_move in plan:
         level_size_a, level_size_b = _level_sizes(size_a, size_b, side)
         if (level_size_a, level_size_b) in done_sizes:
             continue
@@ -161,7 +179,7 @@ def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: 
         level_a = gray_a if full else cv2.resize(gray_a, level_size_a, interpolation=cv2.INTER_AREA)
         level_b = gray_b if full else cv2.resize(gray_b, level_size_b, interpolation=cv2.INTER_AREA)
         start = geometry.rescale_homography(current, size_a, level_size_a, size_b, level_size_b)
-        found = refine_level(network, level_a, level_b, start, config)
+        found = refine_level(level_network, level_a, level_b, start, config, max_move)
         if found is None:
             continue
         fitted, _, agreeing, residual_level = found

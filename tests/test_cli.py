@@ -61,9 +61,11 @@ def test_json_output(files):
 @pytest.mark.parametrize("method", ["orb", "ecc", "identity"])
 def test_other_methods_and_colour_jpeg(files, method):
     result = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(files["b.jpg"]), "-m", method, "--json"])
-    assert result.exit_code == 0, result.output
+    # identity is a guess by definition (confidence 0): it is printed, and exits with the "unverified" code
+    assert result.exit_code == (cli.UNVERIFIED if method == "identity" else 0), result.output
     report = json.loads(result.stdout)
-    assert report["method"] == method
+    assert report["method"] == method and report["exit_code"] == result.exit_code
+    assert report["verified"] is (method != "identity")
     error = float(geometry.mace(np.asarray(report["homography"]), TRUTH, WIDTH, HEIGHT))
     assert error < {"orb": 2.0, "ecc": 0.3, "identity": 30.0}[method]
 
@@ -75,11 +77,36 @@ def test_an_unverified_answer_is_printed_with_a_warning(files, tmp_path):
     other = tmp_path / "other.png"
     cv2.imwrite(str(other), textured_image(WIDTH, HEIGHT, seed=99))
     table = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(other)])
-    report = json.loads(CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(other), "--json"]).stdout)
-    assert table.exit_code == 0 and "did not verify" in table.stdout
-    assert report["ok"] and report["details"]["verified"] is False and report["confidence"] < 0.1
+    as_json = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(other), "--json"])
+    report = json.loads(as_json.stdout)
+    # printed, but never as a success: the exit code says "unverified", the warning goes to stderr
+    assert table.exit_code == as_json.exit_code == cli.UNVERIFIED
+    assert "did not verify" in table.stderr and "did not verify" not in table.stdout and "did not verify" not in as_json.stdout
+    assert report["ok"] and report["verified"] is False and report["details"]["verified"] is False and report["confidence"] < 0.1
+    assert report["exit_code"] == cli.UNVERIFIED
     right = json.loads(CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(files["b16.png"]), "--json"]).stdout)
-    assert right["details"]["verified"] is True
+    assert right["details"]["verified"] is True and right["verified"] is True and right["exit_code"] == 0
+
+
+def test_json_reports_a_failure_as_one_object(files, tmp_path):
+    missing = tmp_path / "missing.png"
+    result = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(missing), "--json"])
+    assert result.exit_code != 0
+    report = json.loads(result.stdout)
+    assert report["ok"] is False and report["exit_code"] == 1 and "no such file" in report["failure"]
+
+
+def test_large_images_are_estimated_at_the_work_size_and_answered_at_full_resolution(tmp_path):
+    from conftest import warped_pair
+
+    truth = np.array([[1.01, 0.02, 30.0], [-0.015, 0.99, -20.0], [0.0, 0.0, 1.0]])
+    a, b = warped_pair(truth, width=2400, height=1800, seed=5, margin=60)
+    cv2.imwrite(str(tmp_path / "a.png"), a)
+    cv2.imwrite(str(tmp_path / "b.png"), b)
+    result = CliRunner().invoke(cli.app, ["estimate", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "-m", "sift", "--json", "--work-size", "800"])
+    report = json.loads(result.stdout)
+    assert result.exit_code == 0 and report["work_size_a"] == [800, 600] and report["size_a"] == [2400, 1800]
+    assert float(geometry.mace(np.asarray(report["homography"]), truth, 2400, 1800)) < 3.0  # full-resolution pixels
 
 
 def test_table_output_and_viz(files, tmp_path):
@@ -119,7 +146,9 @@ def test_bad_input_fails_in_one_line_without_leftovers(files, tmp_path, monkeypa
     picture = tmp_path / "viz.png"
     code, out, err = run_main(monkeypatch, capfd, "estimate", *args, "--viz", str(picture), "--json")
     assert code == 1
-    assert out == ""
+    if out:  # errors the command itself meets are also one JSON object on stdout; usage errors come before it
+        report = json.loads(out)
+        assert report["ok"] is False and report["exit_code"] == 1 and message in report["failure"]
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], err
     assert "Traceback" not in err

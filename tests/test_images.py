@@ -207,3 +207,48 @@ def test_local_contrast_removes_gain_and_bias_that_vary_across_the_image():
     assert float(np.corrcoef(plain[inner].ravel(), lit[inner].ravel())[0, 1]) > 0.95
     flat = local_contrast(np.full((64, 64), 0.5, np.float32) + np.random.default_rng(0).normal(0, 1e-3, (64, 64)).astype(np.float32), 4.0)
     assert float(np.abs(flat).max()) < 0.5  # the floor keeps sensor noise from becoming texture
+
+
+def _png_declaring(path, width: int, height: int) -> None:
+    """A small PNG whose header declares ``width`` x ``height`` (the pixel data is a few zero rows)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    rows = zlib.compress(b"\x00" * (width + 1) * 4)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+                     + chunk(b"IDAT", rows) + chunk(b"IEND", b""))
+
+
+def test_a_decompression_bomb_is_refused_from_its_header(tmp_path, monkeypatch):
+    import time
+
+    from udh_cli.images import read_image
+
+    bomb = tmp_path / "bomb.png"
+    _png_declaring(bomb, 32000, 32000)
+    assert bomb.stat().st_size < 100_000
+    start = time.perf_counter()
+    with pytest.raises(UdhError, match="32000x32000 pixels, over the 250 MP limit"):
+        read_image(bomb)
+    assert time.perf_counter() - start < 1.0  # nothing was decoded
+    monkeypatch.setenv("UDH_MAX_PIXELS", "1000")
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((40, 40), np.uint8))
+    with pytest.raises(UdhError, match="over the 0 MP limit"):
+        read_image(small)
+    monkeypatch.setenv("UDH_MAX_PIXELS", "lots")
+    with pytest.raises(UdhError, match="give a number of pixels"):
+        read_image(small)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_a_fifo_without_a_writer_does_not_hang(tmp_path):
+    from udh_cli.images import read_image
+
+    fifo = tmp_path / "pipe.png"
+    os.mkfifo(fifo)
+    with pytest.raises(UdhError, match="empty"):
+        read_image(fifo)

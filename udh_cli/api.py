@@ -11,6 +11,34 @@ from udh_cli.estimators import DEFAULT_METHOD, Estimate, create_estimator, requi
 from udh_cli.homography_files import read_homography
 from udh_cli.images import IMAGE_SUFFIXES, check_output_path, read_image, write_image
 
+# Longest side (pixels) at which `udh estimate` works unless asked for full resolution: the precision of a
+# 1600 px frame, and SIFT, ECC and the networks in bounded time and memory on a 48 MP photo.
+ESTIMATE_WORK_SIZE = 1600
+# Below this confidence an answer that carries no verification of its own counts as unverified. It is the
+# mosaic's acceptance floor (Acceptance.min_confidence): what udh would not build a map on.
+MIN_CONFIDENCE = 0.2
+
+
+def is_verified(estimate: Estimate) -> bool:
+    """Whether an answer is confirmed: ``auto``'s own verdict where it gives one, else a confidence at
+    least :data:`MIN_CONFIDENCE`."""
+    verdict = estimate.details.get("verified")
+    if isinstance(verdict, bool):
+        return verdict
+    return estimate.confidence >= MIN_CONFIDENCE
+
+
+def _work_copy(image, work_size: int | None):
+    """``image`` shrunk so that its longer side is at most ``work_size`` (None: as it is)."""
+    import cv2
+
+    longest = max(image.shape[:2])
+    if work_size is None or longest <= work_size:
+        return image
+    scale = work_size / longest
+    size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
 
 def estimate_files(path_a: str | Path, path_b: str | Path, method: str = DEFAULT_METHOD, **options: Any) -> Estimate:
     """Read two image files and estimate ``b_from_a`` in their full-resolution pixels.
@@ -29,6 +57,7 @@ def estimate_report(
     *,
     gt: str | Path | None = None,
     viz: str | Path | None = None,
+    work_size: int | None = ESTIMATE_WORK_SIZE,
     **options: Any,
 ) -> dict[str, Any]:
     """What ``udh estimate`` does: estimate ``b_from_a`` for two image files and report on it.
@@ -41,12 +70,15 @@ def estimate_report(
         method: a registered estimator name; ``options`` go to it.
         gt: optional ground-truth homography file (``x_B ~ H x_A``), see :func:`read_homography`.
         viz: optional picture to write (.png, .jpg...): A's border warped onto B, and the truth.
+        work_size: the images are estimated with their longer side shrunk to this many pixels (None: full
+            resolution), and the answer is rescaled exactly to the full-resolution pixels.
 
     Returns:
         :meth:`Estimate.to_json` (keys ``method``, ``homography``, ``confidence``, ``elapsed_ms``...) plus
         ``image_a``, ``image_b``, ``size_a`` and ``size_b`` ([width, height] px), ``offsets_4pt``
         ((4, 2) px, where A's corners move in B, corner order TL, TR, BR, BL); with ``gt`` also
-        ``corner_error_px`` (MACE) and ``corner_rmse_px``; with ``viz`` also ``viz``.
+        ``corner_error_px`` (MACE) and ``corner_rmse_px``; with ``viz`` also ``viz``; ``verified``
+        (:func:`is_verified`) and ``work_size_a`` / ``work_size_b`` (the sizes estimated at).
 
     Raises:
         UdhError: for bad input, and when the method finds no homography.
@@ -57,11 +89,21 @@ def estimate_report(
         check_output_path(viz, IMAGE_SUFFIXES)
         if any(Path(viz).resolve() == Path(p).resolve() for p in (path_a, path_b)):
             raise UdhError(f"{viz}: is one of the input images; write the picture to another file")
+    if work_size is not None and work_size < 32:
+        raise UdhError(f"--work-size {work_size}: give at least 32 pixels")
     image_a, image_b = read_image(path_a), read_image(path_b)
-    result = require_ok(estimator.estimate(image_a, image_b))
+    work_a, work_b = _work_copy(image_a, work_size), _work_copy(image_b, work_size)
+    found = require_ok(estimator.estimate(work_a, work_b))
+    size_a, size_b = (image_a.shape[1], image_a.shape[0]), (image_b.shape[1], image_b.shape[0])
+    small_a, small_b = (work_a.shape[1], work_a.shape[0]), (work_b.shape[1], work_b.shape[0])
+    result = Estimate(found.method, geometry.rescale_homography(found.homography, small_a, size_a, small_b, size_b),
+                      found.confidence, found.elapsed_ms, found.failure, found.details)
+    verified = is_verified(result)
 
     width, height = image_a.shape[1], image_a.shape[0]
     report = result.to_json()
+    report["verified"] = verified
+    report["work_size_a"], report["work_size_b"] = list(small_a), list(small_b)
     report["image_a"], report["image_b"] = str(path_a), str(path_b)
     report["size_a"], report["size_b"] = [width, height], [image_b.shape[1], image_b.shape[0]]
     report["offsets_4pt"] = geometry.offsets_from_homography(result.homography, width, height).tolist()
@@ -71,6 +113,7 @@ def estimate_report(
     if viz is not None:
         from udh_cli.viz import draw_estimate
 
-        write_image(viz, draw_estimate(image_a, image_b, result.homography, truth, label=result.method))
+        label = result.method if verified else f"{result.method}: UNVERIFIED, may be wrong"
+        write_image(viz, draw_estimate(image_a, image_b, result.homography, truth, label=label))
         report["viz"] = str(viz)
     return report

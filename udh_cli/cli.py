@@ -15,6 +15,7 @@ from rich.table import Table
 
 from udh_cli import __version__, geometry
 from udh_cli.errors import UdhError
+from udh_cli.api import ESTIMATE_WORK_SIZE
 from udh_cli.estimators.registry import DEFAULT_METHOD
 from udh_cli.flight_motion import MotionConfig as _MotionDefaults
 
@@ -30,6 +31,7 @@ console = Console()
 err_console = Console(stderr=True)
 _state = {"debug": False}
 INTERRUPTED = 130  # the shell's exit code for Ctrl-C
+UNVERIFIED = 3  # udh estimate: an answer was found but did not verify
 
 
 def _version(value: bool) -> None:
@@ -62,19 +64,34 @@ def estimate(
     refine_rounds: Annotated[Optional[int], typer.Option(help="Learned methods: rounds of the refinement network after the coarse ones (0: none).")] = None,
     search: Annotated[Optional[int], typer.Option(help="Learned methods: when the answer scores low, retry from a (2N+1)^2 grid of shifts up to half the frame (0: off).")] = None,
     precision: Annotated[Optional[str], typer.Option(help="Learned methods: which shipped networks, int8 (the default where shipped) or fp32.")] = None,
+    work_size: Annotated[int, typer.Option(help="Estimate with the images' longer side shrunk to this many pixels; the answer is in full-resolution pixels.")] = ESTIMATE_WORK_SIZE,
+    full_resolution: Annotated[bool, typer.Option("--full-resolution", help="Estimate at the images' full resolution (slow and memory-hungry on large photos).")] = False,
 ) -> None:
-    """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold])."""
+    """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold]).
+
+    Exit codes: 0 a verified answer; 3 an answer that did not verify (printed, may be wrong); 1 no answer or bad input.
+    """
     from udh_cli.api import estimate_report
 
     given = {"best_features": best_features, "model": None if model is None else str(model), "device": device, "iterations": iterations,
              "refine_model": None if refine_model is None else str(refine_model), "refine_rounds": refine_rounds, "search": search,
              "precision": precision}
     options = {key: value for key, value in given.items() if value is not None}
-    report = estimate_report(image_a, image_b, method, gt=gt, viz=viz, **options)
+    try:
+        report = estimate_report(image_a, image_b, method, gt=gt, viz=viz, work_size=None if full_resolution else work_size, **options)
+    except UdhError as exc:
+        if json_output:  # scripts read stdout: one object, whatever happened
+            sys.stdout.write(json.dumps({"method": method, "ok": False, "verified": False, "failure": str(exc), "exit_code": 1}) + "\n")
+        raise
+    code = 0 if report["verified"] else UNVERIFIED
     if json_output:
-        sys.stdout.write(json.dumps(report) + "\n")
-        return
-    _print_estimate(report)
+        sys.stdout.write(json.dumps({**report, "exit_code": code}) + "\n")
+    else:
+        _print_estimate(report)
+    if code:
+        err_console.print("[yellow]warning:[/yellow] this answer did not verify (a low confidence, or no alignment and no matches "
+                          "that agree on it): it is the best found, and may be wrong", highlight=False)
+        raise typer.Exit(code)
 
 
 def _print_estimate(payload: dict) -> None:
@@ -96,9 +113,6 @@ def _print_estimate(payload: dict) -> None:
     if "viz" in payload:
         summary += f"   picture: {payload['viz']}"
     console.print(summary)
-    if payload["details"].get("verified") is False:
-        console.print("[yellow]warning:[/yellow] this answer did not verify (a low alignment score and no matches "
-                      "that agree on it): it is the best found, and may be wrong")
 
 
 _PASSTHROUGH = {"allow_extra_args": True, "ignore_unknown_options": True}

@@ -19,31 +19,108 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 MIN_IMAGE_SIDE = 8  # pixels; below this no estimator can say anything useful
 
 
+_PILLOW_LOCK = threading.Lock()
+MAX_PIXELS_ENV = "UDH_MAX_PIXELS"
+DEFAULT_MAX_PIXELS = 250_000_000  # 250 MP: a 16,000 x 15,000 frame; far above any drone camera, far below a bomb
+
+
+def max_pixels() -> int:
+    """The largest image (width x height) udh decodes: ``UDH_MAX_PIXELS`` if set, else 250 MP."""
+    value = os.environ.get(MAX_PIXELS_ENV)
+    if value is None:
+        return DEFAULT_MAX_PIXELS
+    try:
+        limit = int(float(value))
+    except ValueError:
+        raise UdhError(f"{MAX_PIXELS_ENV}={value!r}: give a number of pixels, e.g. 400000000") from None
+    if limit < MIN_IMAGE_SIDE**2:
+        raise UdhError(f"{MAX_PIXELS_ENV}={value!r}: give at least {MIN_IMAGE_SIDE**2} pixels")
+    return limit
+
+
+def image_size_from_header(data: bytes | np.ndarray) -> tuple[int, int] | None:
+    """``(width, height)`` from an encoded image's header, without decoding its pixels; None if unknown.
+
+    Pillow reads only the header here (``Image.open`` is lazy). Why not OpenCV: ``cv2.imdecode`` allocates
+    the whole image before it can say how large it is, and a 1 MB PNG can declare 32,000 x 32,000 pixels.
+    """
+    import io
+
+    from PIL import Image, UnidentifiedImageError
+
+    with _PILLOW_LOCK:
+        # Pillow's own bomb check raises before it says the size; udh applies its own limit to the size.
+        saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+        try:
+            with Image.open(io.BytesIO(bytes(data))) as header:
+                return header.size
+        except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+            return None
+        finally:
+            Image.MAX_IMAGE_PIXELS = saved
+
+
+def _read_bytes(path: Path) -> bytes:
+    """The file's bytes; pipes (``<(cat a.png)``) are read as they come, and a FIFO without a writer is empty.
+
+    A FIFO opened without O_NONBLOCK waits for a writer for ever; opened with it, it reads at once what a
+    writer has sent (a process substitution) or nothing (no writer), and the blocking reads that follow end
+    at the writer's end of file.
+    """
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0)
+    fd = os.open(path, flags)
+    try:
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        chunks = []
+        while True:
+            chunk = os.read(fd, 1 << 20)
+            if not chunk:
+                return b"".join(chunks)
+            chunks.append(chunk)
+    finally:
+        os.close(fd)
+
+
 def read_image(path: str | os.PathLike) -> np.ndarray:
     """Read an image file as it is stored: (H, W) or (H, W, 3) BGR, 8- or 16-bit (or float for EXR/TIFF).
 
-    EXIF orientation is applied, so the pixels come out the way a viewer shows them.
-    Raises :class:`UdhError` for a missing, unreadable, non-image, empty or tiny file.
+    EXIF orientation is applied, so the pixels come out the way a viewer shows them. The header's size is
+    checked against :func:`max_pixels` before any pixel is decoded.
+    Raises :class:`UdhError` for a missing, unreadable, non-image, empty, oversized or tiny file.
     """
+    import stat
+
     path = Path(path)
     if not path.exists():
         raise UdhError(f"{path}: no such file; check the path")
     if path.is_dir():
         raise UdhError(f"{path}: is a folder, not an image file")
     try:
-        data = np.fromfile(path, dtype=np.uint8)
+        mode = path.stat().st_mode
+        if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)):
+            raise UdhError(f"{path}: not a regular file (a device or socket); give a JPEG, PNG or TIFF file")
+        data = _read_bytes(path)
     except OSError as exc:
-        raise UdhError(f"{path}: cannot read it ({exc.strerror}); check its permissions") from None
-    if data.size == 0:
+        raise UdhError(f"{path}: cannot read it ({exc.strerror or exc}); check its permissions") from None
+    if len(data) == 0:
         raise UdhError(f"{path}: the file is empty; give a JPEG, PNG or TIFF image")
+    size = image_size_from_header(data)
+    limit = max_pixels()
+    if size is not None and size[0] * size[1] > limit:
+        raise UdhError(f"{path}: the image declares {size[0]}x{size[1]} pixels, over the {limit / 1e6:.0f} MP limit; "
+                       f"downscale it, or raise {MAX_PIXELS_ENV} if it is real")
     # ANYDEPTH keeps 16-bit data; ANYCOLOR keeps grey as grey. Without IGNORE_ORIENTATION, EXIF is applied.
     try:
         with _native_messages_silenced():
-            image = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     except cv2.error:  # e.g. beyond OpenCV's pixel limit, or a codec that rejects the stream outright
         image = None
     if image is None:
         raise UdhError(f"{path}: not a readable image; give a JPEG, PNG or TIFF file")
+    if image.shape[0] * image.shape[1] > limit:  # a format whose header Pillow could not read
+        raise UdhError(f"{path}: {image.shape[1]}x{image.shape[0]} pixels, over the {limit / 1e6:.0f} MP limit; "
+                       f"downscale it, or raise {MAX_PIXELS_ENV} if it is real")
     if image.ndim == 3 and image.shape[2] == 4:
         image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
     check_image(image, str(path))

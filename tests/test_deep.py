@@ -194,3 +194,27 @@ def test_search_finds_a_shift_beyond_the_networks_range():
     assert searched.confidence > plain.confidence + 0.3
     with pytest.raises(UdhError, match="search .* must be 0"):
         create_estimator("unsupervised", device="cpu", search=-1)
+
+
+def test_the_device_picks_providers_from_onnxruntimes_list(monkeypatch):
+    """This machine has no GPU: the provider choice is tested against onnxruntime's provider list."""
+    import onnxruntime as ort
+
+    from udh_cli.onnx_model import providers_for
+
+    monkeypatch.setattr(ort, "get_available_providers", lambda: ["CUDAExecutionProvider", "CPUExecutionProvider"])
+    assert providers_for("cuda") == ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    assert providers_for("auto")[0] == "CUDAExecutionProvider"
+    assert providers_for("cpu") == ["CPUExecutionProvider"]
+    monkeypatch.setattr(ort, "get_available_providers", lambda: ["CPUExecutionProvider"])
+    assert providers_for("auto") == ["CPUExecutionProvider"]
+    with pytest.raises(UdhError, match="onnxruntime-gpu"):
+        providers_for("cuda")
+
+
+def test_estimates_say_which_provider_ran():
+    from conftest import warped_pair
+
+    a, b = warped_pair(np.array([[1, 0, 4.0], [0, 1, -3.0], [0, 0, 1]]))
+    found = create_estimator("unsupervised", device="cpu").estimate(a, b)
+    assert found.details["provider"] == "CPUExecutionProvider"

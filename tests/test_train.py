@@ -46,6 +46,8 @@ def read_metrics(out: Path) -> list[dict]:
     return [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines() if line.strip()]
 
 
+@pytest.mark.slow
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["supervised", "unsupervised"])
 def test_a_few_hundred_steps_lower_loss_and_corner_error(pool, mode):
     """The whole differentiable path (network, Tensor DLT, spatial transformer, losses) learns: 300 Adam
@@ -99,6 +101,7 @@ def test_unsupervised_loss_is_zero_at_the_truth_and_grows_away_from_it(pool):
     assert off_truth > 3 * at_truth
 
 
+@pytest.mark.slow
 def test_resume_after_kill_matches_an_uninterrupted_run(pool, tmp_path):
     """SIGKILL a training process after its first checkpoint; --resume must end bit-identical."""
     straight = tmp_path / "straight"
@@ -133,6 +136,7 @@ def test_resume_after_kill_matches_an_uninterrupted_run(pool, tmp_path):
     assert [m["step"] for m in read_metrics(killed)] == [m["step"] for m in read_metrics(straight)]
 
 
+@pytest.mark.slow
 def test_nan_loss_stops_with_a_message_and_keeps_the_checkpoint(pool, tmp_path, monkeypatch):
     config = tiny_config(pool, tmp_path, steps=40, eval_every=20, checkpoint_every=20)
     trainer = Trainer(config, progress=False)
@@ -184,6 +188,7 @@ def test_flight_reference_table_skips_damaged_rows(tmp_path):
     np.testing.assert_allclose(found[("a.jpg", "b.jpg")], [[1, 0, 5], [0, 1, 0], [0, 0, 1]])
 
 
+@pytest.mark.slow
 def test_torchrun_two_processes(pool, tmp_path):
     """`udh train` runs unchanged under torchrun with 2 CPU processes (gloo)."""
     out = tmp_path / "ddp"
@@ -210,6 +215,7 @@ def test_impossible_settings_and_outputs_are_refused_before_any_work(pool, tmp_p
     assert a_file.read_bytes() == b"x"
 
 
+@pytest.mark.slow
 def test_distillation_pulls_the_student_towards_the_teacher(pool, tmp_path):
     """A student trained with --teacher ends far closer to the teacher's answers than the same run without,
     and a teacher that cannot serve (supervised mode, another patch size) is refused before any work."""
@@ -251,6 +257,7 @@ def test_distillation_pulls_the_student_towards_the_teacher(pool, tmp_path):
             Trainer(tiny_config(pool, tmp_path / "neg", teacher=str(teacher_ckpt), teacher_weight=weight), progress=False)
 
 
+@pytest.mark.slow
 def test_sigterm_stops_at_a_step_boundary_and_resume_is_bit_identical(pool, tmp_path):
     """SIGTERM mid-run saves after a whole step (not mid-step); --resume then ends exactly as a straight run."""
     straight = tmp_path / "straight"

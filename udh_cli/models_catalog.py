@@ -26,8 +26,16 @@ PRECISIONS = ("int8", "fp32")
 
 
 def models_dir() -> Path:
-    """The folder holding the shipped ``.onnx`` (inference) and ``.pt`` (fine-tuning) files."""
-    return Path(str(resources.files("udh_cli.models")))
+    """The folder holding the shipped ``.onnx`` (inference) and ``.pt`` (fine-tuning) files.
+
+    Installed (wheel, ``pip install .`` or editable), it is the package ``udh_cli.models``. Imported straight
+    from a checkout (``python -m udh_cli`` or pytest run inside it, whatever is installed), the source
+    tree has no such package: the checkout's own top-level ``models/`` folder is used.
+    """
+    try:
+        return Path(str(resources.files("udh_cli.models")))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parents[1] / "models"
 
 
 def _shipped_path(name: str, suffix: str) -> Path:

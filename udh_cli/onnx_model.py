@@ -22,7 +22,8 @@ def providers_for(device: str) -> list[str]:
         return ["CPUExecutionProvider"]
     if device == "cuda":
         if "CUDAExecutionProvider" not in available:
-            raise UdhError("--device cuda: this onnxruntime has no CUDA provider; install onnxruntime-gpu or use --device cpu")
+            raise UdhError("--device cuda: this onnxruntime has no CUDA provider; replace it with the GPU build "
+                           "(pip uninstall onnxruntime && pip install onnxruntime-gpu) or use --device cpu")
         return ["CUDAExecutionProvider", "CPUExecutionProvider"]
     if device == "auto":
         return (["CUDAExecutionProvider"] if "CUDAExecutionProvider" in available else []) + ["CPUExecutionProvider"]
@@ -87,6 +88,13 @@ class OnnxHomographyModel:
         if not (math.isfinite(mean) and math.isfinite(std) and std > 0 and size >= 16):
             raise UdhError(f"{path}: unusable metadata (input size {size}, mean {mean}, std {std})")
         return cls(path, session, size, mean, std, metadata)
+
+    @property
+    def provider(self) -> str:
+        """The execution provider that runs this network ("CUDAExecutionProvider", "CPUExecutionProvider"...):
+        what actually ran, which ``--device auto`` or a CPU-only onnxruntime may make differ from the request."""
+        providers = self.session.get_providers()
+        return providers[0] if providers else "unknown"
 
     def predict_offsets(self, patches: np.ndarray, batch_size: int = 64) -> np.ndarray:
         """``patches`` (N, 2, S, S) grey in [0, 1] -> (N, 4, 2) float64 offsets in pixels of the S x S input."""

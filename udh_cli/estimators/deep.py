@@ -197,7 +197,7 @@ class DeepEstimator(Estimator):
             full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
             failure = None if valid else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
-                       "precision": precision}
+                       "precision": precision, "provider": self.network.provider}
             if full is not None and self.tiles:
                 refined = refine_with_tiles(self.stages[-1][0], to_gray_float(a), to_gray_float(b), full,
                                             coarse_network=self.network if len(self.stages) > 1 else None)

@@ -114,3 +114,29 @@ def test_damaged_pair_set_files_are_one_clear_error(tmp_path, case, message):
         np.savez(path, **arrays)
     with pytest.raises(UdhError, match=message):
         pairsets.load_sets(path)
+
+
+def test_flight_set_frames_are_aligned_by_their_truths():
+    from udh_cli.bench.pairsets import flight_set, simulated_sources
+    from udh_cli.flight_motion import source_size
+    from udh_cli.verify import alignment_ncc
+
+    sources = simulated_sources(4, size_for=source_size)
+    pairs = flight_set(sources, 12, seed=3)
+    assert pairs.name == "flight 320x240" and len(pairs) == 12
+    assert pairs.images_a[0].shape == (240, 320) and pairs.images_a[0].dtype == np.uint8
+    scores = [alignment_ncc(a.astype(np.float32) / 255, b.astype(np.float32) / 255, h, min_overlap=0.2)
+              for a, b, h in zip(pairs.images_a, pairs.images_b, pairs.truths)]
+    shifted = [alignment_ncc(a.astype(np.float32) / 255, b.astype(np.float32) / 255, h @ np.array([[1, 0, 8.0], [0, 1, 0], [0, 0, 1]]), min_overlap=0.2)
+               for a, b, h in zip(pairs.images_a, pairs.images_b, pairs.truths)]
+    assert np.median(scores) > 0.5 and np.median(scores) > np.median(shifted) + 0.2
+    again = flight_set(sources, 12, seed=3)
+    assert np.array_equal(again.truths, pairs.truths)
+
+
+def test_the_benchmark_runs_without_any_image_folder(tmp_path, monkeypatch):
+    from udh_cli.bench.pairsets import held_out_sources
+
+    monkeypatch.chdir(tmp_path)  # no ../shared/data here
+    sources, where = held_out_sources(None)
+    assert len(sources) == 24 and sources[0].shape == (240, 320) and "simulated" in where

@@ -311,6 +311,7 @@ def bench_synthetic(
     load_pairs: Annotated[Optional[Path], typer.Option("--load-pairs", help="Run on pairs saved with --save-pairs (replaces --images/--rho/--n/--seed).")] = None,
     option: Annotated[Optional[list[str]], typer.Option("--option", help=_OPTION_HELP)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.")] = True,
+    motion: Annotated[str, typer.Option("--motion", help="paper (128x128 patches, corners moved by --rho) or flight (whole 320x240 frames with real flight motion: turns, scale, low overlap).")] = "paper",
 ) -> None:
     """Benchmark on synthetic pairs from held-out images, drawn with the training generator."""
     from udh_cli.bench import check_output_folder, run_synthetic_bench
@@ -321,7 +322,7 @@ def bench_synthetic(
     result = run_synthetic_bench(
         images=images, rhos=parse_rhos(rho), count=n, seed=seed, illumination=illumination, occluders=occluders,
         methods=parse_methods(methods) if methods else None, mode=mode, options=parse_options(option),
-        save_pairs=save_pairs, load_pairs=load_pairs,
+        save_pairs=save_pairs, load_pairs=load_pairs, motion=motion,
     )
     _finish_bench(result, out, plots)
 

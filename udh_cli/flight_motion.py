@@ -100,30 +100,35 @@ def draw_view_motion(rng: np.random.Generator, config: MotionConfig, patch: int,
     return similarity_about(center, heading, scale, shift)
 
 
-def _overlap(b_from_a: np.ndarray, patch: int) -> float:
-    """Share of B's P x P view that A's view covers."""
-    corners = geometry.image_corners(patch, patch)
+def _overlap(b_from_a: np.ndarray, view: tuple[int, int]) -> float:
+    """Share of B's view (``(width, height)`` pixels) that A's view covers."""
+    corners = geometry.image_corners(*view)
     quad = geometry.transform_points(b_from_a, corners).astype(np.float32)
-    square = corners.astype(np.float32)
-    area, _ = cv2.intersectConvexConvex(quad, square)
-    return float(area) / float((patch - 1) ** 2)
+    area, _ = cv2.intersectConvexConvex(quad, corners.astype(np.float32))
+    return float(area) / float((view[0] - 1) * (view[1] - 1))
 
 
-def _draw_geometry(rng: np.random.Generator, config: MotionConfig, patch: int, source_wh: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """One motion placed in a source: (source_from_b, source_from_a, offsets), or None when it does not fit."""
-    aspect = float(rng.choice(ASPECTS))
-    if rng.uniform() < 0.5:
-        aspect = 1.0 / aspect  # portrait frames too
-    # Frame coordinates: isotropic pixels of B's frame with height ``patch``; the view squashes x by 1/aspect.
-    view_from_frame = np.diag([1.0 / aspect, 1.0, 1.0])
-    frame_from_a_frame = draw_view_motion(rng, config, patch, aspect)
-    corners = geometry.image_corners(patch, patch)
+def _draw_geometry(rng: np.random.Generator, config: MotionConfig, view: tuple[int, int], source_wh: tuple[int, int],
+                   aspect: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """One motion placed in a source: (source_from_b, source_from_a, b_from_a) of ``view``-sized views
+    (``(width, height)`` pixels), or None when it does not fit. ``aspect``: the frame's width / height
+    (None: drawn from :data:`ASPECTS`, either way up; a square view then squashes the frame, as the
+    estimators do)."""
+    view_w, view_h = view
+    if aspect is None:
+        aspect = float(rng.choice(ASPECTS))
+        if rng.uniform() < 0.5:
+            aspect = 1.0 / aspect  # portrait frames too
+    # Frame coordinates: isotropic pixels of B's frame with height ``view_h``; the view scales x to its width.
+    view_from_frame = np.diag([view_w / (view_h * aspect), 1.0, 1.0])
+    frame_from_a_frame = draw_view_motion(rng, config, view_h, aspect)
+    corners = geometry.image_corners(view_w, view_h)
     jitter = rng.uniform(-config.perspective, config.perspective, (4, 2))
     a_view_from_jittered = geometry.homography_from_points(corners + jitter, corners)  # jitter A's view corners
     # frame_from_a_view: A's view -> A's frame (unsquash) -> B's frame (M), with the corner jitter first.
     frame_from_a_view = frame_from_a_frame @ np.linalg.inv(view_from_frame) @ np.linalg.inv(a_view_from_jittered)
     b_from_a = view_from_frame @ frame_from_a_view
-    if not geometry.is_valid_homography(b_from_a, patch, patch, max_scale=4.0) or _overlap(b_from_a, patch) < config.min_overlap:
+    if not geometry.is_valid_homography(b_from_a, view_w, view_h, max_scale=4.0) or _overlap(b_from_a, view) < config.min_overlap:
         return None
     # Bounding box of both footprints in frame units, then the largest frame size that fits the source.
     footprint = np.vstack([geometry.transform_points(np.linalg.inv(view_from_frame), corners),
@@ -132,7 +137,7 @@ def _draw_geometry(rng: np.random.Generator, config: MotionConfig, patch: int, s
     extent = high - low
     sw, sh = source_wh
     fit = min((sw - 2) / extent[0], (sh - 2) / extent[1])
-    if fit * patch < 0.5 * patch:  # the views would be upsampled more than 2x: too little detail
+    if fit < 0.5:  # the views would be upsampled more than 2x: too little detail
         return None
     zoom = fit * rng.uniform(0.6, 1.0)  # source pixels per frame pixel
     free = np.array([sw - 1, sh - 1]) - extent * zoom
@@ -140,28 +145,58 @@ def _draw_geometry(rng: np.random.Generator, config: MotionConfig, patch: int, s
     source_from_frame = np.array([[zoom, 0, offset[0]], [0, zoom, offset[1]], [0, 0, 1.0]])
     source_from_b = source_from_frame @ np.linalg.inv(view_from_frame)
     source_from_a = source_from_frame @ frame_from_a_view
-    return source_from_b, source_from_a, geometry.offsets_from_homography(b_from_a, patch, patch)
+    return source_from_b, source_from_a, b_from_a
+
+
+def make_flight_frames(sources: list[np.ndarray], count: int, config: MotionConfig, rng: np.random.Generator,
+                       view: tuple[int, int] = (320, 240), illumination: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whole frames with flight motion, for benchmarks: ``(frames_a, frames_b)`` (N, h, w) uint8 grey and the
+    true ``b_from_a`` (N, 3, 3) in their pixels. The frames keep ``view``'s aspect (no squash), and get the
+    same lighting as training pairs. Deterministic given ``rng``'s state."""
+    width, height = view
+    frames_a = np.empty((count, height, width), np.uint8)
+    frames_b = np.empty((count, height, width), np.uint8)
+    truths = np.empty((count, 3, 3))
+    for i in range(count):
+        image = sources[int(rng.integers(0, len(sources)))].astype(np.float32) / 255.0
+        drawn = None
+        while drawn is None:
+            drawn = _draw_geometry(rng, config, view, (image.shape[1], image.shape[0]), aspect=width / height)
+        source_from_b, source_from_a, truths[i] = drawn
+        views = []
+        for source_from_view in (source_from_a, source_from_b):
+            seen = cv2.warpPerspective(image, source_from_view, view, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                       borderMode=cv2.BORDER_REPLICATE)
+            if illumination:
+                seen = illuminate(seen, rng)
+            if config.lighting > 0:
+                seen = flight_lighting(seen, rng, config.lighting)
+            views.append(np.clip(seen * 255.0 + 0.5, 0, 255).astype(np.uint8))
+        frames_a[i], frames_b[i] = views
+    return frames_a, frames_b, truths
 
 
 def flight_lighting(view: np.ndarray, rng: np.random.Generator, probability: float) -> np.ndarray:
-    """Real-flight photometric effects on a (P, P) float view in [0, 1], each with ``probability``.
+    """Real-flight photometric effects on an (H, W) float view in [0, 1], each with ``probability``.
 
     Cloud shadows (a soft dark blob), vignetting (radial fall-off), motion blur (a short line kernel),
     sensor noise, and JPEG re-encoding at a low quality. Grey views have no white balance of their own; a
     colour cast reaches grey as the brightness and gamma shifts that :func:`illuminate` already draws.
     """
     out = view.astype(np.float32, copy=True)
-    size = out.shape[0]
+    height, width = out.shape
+    size = min(height, width)
     if rng.uniform() < probability:
         mask = np.zeros_like(out)
-        centre = tuple(int(v) for v in rng.integers(-size // 4, size + size // 4, 2))
+        x, y = rng.integers(-size // 4, size + size // 4, 2)
+        centre = (int(x * width / size), int(y * height / size))
         axes = tuple(int(v) for v in rng.integers(size // 6, size // 1.5, 2))
         cv2.ellipse(mask, centre, axes, float(rng.uniform(0, 180)), 0, 360, 1.0, -1)
         mask = cv2.GaussianBlur(mask, (0, 0), size / 16)
         out *= 1.0 - rng.uniform(0.25, 0.6) * mask
     if rng.uniform() < probability:
-        yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
-        r2 = ((xx - (size - 1) / 2) ** 2 + (yy - (size - 1) / 2) ** 2) / (size / 2) ** 2
+        yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+        r2 = ((xx - (width - 1) / 2) ** 2 + (yy - (height - 1) / 2) ** 2) / (size / 2) ** 2
         out *= 1.0 - rng.uniform(0.1, 0.4) * np.clip(r2 / 2.0, 0, 1)
     if rng.uniform() < probability:
         length = int(rng.integers(3, 8))
@@ -205,8 +240,9 @@ def make_motion_pairs(sources: list[np.ndarray], count: int, config: MotionConfi
         motion = config.scaled(amount) if amount < 1.0 else config
         drawn = None
         while drawn is None:
-            drawn = _draw_geometry(rng, motion, patch, (w, h))
-        source_from_b, source_from_a, offsets[i] = drawn
+            drawn = _draw_geometry(rng, motion, (patch, patch), (w, h))
+        source_from_b, source_from_a, b_from_a = drawn
+        offsets[i] = geometry.offsets_from_homography(b_from_a, patch, patch)
         flags = cv2.INTER_AREA if source_from_b[0, 0] > 1.5 else cv2.INTER_LINEAR
         image_f = image.astype(np.float32) / 255.0
         b = cv2.warpPerspective(image_f, source_from_b, (patch, patch), flags=flags | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)

@@ -101,21 +101,39 @@ class PairSet:
         return geometry.translation(-x0, -y0) @ b_from_a @ geometry.translation(x0 - left, y0 - top)
 
 
+SIMULATED_SOURCES = 24  # ground images the simulator paints when no image folder is at hand
+
+
+def simulated_sources(count: int, size_for=None) -> list[np.ndarray]:
+    """``count`` grey uint8 ground images painted by the flight simulator (seeds 1000...), resized as
+    :func:`udh_cli.synthetic.load_sources` would: a benchmark that runs anywhere, data or not."""
+    import cv2
+
+    from udh_cli.simulate import make_ground
+
+    sources = []
+    for k in range(count):
+        grey = cv2.cvtColor(make_ground((640, 480), seed=1000 + k), cv2.COLOR_BGR2GRAY)
+        size = synthetic.SOURCE_SIZE if size_for is None else size_for(640, 480)
+        sources.append(cv2.resize(grey, size, interpolation=cv2.INTER_AREA))
+    return sources
+
+
 def held_out_sources(
-    images: Path | None, default_pool: Path = DEFAULT_POOL, min_images: int = MIN_IMAGES
+    images: Path | None, default_pool: Path = DEFAULT_POOL, min_images: int = MIN_IMAGES, size_for=None,
 ) -> tuple[list[np.ndarray], str]:
     """Source images for a synthetic benchmark, as 320x240 grey uint8, and a description of where from.
 
     A folder the user names is taken as held out in full. Without one, the default pool (relative to
     the current folder) is split with :func:`udh_cli.synthetic.split_holdout` and only its held-out tenth
-    is used, the images that training never sees.
+    is used, the images that training never sees. Where that pool is not (a fresh clone on its own), the
+    simulator paints the sources (:func:`simulated_sources`).
     """
     if images is None:
         if not default_pool.is_dir():
-            raise UdhError(
-                f"no --images folder given and the default pool {default_pool} is not there (it is looked "
-                "up relative to the current folder); pass --images DIR with held-out images"
-            )
+            return simulated_sources(SIMULATED_SOURCES, size_for), (
+                f"{SIMULATED_SOURCES} simulated ground images (udh_cli.simulate.make_ground; no --images given and "
+                f"the default pool {default_pool} is not here)")
         _, paths = synthetic.split_holdout(synthetic.list_images(default_pool))
         where = f"{default_pool} (held-out split: every 10th image)"
     else:
@@ -126,7 +144,7 @@ def held_out_sources(
     if not paths:
         raise UdhError(f"{images or default_pool}: no images found (JPEG, PNG or TIFF); pass --images DIR")
     try:
-        sources = synthetic.load_sources(paths, min_count=min_images)
+        sources = synthetic.load_sources(paths, min_count=min_images, size_for=size_for)
     except UdhError as exc:
         raise UdhError(f"{images or default_pool}: {exc}; pass --images DIR with more held-out images") from None
     return sources, f"{where}, {len(sources)} images"
@@ -173,6 +191,22 @@ def synthetic_set(
         origin=np.concatenate(origin), full_window=np.array(windows, np.int64) if with_full else None,
         labels=[str(i) for i in range(count)],
     )
+
+
+FLIGHT_VIEW = (320, 240)  # whole frames of the flight-motion set, as the paper's full frames
+
+
+def flight_set(sources: list[np.ndarray], count: int, seed: int, view: tuple[int, int] = FLIGHT_VIEW) -> PairSet:
+    """``count`` pairs of whole ``view``-sized frames with real flight motion (:mod:`udh_cli.flight_motion`):
+    any heading within the training range, scale changes, overlap down to its floor, flight lighting.
+    Deterministic from ``seed``. Every method sees the whole frames."""
+    from udh_cli.flight_motion import MotionConfig, make_flight_frames
+
+    if count < 1:
+        raise UdhError(f"--n {count}: need at least one pair")
+    frames_a, frames_b, truths = make_flight_frames(sources, count, MotionConfig(), np.random.default_rng([seed, 7]), view)
+    return PairSet(name=f"flight {view[0]}x{view[1]}", images_a=list(frames_a), images_b=list(frames_b), truths=truths,
+                   labels=[str(i) for i in range(count)])
 
 
 WINDOW_MARGINS = (None, 128, 96, 64, 48, 32, 16, 0)  # tried in turn around the patch; None = the whole frame

@@ -65,6 +65,26 @@ def _inputs_for(mode: str) -> list[str]:
     return ["patch", "full"] if mode == "both" else [mode]
 
 
+def _run_flight_bench(images, count, seed, methods, options, show_progress) -> BenchResult:
+    """The flight-motion benchmark: whole frames, every method on them (see :func:`run_synthetic_bench`)."""
+    from udh_cli.bench.pairsets import flight_set
+    from udh_cli.flight_motion import MotionConfig, source_size
+
+    methods = methods or runner.parse_methods(default_methods())
+    jobs = runner.make_jobs(methods, ["image"], [], options)
+    sources, where = held_out_sources(images, size_for=source_size)
+    sets = [flight_set(sources, count, seed)]
+    motion = MotionConfig()
+    config = {"images": where, "motion": "flight", "n": count, "seed": seed, "methods": methods, "options": options or {},
+              "motion_ranges": {"max_heading": motion.max_heading, "scale_range": list(motion.scale_range),
+                                "max_shift": motion.max_shift, "perspective": motion.perspective, "min_overlap": motion.min_overlap}}
+    runs = runner.run_jobs(jobs, sets, show_progress=show_progress)
+    notes = [f"Pairs: whole 320x240 frames with flight motion (turns up to {motion.max_heading:g} degrees, scale "
+             f"{motion.scale_range[0]:.2f}-{motion.scale_range[1]:.2f}, shifts up to {motion.max_shift:g} of the frame, overlap "
+             f"at least {motion.min_overlap:g}), from {where}; seed {seed}."]
+    return BenchResult("synthetic", runs, config, notes)
+
+
 def run_synthetic_bench(
     images: Path | None = None,
     rhos: list[float] = list(PAPER_RHOS),
@@ -79,12 +99,19 @@ def run_synthetic_bench(
     save_pairs: Path | None = None,
     load_pairs: Path | None = None,
     show_progress: bool = True,
+    motion: str = "paper",
 ) -> BenchResult:
     """Benchmark ``methods`` on synthetic pairs from held-out images (see :mod:`udh_cli.bench.pairsets`).
 
     With ``load_pairs``, the saved set replaces ``images``, ``rhos``, ``count``, ``seed`` and
     ``illumination``. ``mode`` says whether ``full_methods`` see the patches, the full frames, or both.
+    ``motion`` "flight" draws whole 320x240 frames with real flight motion instead (every method sees them;
+    ``rhos``, ``mode``, ``occluders`` and saving do not apply).
     """
+    if motion not in ("paper", "flight"):
+        raise UdhError(f"--motion {motion}: choose paper or flight")
+    if motion == "flight":
+        return _run_flight_bench(images, count, seed, methods, options, show_progress)
     methods = methods or runner.parse_methods(default_methods())
     jobs = runner.make_jobs(methods, _inputs_for(mode), full_methods, options)
     with_full = any(job.input == "full" for job in jobs)

@@ -40,16 +40,6 @@ def _work_copy(image, work_size: int | None):
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
 
-def estimate_files(path_a: str | Path, path_b: str | Path, method: str = DEFAULT_METHOD, **options: Any) -> Estimate:
-    """Read two image files and estimate ``b_from_a`` in their full-resolution pixels.
-
-    ``options`` go to the estimator (e.g. ``best_features=50`` for sift). Raises :class:`UdhError` for
-    bad files or an unknown method, and when the method finds no homography.
-    """
-    estimator = create_estimator(method, **options)  # an unknown method fails before any file is read
-    return require_ok(estimator.estimate(read_image(path_a), read_image(path_b)))
-
-
 def estimate_report(
     path_a: str | Path,
     path_b: str | Path,

@@ -115,9 +115,6 @@ def _print_estimate(payload: dict) -> None:
     console.print(summary)
 
 
-_PASSTHROUGH = {"allow_extra_args": True, "ignore_unknown_options": True}
-
-
 @app.command()
 def train(
     data: Annotated[Optional[list[Path]], typer.Option("--data", "-d", help="Folder of images (synthetic pairs) or of a flight (consecutive frames). Repeat for more.")] = None,

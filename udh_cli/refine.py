@@ -32,32 +32,22 @@ class PyramidEcc:
         levels: pyramid levels, each half the size of the next.
         iterations: ECC iterations per level, coarsest first (a bounded budget).
         blur: side of the Gaussian OpenCV applies to both images before aligning, per level, coarsest first
-            (1: none). Blur widens ECC's basin but biases its optimum under strong perspective, because
-            blurring then warping is not warping then blurring. So the finest level aligns unblurred: on
-            graf1/graf3 (Oxford ground truth, 640 px) ``auto`` went from 2.44 to 1.93 px, and on the
-            held-out synthetic pairs the rho-32 median from 0.09 to 0.05 px (p95 0.99 to 0.86, failures
-            unchanged at 0.3 %). No blur at all (1, 1, 1) lost the basin: rho-32 failures 1.3 %.
-        eps: ECC's convergence threshold (the least gain in correlation an iteration must make). 3e-4 instead
-            of 1e-5 since session 7: on whole 320x240 frames the pyramid took 37.5 -> 26.5 ms with the same
-            errors there, on graf and on the held-out pairs (1e-3: 24.5 ms, slightly worse tails).
+            (1: none): blur widens ECC's basin, and the finest level aligns unblurred because blur biases the
+            optimum under strong perspective.
+        eps: ECC's convergence threshold (the least gain in correlation an iteration must make): 3e-4 keeps the
+            errors of 1e-5 at about 70 % of the time.
         max_move: the largest corner move from the start, as a share of A's diagonal, that counts as
             refining; ECC that goes further has diverged (a refinement corrects a close guess).
         contrast_sigma: ECC aligns the images' local contrast (:func:`udh_cli.images.local_contrast`, mean and
-            deviation over this many pixels of each level) instead of their grey values; 0 aligns the grey
-            values. ECC's one gain and bias cannot model light that changes across the image. Session 7, with
-            the same networks and budgets: graf1/graf3 (Oxford ground truth) 1.93 -> 0.66 px (SIFT 1.33); the
-            held-out rho-32 pairs 0.048 / 0.69 px -> 0.047 / 0.18 px (median / p95), rho 45 p95 6.65 -> 3.37 px;
-            occluded rho-32 pairs: SIFT + ECC failed on 25.3 % (SIFT alone 16.3 %), with it 16.7 %. sigma 3-4
-            px measured alike on the synthetic pairs but 0.69-0.83 px on graf. Like blur, it shifts the
-            optimum slightly under strong perspective (started at the truth: under 0.15 px at 320x240).
+            deviation over this many pixels of each level) instead of their grey values (0): ECC's one gain
+            and bias cannot model light that changes across the image.
         robust_k: after the pyramid, ECC runs once more at the finest level on the pixels of B whose residual is
-            under this many robust deviations (:meth:`_robust_pass`); 0 turns it off, and so does an OpenCV
-            without ``findTransformECCWithMask``. A one-step robust weighting (0/1 weights): occluders, moving
-            water and glints stop pulling the fit. Session 7, held-out pairs (median / p95): occluded rho 32
-            0.21 -> 0.11 px median, rho 32 0.047 / 0.18 -> 0.040 / 0.13 px, rho 16 0.034 -> 0.026 px, failures
-            unchanged, 1-2 ms more per 128x128 pair (about 10 ms at 320x240: one more full-size ECC call).
-            k = 3 gave 0.12 px on the occluded pairs, a second pass 0.10.
+            under this many robust deviations (:meth:`_robust_pass`), so that occluders, moving water and
+            glints stop pulling the fit; 0 turns it off, and so does an OpenCV without
+            ``findTransformECCWithMask``.
         robust_iterations: the robust pass's iteration budget (it starts from a converged answer).
+
+    The measurements behind these settings are in ``docs/estimators.md`` ("Why the settings").
     """
 
     work_side: int = 640

@@ -38,14 +38,6 @@ if TYPE_CHECKING:
     from udh_cli.flight_motion import MotionConfig
 
 SOURCE_SIZE = (320, 240)  # (width, height) every source image is resized to, as in DeTone et al.
-OVERLAP_TO_RHO = {85: 16, 75: 32, 65: 45}  # the paper's overlap levels, in percent, and their rho in pixels
-
-
-def rho_for_overlap(overlap_percent: int) -> int:
-    """The paper's corner perturbation for an overlap level (85, 75 or 65 %)."""
-    if overlap_percent not in OVERLAP_TO_RHO:
-        raise UdhError(f"overlap {overlap_percent} %: choose one of {sorted(OVERLAP_TO_RHO, reverse=True)}")
-    return OVERLAP_TO_RHO[overlap_percent]
 
 
 @dataclass(frozen=True)

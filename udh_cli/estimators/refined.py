@@ -53,37 +53,24 @@ class RefinedEstimator(Estimator):
             and shipped-model precision (see :class:`~udh_cli.estimators.deep.DeepEstimator`).
         refiner: the ECC pyramid and its iteration budget.
         escalate: when the answer is still doubted after the fallback (see :meth:`_doubted`), rerun a learned
-            ``initial`` with its own default (longer) cascade and keep the better-verified answer. On by default
-            for ``auto`` since session 5: on the held-out synthetic pairs it took rho-45 failures from 6.7 to
-            4.7 % (p95 17.8 to 8.5 px) and rho-32 failures from 0.7 to 0.3 %, at the same median time; copr and
-            brighton-beach mosaics came out identical, 35-40 % slower; occluded rho-32 pairs went from 14.7 to
-            15.3 % failures and 2.3x to 3.4-3.6x SIFT's time (their right answers score low, so most escalate).
-            In session 2, escalating before the fallback and with the untiled score, a wrong escalated answer
-            out-scored the right one on copr and the mosaic fell apart; neither happens now.
+            ``initial`` with its own default (longer) cascade and keep the better-verified answer: it rescues
+            large-motion pairs at the cost of the few doubted ones.
         fallback: registry name tried first when the answer is doubted (None: never).
-        fallback_options: the fallback's options; None: :data:`FALLBACK_OPTIONS` for its name (then recorded here). As the
-            fallback, SIFT keeps keypoints of a tenth of its own default contrast (0.002, not 0.02): the
-            faint texture of dark or smooth patches then survives next to bright occluders. On the held-out
-            sets SIFT alone then failed on 0 % of the rho-32 pairs (2.3 % at 0.02), 2.0 % of the occluded ones
-            (16.3 %) and 14.3 % at rho 45 (17.0 %), in the same time on 128 x 128 patches; no answer with 20 or
-            more inliers was wrong (with 15, 2 of 1,200).
+        fallback_options: the fallback's options; None: :data:`FALLBACK_OPTIONS` for its name (then recorded
+            here). As the fallback, SIFT keeps keypoints of a tenth of its own default contrast, so that the
+            faint texture of dark or smooth patches survives next to bright occluders.
         views: the last opinions, while still doubted: the network (its longer cascade when it escalates) on
-            these copies of the pair (:data:`~udh_cli.estimators.views.VIEWS`). For ``auto`` all three, in
-            session 7: held-out rho-45 failures 3.7 -> 3.0 % and rho 32 0.3 -> 0 % at the same median time
-            (the few doubted pairs pay for them); occluded rho-32 pairs 14.0 -> 13.3 %.
+            these copies of the pair (:data:`~udh_cli.estimators.views.VIEWS`).
         trusted_inliers: an opinion with at least this many RANSAC inliers (SIFT's, ORB's) is verified by its
             matches: it is kept whatever its photometric score, with its matcher's confidence if that is
             higher, and no further opinion is asked; ECC may polish it by up to :data:`NEAR_PX` at each
             corner. With fewer inliers the opinions go on, and the matched answer is kept only if none
-            verifies photometrically. Occluders, surf and moving water lower the photometric score of right
-            answers: on brighton-beach ``auto`` left 5 of 18 frames unplaced before, all of which SIFT's
-            matches place; on the occluded pairs this took failures from 13.3 to 1.7 % (with the fallback's
-            low contrast threshold).
-        min_score: the score below which an answer is doubted. The score is the lower of the intensity and
-            gradient NCC at 256 px: on held-out rho-32 pairs, wrong answers of unsupervised+ecc scored up
-            to 0.95 in intensity alone (smooth patches correlate under a wrong shift) but at most 0.59 in
-            gradients but one (0.81); below 0.7 caught 10 of 11 wrong answers and doubted none of the right
-            (under 1 px) ones, where intensity below 0.9 caught 8 and doubted 2.7 %.
+            verifies photometrically. Why: occluders, surf and moving water lower the photometric score of
+            right answers, never the agreement of 20 matches.
+        min_score: the score below which an answer is doubted: the lower of the intensity and gradient NCC at
+            256 px, where wrong answers' gradients stayed below 0.7 and right ones above it.
+
+    The measurements behind these settings are in ``docs/estimators.md`` ("Why the settings").
     """
 
     name: ClassVar[str] = "unsupervised+ecc"

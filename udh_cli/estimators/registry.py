@@ -29,7 +29,7 @@ ESTIMATORS: dict[str, tuple[str, str, str]] = {
 
 # The method of `udh estimate` and `udh mosaic` when none is given: the verified combination, which measured
 # best on the synthetic benchmark, graf1/graf3 and the example flight, and at least as well as SIFT on the real
-# flights (README, Results; session 7).
+# flights (docs/benchmarks.md).
 DEFAULT_METHOD = "auto"
 
 

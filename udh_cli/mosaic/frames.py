@@ -20,7 +20,6 @@ from udh_cli.images import IMAGE_SUFFIXES, read_image, scaled_size, to_bgr_u8, t
 from udh_cli.mosaic.exif import capture_time
 from udh_cli.mosaic.report import Reporter
 
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm", ".wmv", ".ts")
 ORDERS = ("name", "time")  # the --order choices
 IGNORED_FILES = ("ground_truth.json",)  # files a frame folder may hold that are not frames (the simulator's)
 

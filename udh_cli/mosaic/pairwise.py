@@ -19,7 +19,6 @@ from udh_cli.verify import verification_score
 if TYPE_CHECKING:
     from udh_cli.mosaic.pair_cache import PairCache
 
-PAIR_KINDS = ("consecutive", "bridge", "overlap")  # next frame; skipping a broken link; loop closure
 
 
 @dataclass(frozen=True)

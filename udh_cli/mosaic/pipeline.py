@@ -31,8 +31,6 @@ from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_with_rejection,
 from udh_cli.mosaic.truth import corner_errors_vs_truth, summarise_truth
 from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
 
-# The default method is the registry's DEFAULT_METHOD ("auto" since session 7, "sift" before): the pipeline
-# only uses the Estimator interface, so switching needed no change here.
 OUTPUT_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 SIDECAR_FORMAT = "udh-mosaic/1"
 

@@ -30,6 +30,7 @@ import numpy as np
 from udh_cli.errors import UdhError
 from udh_cli.images import atomic_write_bytes, check_output_path
 from udh_cli.onnx_model import OnnxHomographyModel, write_metadata
+from udh_cli.flight_motion import MotionConfig, make_motion_pairs, source_size
 from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs, split_holdout
 
 # Calibration motions, as fractions of the rho the network was trained at: a cascade shows a network large
@@ -56,10 +57,26 @@ def calibration_patches(sources: list[np.ndarray], model: OnnxHomographyModel, p
     :func:`calibration_motions`."""
     rng = np.random.default_rng(seed)
     batches = []
-    for rho in calibration_motions(model):
-        pairs = make_pairs(sources, pairs_per_motion, PairConfig(rho=rho, patch_size=model.input_size), rng, with_context=False)
+    flight = model.metadata.get("motion") == "flight"
+    for fraction, rho in zip(CALIBRATION_MOTION, calibration_motions(model)):
+        if flight:  # calibrate on the motion the network was trained for: its flight ranges, shrunk likewise
+            pairs = make_motion_pairs(sources, pairs_per_motion, flight_motion_of(model).scaled(fraction), rng,
+                                      patch=model.input_size, with_context=False)
+        else:
+            pairs = make_pairs(sources, pairs_per_motion, PairConfig(rho=rho, patch_size=model.input_size), rng, with_context=False)
         batches.append(np.stack([pairs.patch_a, pairs.patch_b], 1))
     return np.concatenate(batches)
+
+
+def flight_motion_of(model: OnnxHomographyModel) -> MotionConfig:
+    """The flight-motion ranges in a model's metadata (``udh export-onnx`` writes them)."""
+    meta = model.metadata
+    try:
+        scale = float(meta["max_scale"])
+        return MotionConfig(max_heading=float(meta["max_heading"]), scale_range=(1.0 / scale, scale),
+                            max_shift=float(meta["max_shift"]), perspective=float(meta.get("rho", 12.0)))
+    except (KeyError, ValueError, ZeroDivisionError):
+        raise UdhError(f"{model.path}: its metadata says flight motion but not its ranges; re-export it with `udh export-onnx`") from None
 
 
 def _nodes_to_quantize(model_proto: Any) -> list[str]:
@@ -91,7 +108,8 @@ def quantize_from_folders(source: str | Path, output: str | Path | None, folders
         raise UdhError(f"--data holds {len(found)} image(s), all held out for benchmarks (every 10th); give a folder of 2 or more")
     rng = np.random.default_rng(seed)
     chosen = sorted(rng.choice(len(train_paths), min(images, len(train_paths)), replace=False))
-    sources = load_sources([train_paths[i] for i in chosen], min_count=1)
+    flight = OnnxHomographyModel.load(source).metadata.get("motion") == "flight"
+    sources = load_sources([train_paths[i] for i in chosen], min_count=1, size_for=source_size if flight else None)
     return quantize_model(source, output, sources, pairs_per_motion, seed)
 
 

@@ -1,0 +1,63 @@
+"""Ship a trained coarse network: the float32 and int8 ONNX files, the fine-tuning weights, the resumable
+run and its learning curves, all in ``models/``. Needs the ``train`` extra (torch, onnx).
+
+    python examples/ship_network.py RUN_FOLDER --name udh-unsupervised --data IMAGES [--data IMAGES ...]
+
+``RUN_FOLDER`` is a ``udh train --out`` folder. Its ``best.pt`` becomes ``models/NAME.onnx`` (checked for
+parity against torch on synthetic pairs of the first ``--data`` folder), ``models/NAME-int8.onnx``
+(``udh quantize``, calibrated on ``--data``) and ``models/NAME.pt`` (weights for ``udh train --init``). The
+run's ``checkpoint.pt``, ``metrics.jsonl`` and ``config.json`` go to ``models/training/TRAINING_NAME/`` so that
+``udh train --out ... --resume`` continues it exactly, and ``models/learning_curves.png`` is redrawn from every
+shipped run's log.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from udh_cli.images import write_image
+from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs
+from udh_cli.train.curves import learning_curve_plot, read_metrics
+from udh_cli.train.export import export_onnx, export_weights
+from udh_cli.train.quantize import quantize_from_folders
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+# Logs drawn in models/learning_curves.png: the runs behind the shipped networks.
+CURVES = {"coarse, flight motion": "unsupervised-flight", "coarse, paper motion": "unsupervised",
+          "refinement": "unsupervised-refine-occluders"}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--name", default="udh-unsupervised", help="file stem in models/")
+    parser.add_argument("--training-name", default="unsupervised-flight", help="folder in models/training/")
+    parser.add_argument("--data", type=Path, action="append", required=True, help="training image folders (calibration)")
+    args = parser.parse_args()
+
+    sources = load_sources(list_images(args.data[0])[:20], min_count=1)
+    check = make_pairs(sources, 16, PairConfig(), np.random.default_rng(0), with_context=False)
+    exported = export_onnx(args.run / "best.pt", MODELS / f"{args.name}.onnx", np.stack([check.patch_a, check.patch_b], 1))
+    print(f"{exported['path']}: parity {exported['max_abs_diff']:.2e} px")
+    quantized = quantize_from_folders(MODELS / f"{args.name}.onnx", MODELS / f"{args.name}-int8.onnx", args.data)
+    print(f"{quantized['path']}: {quantized['median_drift_px']:.3f} px median from float32")
+    export_weights(args.run / "best.pt", MODELS / f"{args.name}.pt")
+
+    kept = MODELS / "training" / args.training_name
+    kept.mkdir(parents=True, exist_ok=True)
+    for name in ("checkpoint.pt", "metrics.jsonl", "config.json"):
+        shutil.copy2(args.run / name, kept / name)
+    runs = {label: read_metrics(MODELS / "training" / folder / "metrics.jsonl") for label, folder in CURVES.items()
+            if (MODELS / "training" / folder / "metrics.jsonl").is_file()}
+    write_image(MODELS / "learning_curves.png", learning_curve_plot(runs, title="held-out median corner error, single pass"))
+    print(f"{kept}: resumable run; {MODELS / 'learning_curves.png'} redrawn ({', '.join(runs)})")
+
+
+if __name__ == "__main__":
+    cv2.setNumThreads(1)
+    main()

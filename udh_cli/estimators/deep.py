@@ -177,36 +177,48 @@ class DeepEstimator(Estimator):
             check_image(a, "image A")
             check_image(b, "image B")
         start = time.perf_counter()
+        s = self.network.input_size
         small_a = np.stack([self._small(a) for a, _ in pairs])
         small_b = np.stack([self._small(b) for _, b in pairs])
         small_h, scores = self._predict_headings(small_a, small_b)
+        grey = [(to_gray_float(a), to_gray_float(b)) for a, b in pairs] if self.tiles else []
+        tiled = [self._tiles(grey[i], pairs[i], small_h[i]) for i in range(len(pairs))] if self.tiles else [None] * len(pairs)
         searched = [False] * len(pairs)
-        doubtful = [i for i, score in enumerate(scores) if score < self.search_below] if self.search else []
-        if doubtful:
+        # Doubted: a low score, or (with tiles) an answer no finer level could confirm, which on real flights
+        # meant a start too far off for the tiles: both are worth the large-motion search.
+        doubtful = [i for i, score in enumerate(scores) if score < self.search_below or (tiled[i] is not None and tiled[i].levels_used == 0)]
+        if self.search and doubtful:
             found, found_scores = self._search([pairs[i] for i in doubtful], small_a[doubtful], small_b[doubtful])
             for i, h, score in zip(doubtful, found, found_scores):
-                if score > scores[i]:
-                    small_h[i], scores[i], searched[i] = h, score, True
-        s = self.network.input_size
+                retiled = self._tiles(grey[i], pairs[i], h) if self.tiles else None
+                confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
+                if (confirmed, score) > (was_confirmed, scores[i]):
+                    small_h[i], scores[i], tiled[i], searched[i] = h, score, retiled, True
         per_pair_ms = (time.perf_counter() - start) * 1e3 / len(pairs)
         precision = self.loaded_precision()
         out = []
-        for (a, b), h, confidence, was_searched in zip(pairs, small_h, scores, searched):
-            pair_start = time.perf_counter()
+        for (a, b), h, confidence, was_searched, refined in zip(pairs, small_h, scores, searched, tiled):
             valid = geometry.is_valid_homography(h, s, s)
             full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
             failure = None if valid else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
                        "precision": precision, "provider": self.network.provider}
-            if full is not None and self.tiles:
-                refined = refine_with_tiles(self.stages[-1][0], to_gray_float(a), to_gray_float(b), full,
-                                            coarse_network=self.network if len(self.stages) > 1 else None)
+            if full is not None and refined is not None:
                 full = refined.b_from_a
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
                                tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
-            elapsed = per_pair_ms + (time.perf_counter() - pair_start) * 1e3
-            out.append(self._checked(full, confidence, elapsed, failure, details, a.shape))
+            out.append(self._checked(full, confidence, per_pair_ms, failure, details, a.shape))
         return out
+
+    def _tiles(self, grey: tuple[np.ndarray, np.ndarray], pair: tuple[np.ndarray, np.ndarray], small_h: np.ndarray):
+        """The tile stage (:func:`refine_with_tiles`) from a whole-frame answer of the S x S images; None when
+        that answer is degenerate."""
+        s = self.network.input_size
+        (a, b), (gray_a, gray_b) = pair, grey
+        if not geometry.is_valid_homography(small_h, s, s):
+            return None
+        full = geometry.rescale_homography(small_h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0]))
+        return refine_with_tiles(self.stages[-1][0], gray_a, gray_b, full, coarse_network=self.network if len(self.stages) > 1 else None)
 
     def _predict_headings(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
         """The cascade on every pair, from B as given and (``headings`` 2) from B turned half a turn: the

@@ -119,7 +119,7 @@ def test_damaged_pair_set_files_are_one_clear_error(tmp_path, case, message):
 def test_flight_set_frames_are_aligned_by_their_truths():
     from udh_cli.bench.pairsets import flight_set, simulated_sources
     from udh_cli.flight_motion import source_size
-    from udh_cli.verify import alignment_ncc
+    from udh_cli.estimators.verify import alignment_ncc
 
     sources = simulated_sources(4, size_for=source_size)
     pairs = flight_set(sources, 12, seed=3)

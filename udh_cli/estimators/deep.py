@@ -16,7 +16,7 @@ from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.tiles import refine_with_tiles
 from udh_cli.images import check_image, to_gray_float
 from udh_cli.onnx_model import OnnxHomographyModel
-from udh_cli.verify import alignment_ncc
+from udh_cli.estimators.verify import alignment_ncc
 
 
 DEFAULT_ITERATIONS = 2  # coarse rounds

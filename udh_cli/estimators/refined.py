@@ -1,7 +1,7 @@
 """Beyond the paper: a network's estimate, refined photometrically and verified, with a fallback.
 
 * ``unsupervised+ecc``: the unsupervised network (several rounds), then coarse-to-fine ECC
-  (:class:`udh_cli.refine.PyramidEcc`), scored by how well the aligned images agree: the lower of their
+  (:class:`udh_cli.estimators.refine.PyramidEcc`), scored by how well the aligned images agree: the lower of their
   intensity and gradient NCC (``verification_score(..., structure=True)``).
 * ``auto``: the same, and while the answer is doubted (a score below ``min_score``, or ECC diverged from it)
   it asks for second opinions, each refined the same way: ``fallback`` (SIFT), then the network's full
@@ -25,8 +25,8 @@ from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.deep import DeepEstimator, has_refinement_stage
 from udh_cli.estimators.registry import create_estimator, estimator_options
 from udh_cli.estimators.views import VIEWS, ViewEstimator
-from udh_cli.refine import PyramidEcc
-from udh_cli.verify import verification_score
+from udh_cli.estimators.refine import PyramidEcc
+from udh_cli.estimators.verify import verification_score
 
 CLEAR_DROP = 0.05  # a refinement that lowers the score by more than this is discarded
 # See fallback_options. At this contrast 800-px drone frames have 5,000-12,000 SIFT keypoints: flann matches them

@@ -14,7 +14,7 @@ from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.mosaic.frames import Frame
 from udh_cli.mosaic.report import Reporter
-from udh_cli.verify import verification_score
+from udh_cli.estimators.verify import verification_score
 
 if TYPE_CHECKING:
     from udh_cli.mosaic.pair_cache import PairCache
@@ -30,7 +30,7 @@ class Acceptance:
         min_verified: a photometric check for the methods that do not verify their answers themselves
             (the networks, ECC; not SIFT/ORB, whose answers are RANSAC-verified, nor auto): the lower of
             the intensity and gradient NCC of the aligned working images at 256 px
-            (:func:`udh_cli.verify.verification_score`). Why: the networks' confidence stayed at 0.2-0.9
+            (:func:`udh_cli.estimators.verify.verification_score`). Why: the networks' confidence stayed at 0.2-0.9
             on wrong seneca pairs (smooth infrared fields correlate under a wrong shift); their gradient NCC
             was at most 0.47 (95 % below 0.28). Not for every method: right SIFT pairs of brighton-beach
             (surf and sand) scored 0.19-0.30 and were split off. 0 turns the check off.

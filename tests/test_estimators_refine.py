@@ -14,9 +14,9 @@ from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimator
 from udh_cli.estimators.refined import NEAR_PX, AutoEstimator, RefinedEstimator
-from udh_cli.verify import verification_score
+from udh_cli.estimators.verify import verification_score
 from udh_cli.models_catalog import models_dir
-from udh_cli.refine import PyramidEcc
+from udh_cli.estimators.refine import PyramidEcc
 
 
 def known_pair(seed: int, spread: float = 10.0):
@@ -182,7 +182,7 @@ def test_textureless_images_give_a_clear_failure_not_an_answer():
 
 def test_gradient_ncc_is_not_fooled_by_a_smooth_scene_under_a_wrong_shift():
     """A smooth gradient with faint texture: a wrong shift keeps the intensity NCC high, not the gradient NCC."""
-    from udh_cli.verify import alignment_ncc
+    from udh_cli.estimators.verify import alignment_ncc
 
     rng = np.random.default_rng(3)
     ys, xs = np.mgrid[0:240, 0:320].astype(np.float32)
@@ -273,7 +273,7 @@ def test_a_right_answer_with_little_overlap_still_verifies():
 def test_verification_is_not_fooled_by_an_occluder_but_still_rejects_a_wrong_answer():
     """A textured blob over a fifth of B (a car, a bird, a cloud) ruins the whole-overlap correlation of the
     right answer; the median over tiles ignores it, and a wrong answer stays low."""
-    from udh_cli.verify import alignment_ncc
+    from udh_cli.estimators.verify import alignment_ncc
 
     a, b, truth = known_pair(3)
     occluded = b.copy()
@@ -292,7 +292,7 @@ def test_tiled_ncc_from_tile_moments_equals_the_tile_by_tile_correlation(seed):
     """The one-pass tiled NCC (six masked moments per tile) gives the per-tile loop's answer, including tiles
     that are only partly inside the overlap, tiles left out for being mostly outside, flat tiles, and the
     empty tiles of a sliver of overlap."""
-    from udh_cli.verify import _ncc, _tiled_ncc
+    from udh_cli.estimators.verify import _ncc, _tiled_ncc
 
     def _tiled_ncc_loop(x, y, mask, row_edges, col_edges):  # the definition, tile by tile
         values = []

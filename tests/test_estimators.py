@@ -89,7 +89,7 @@ def test_best_features_keeps_the_strongest_n(method):
     result = create_estimator(method, best_features=50).estimate(image_a, image_b)
     assert result.ok, result.failure
     assert result.details["keypoints_a"] == 50 and result.details["keypoints_b"] == 50
-    assert result.details["inliers"] <= result.details["matches"] <= 50
+    assert result.inliers <= result.details["matches"] <= 50
     # SIFT's 50 strongest keypoints spread over the image and stay accurate (measured 0.24 px).
     # ORB's 50 strongest cluster and come from coarse pyramid levels: measured 8 px here, so only sift
     # is held to a number.
@@ -165,7 +165,7 @@ def test_flann_matching_agrees_with_brute_force_and_repeats_exactly():
     a, b = warped_pair(truth, 320, 240, seed=4)
     exact = create_estimator("sift", contrast_threshold=0.002).estimate(a, b)
     flann = [create_estimator("sift", matcher="flann", contrast_threshold=0.002).estimate(a, b) for _ in range(2)]
-    assert flann[0].details["inliers"] >= 0.95 * exact.details["inliers"] > 0
+    assert flann[0].inliers >= 0.95 * exact.inliers > 0
     assert geometry.mace(flann[0].homography, truth, 320, 240) < 0.3
     np.testing.assert_array_equal(flann[0].homography, flann[1].homography)  # seeded: the same answer twice
 

@@ -157,7 +157,7 @@ def test_auto_falls_back_when_the_first_estimate_fails():
     auto = AutoEstimator(initial="identity")
     auto._first = AlwaysFails()
     estimate = auto.estimate(a, b)
-    assert estimate.ok and estimate.details["used"] == "sift"
+    assert estimate.ok and estimate.stage == "sift"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
 
 
@@ -215,12 +215,12 @@ def test_a_doubtful_answer_asks_the_fallback_first_and_escalates_only_if_that_is
     auto = AutoEstimator(initial="identity")
     auto._first, auto._second = wrong, Answers(truth)
     estimate = auto.estimate(a, b)
-    assert estimate.details["used"] == "sift" and "escalated" not in estimate.details
+    assert estimate.stage == "sift" and "escalated" not in estimate.details
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
     # SIFT fails as well: the longer cascade gets its turn and wins.
     auto._fallback = AlwaysFails()
     estimate = auto.estimate(a, b)
-    assert estimate.details["fallback"]["score"] == 0.0 and estimate.details["used"] == "escalated"
+    assert estimate.details["fallback"]["score"] == 0.0 and estimate.stage == "escalated"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
     # Learned initials get the second run with the networks' default rounds; others have none.
     assert AutoEstimator(initial="identity", escalate=True)._second is None
@@ -250,7 +250,7 @@ def test_an_answer_ecc_diverges_from_gets_a_second_opinion_even_when_it_scores_w
     auto._first = Answers(nearly)
     estimate = auto.estimate(a, b)
     assert estimate.details["score"] >= auto.min_score and "refine_failure" in estimate.details
-    assert estimate.details["fallback"]["method"] == "sift" and estimate.details["used"] == "sift"
+    assert estimate.details["fallback"]["method"] == "sift" and estimate.stage == "sift"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.5
     converging = AutoEstimator(initial="identity")  # the same answer, refined normally: no second opinion
     converging._first = Answers(nearly)
@@ -362,8 +362,8 @@ def test_an_answer_many_matches_agree_on_outvotes_the_photometric_score():
     auto = AutoEstimator(initial="identity")
     auto._first, auto._second, auto._fallback = wrong, wrong, Matches(truth, inliers=40)
     estimate = auto.estimate(a, b)
-    assert estimate.details["used"] == "matches" and estimate.details["verified_by"] == "matches"
-    assert "escalated" not in estimate.details and estimate.confidence >= 0.9 and estimate.details["verified"]
+    assert estimate.stage == "matches" and estimate.verified_by == "matches"
+    assert "escalated" not in estimate.details and estimate.confidence >= 0.9 and estimate.verified
     # ECC may polish the matched answer but not leave it: no corner moves by over NEAR_PX (2 px).
     assert geometry.corner_errors(estimate.homography, truth, 320, 240).max() <= NEAR_PX
 
@@ -376,12 +376,12 @@ def test_fewer_matches_ask_for_more_opinions_and_win_only_when_nothing_verifies(
     auto._first, auto._second, auto._fallback = wrong, wrong, Matches(truth, inliers=8)
     estimate = auto.estimate(a, occluded(b))
     assert "escalated" in estimate.details and "mirrored" in estimate.details
-    assert estimate.details["used"] == "matches" and estimate.details["verified_by"] == "matches"
+    assert estimate.stage == "matches" and estimate.verified_by == "matches"
     assert geometry.corner_errors(estimate.homography, truth, 320, 240).max() <= NEAR_PX
     # Clear images: the longer cascade's answer verifies and beats 8 matches agreeing on a wrong one.
     auto._second, auto._fallback = Answers(truth), Matches(wrong.homography, inliers=8)
     estimate = auto.estimate(a, b)
-    assert estimate.details["used"] == "escalated" and "verified_by" not in estimate.details
+    assert estimate.stage == "escalated" and estimate.verified_by != "matches"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3 and estimate.confidence >= auto.min_score
 
 
@@ -407,8 +407,8 @@ def test_views_are_the_last_opinions_and_the_best_verified_one_is_kept():
     auto._first, auto._second, auto._fallback = wrong, wrong, AlwaysFails()
     auto._views = [ViewEstimator(right_when_mirrored, view) for view in ("flipped", "mirrored", "swapped")]
     estimate = auto.estimate(a, b)
-    assert estimate.details["used"] == "mirrored" and "swapped" not in estimate.details  # settled: no more looks
-    assert estimate.details["flipped"]["score"] < 0.3 and estimate.details["verified"]
+    assert estimate.stage == "mirrored" and "swapped" not in estimate.details  # settled: no more looks
+    assert estimate.details["flipped"]["score"] < 0.3 and estimate.verified
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
     assert AutoEstimator.views == ("mirrored", "flipped", "swapped") and RefinedEstimator.views == ()
 

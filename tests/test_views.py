@@ -20,7 +20,7 @@ def test_a_view_maps_its_answer_back_to_the_pair_as_given(view):
     a, b = warped_pair(truth, 320, 240, seed=7)
     b = b[:220, :300]  # B narrower and shorter than A (cropped at the right and bottom: the same pixel frame)
     estimate = ViewEstimator(create_estimator("sift"), view).estimate(a, b)
-    assert estimate.ok and estimate.details["view"] == view and estimate.details["inliers"] >= 15
+    assert estimate.ok and estimate.details["view"] == view and estimate.inliers >= 15
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.5
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -20,11 +21,10 @@ MIN_CONFIDENCE = 0.2
 
 
 def is_verified(estimate: Estimate) -> bool:
-    """Whether an answer is confirmed: ``auto``'s own verdict where it gives one, else a confidence at
-    least :data:`MIN_CONFIDENCE`."""
-    verdict = estimate.details.get("verified")
-    if isinstance(verdict, bool):
-        return verdict
+    """Whether an answer is confirmed: the estimator's own verdict where it gives one (``auto``), else a
+    confidence of at least :data:`MIN_CONFIDENCE`."""
+    if estimate.verified is not None:
+        return estimate.verified
     return estimate.confidence >= MIN_CONFIDENCE
 
 
@@ -38,6 +38,18 @@ def _work_copy(image, work_size: int | None):
     scale = work_size / longest
     size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def _check_truth_fits(truth, gt: str | Path, width: int, height: int) -> None:
+    """Refuse a ground truth that sends some of A's corners through the horizon (to infinity, or to the far side):
+    no corner error can be measured against it (it came out as 1.3e6 px), so it is not a truth for this image."""
+    import numpy as np
+
+    corners = np.column_stack([geometry.image_corners(width, height), np.ones(4)])
+    w = corners @ np.asarray(truth, dtype=np.float64)[2]
+    if not (np.all(w > 0) or np.all(w < 0)) or np.min(np.abs(w)) < 1e-9 * np.max(np.abs(w)):
+        raise UdhError(f"{gt}: this ground truth sends corners of the {width}x{height} image A through the horizon (to infinity); "
+                       f"it does not fit this image: check the file, and that A and B are given in its order")
 
 
 def estimate_report(
@@ -82,12 +94,13 @@ def estimate_report(
     if work_size is not None and work_size < 32:
         raise UdhError(f"--work-size {work_size}: give at least 32 pixels")
     image_a, image_b = read_image(path_a), read_image(path_b)
+    if truth is not None:
+        _check_truth_fits(truth, gt, image_a.shape[1], image_a.shape[0])
     work_a, work_b = _work_copy(image_a, work_size), _work_copy(image_b, work_size)
     found = require_ok(estimator.estimate(work_a, work_b))
     size_a, size_b = (image_a.shape[1], image_a.shape[0]), (image_b.shape[1], image_b.shape[0])
     small_a, small_b = (work_a.shape[1], work_a.shape[0]), (work_b.shape[1], work_b.shape[0])
-    result = Estimate(found.method, geometry.rescale_homography(found.homography, small_a, size_a, small_b, size_b),
-                      found.confidence, found.elapsed_ms, found.failure, found.details)
+    result = dataclasses.replace(found, homography=geometry.rescale_homography(found.homography, small_a, size_a, small_b, size_b))
     verified = is_verified(result)
 
     width, height = image_a.shape[1], image_a.shape[0]

@@ -28,7 +28,14 @@ class Estimate:
             but 0 always means "do not trust this".
         elapsed_ms: wall time of the estimation itself, without loading models.
         failure: why there is no homography; ``None`` on success.
-        details: estimator-specific numbers (matches, inliers, iterations...), JSON-serialisable.
+        details: estimator-specific extras (keypoints, iterations, tile statistics...), JSON-serialisable.
+        inliers: RANSAC inliers of a feature matcher's answer (None: not a matcher's answer).
+        verification_score: the photometric alignment score the answer was judged by, in [0, 1] (None: not
+            judged by the estimator).
+        verified: True for a confirmed answer, False for the best found but unconfirmed, None when the
+            estimator does not judge its answers (callers then judge by ``confidence``).
+        verified_by: what confirmed it: "alignment" (the photometric score) or "matches" (RANSAC's support).
+        stage: which stage or opinion produced the answer, e.g. "network", "sift", "escalated", "mirrored".
     """
 
     method: str
@@ -37,6 +44,11 @@ class Estimate:
     elapsed_ms: float
     failure: str | None = None
     details: dict[str, Any] = field(default_factory=dict)
+    inliers: int | None = None
+    verification_score: float | None = None
+    verified: bool | None = None
+    verified_by: str | None = None
+    stage: str | None = None
 
     @property
     def ok(self) -> bool:
@@ -51,15 +63,24 @@ class Estimate:
             "confidence": float(self.confidence),
             "elapsed_ms": float(self.elapsed_ms),
             "failure": self.failure,
+            "inliers": self.inliers,
+            "verification_score": self.verification_score,
+            "verified": self.verified,
+            "verified_by": self.verified_by,
+            "stage": self.stage,
             "details": self.details,
         }
+
+
+TYPED_FIELDS = ("inliers", "verification_score", "verified", "verified_by", "stage")  # see Estimate
 
 
 class Estimator:
     """Base class: estimates ``b_from_a`` between two images of any size, colour or grey, 8 or 16 bit.
 
     Subclasses set ``name`` and implement :meth:`_estimate`, which either returns
-    ``(b_from_a, confidence, details)`` or raises :class:`EstimationFailed`. This class times the call,
+    ``(b_from_a, confidence, details)`` or raises :class:`EstimationFailed`; the :data:`TYPED_FIELDS` it
+    puts in ``details`` (a matcher's ``inliers``...) become the :class:`Estimate`'s typed fields. This class times the call,
     checks the result (a non-finite, singular or folded homography is a failure, never an answer) and
     packs it into an :class:`Estimate`.
 
@@ -81,7 +102,8 @@ class Estimator:
         except EstimationFailed as exc:
             homography, confidence, details, failure = None, 0.0, {}, str(exc)
         elapsed_ms = (time.perf_counter() - start) * 1e3
-        return self._checked(homography, confidence, elapsed_ms, failure, details, image_a.shape)
+        typed = {key: details.pop(key) for key in TYPED_FIELDS if key in details}
+        return self._checked(homography, confidence, elapsed_ms, failure, details, image_a.shape, **typed)
 
     def estimate_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
         """Estimate many pairs. Learned estimators override this to run them in batches."""
@@ -90,7 +112,7 @@ class Estimator:
     def _estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> tuple[np.ndarray, float, dict]:
         raise NotImplementedError
 
-    def _checked(self, homography, confidence, elapsed_ms, failure, details, shape_a) -> Estimate:
+    def _checked(self, homography, confidence, elapsed_ms, failure, details, shape_a, **typed: Any) -> Estimate:
         if homography is not None:
             homography = np.asarray(homography, dtype=np.float64)
             if np.isfinite(homography).all() and abs(homography[2, 2]) > 1e-12:
@@ -99,7 +121,9 @@ class Estimator:
                 homography, failure = None, "the estimate is degenerate (non-finite, singular or folded)"
         if homography is None:
             confidence = 0.0
-        return Estimate(self.name, homography, float(np.clip(confidence, 0.0, 1.0)), elapsed_ms, failure, details)
+            if typed.get("verified"):
+                typed["verified"] = False
+        return Estimate(self.name, homography, float(np.clip(confidence, 0.0, 1.0)), elapsed_ms, failure, details, **typed)
 
 
 def require_ok(estimate: Estimate) -> Estimate:

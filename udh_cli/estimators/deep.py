@@ -207,7 +207,8 @@ class DeepEstimator(Estimator):
                 full = refined.b_from_a
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
                                tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
-            out.append(self._checked(full, confidence, per_pair_ms, failure, details, a.shape))
+            stage = "tiles" if details.get("tile_levels") else "search" if was_searched else "network"
+            out.append(self._checked(full, confidence, per_pair_ms, failure, details, a.shape, stage=stage))
         return out
 
     def _tiles(self, grey: tuple[np.ndarray, np.ndarray], pair: tuple[np.ndarray, np.ndarray], small_h: np.ndarray):

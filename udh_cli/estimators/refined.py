@@ -196,7 +196,7 @@ class RefinedEstimator(Estimator):
                 break
             found = estimator.estimate(image_a, image_b)
             other, other_score, other_details = self._refine_and_score(image_a, image_b, found)
-            matched = found.ok and "inliers" in found.details
+            matched = found.ok and found.inliers is not None
             if matched and not self._near(other, found.homography, image_a.shape):
                 # Matches agreeing on one answer say more than a photometric score that occluders, surf or a
                 # wrong shift of a smooth scene can fool: ECC's polish stands only if it stays by them.
@@ -205,7 +205,7 @@ class RefinedEstimator(Estimator):
             details[key] = {"method": estimator.name, "score": other_score, **other_details}
             if matched:
                 supported = (other, max(other_score, found.confidence), used)
-                if found.details["inliers"] >= self.trusted_inliers:
+                if found.inliers >= self.trusted_inliers:
                     homography, score, doubted = supported[0], supported[1], False
                     details["used"], details["verified_by"] = used, "matches"
                     break
@@ -224,9 +224,12 @@ class RefinedEstimator(Estimator):
             # No evidence at all: a score of 0 means constant tiles, too little overlap or anti-correlation.
             homography, failure = None, "no answer aligns the images (they may lack texture or not overlap)"
         # False: the best answer found, unconfirmed (a low score or a diverged ECC, and no matches agree on it).
-        details["verified"] = homography is not None and (not doubted or "verified_by" in details)
+        verified = homography is not None and (not doubted or "verified_by" in details)
+        verified_by = details.pop("verified_by", "alignment" if verified else None)
+        stage = details.pop("used", "network")
         elapsed = first_ms + (time.perf_counter() - started) * 1e3
-        return self._checked(homography, score, elapsed, failure, details, image_a.shape)
+        return self._checked(homography, score, elapsed, failure, details, image_a.shape, verified=verified,
+                             verification_score=score, verified_by=verified_by, stage=stage)
 
 
 @dataclass

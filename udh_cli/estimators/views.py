@@ -49,7 +49,7 @@ class ViewEstimator(Estimator):
             mirror_a = geometry.mirror_matrix(image_a.shape[1], image_a.shape[0], horizontal)
             mirror_b = geometry.mirror_matrix(image_b.shape[1], image_b.shape[0], horizontal)
             b_from_a = mirror_b @ found.homography @ mirror_a  # each mirror is its own inverse
-        return b_from_a, found.confidence, {"view": self.view, **found.details}
+        return b_from_a, found.confidence, {"view": self.view, **found.details, "inliers": found.inliers}
 
 
 def _answer(found: Estimate) -> Estimate:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -22,6 +23,8 @@ from udh_cli.flight_motion import MotionConfig as _MotionDefaults
 app = typer.Typer(
     name="udh",
     help="Fast, robust homography estimation and UAV image mosaicking (Unsupervised Deep Homography).",
+    epilog="Exit codes: 0 done; 1 error (one line on stderr); 2 usage error; 3 udh estimate's answer did not verify; "
+           "130 interrupted (Ctrl-C or SIGTERM).",
     no_args_is_help=True,
     rich_markup_mode="rich",
     pretty_exceptions_enable=False,
@@ -32,6 +35,7 @@ err_console = Console(stderr=True)
 _state = {"debug": False}
 INTERRUPTED = 130  # the shell's exit code for Ctrl-C
 UNVERIFIED = 3  # udh estimate: an answer was found but did not verify
+MAX_ITERATIONS = 1000  # udh estimate --iterations: ECC's own default (the paper's); network rounds need a handful
 
 
 def _version(value: bool) -> None:
@@ -59,10 +63,10 @@ def estimate(
     best_features: Annotated[Optional[int], typer.Option(help="sift/orb: keep only the N strongest keypoints.")] = None,
     model: Annotated[Optional[Path], typer.Option(help="Learned methods: an ONNX file instead of the shipped model.")] = None,
     device: Annotated[Optional[str], typer.Option(help="Learned methods: auto (CUDA if onnxruntime has it), cpu or cuda.")] = None,
-    iterations: Annotated[Optional[int], typer.Option(help="Learned methods: rounds of the coarse network; ecc: ECC iterations.")] = None,
+    iterations: Annotated[Optional[int], typer.Option(min=1, max=MAX_ITERATIONS, help=f"Learned methods: rounds of the coarse network; ecc: ECC iterations (1-{MAX_ITERATIONS}).")] = None,
     refine_model: Annotated[Optional[Path], typer.Option(help="Learned methods: an ONNX file for the refinement stage instead of the shipped one.")] = None,
-    refine_rounds: Annotated[Optional[int], typer.Option(help="Learned methods: rounds of the refinement network after the coarse ones (0: none).")] = None,
-    search: Annotated[Optional[int], typer.Option(help="Learned methods: when the answer scores low, retry from a (2N+1)^2 grid of shifts up to half the frame (0: off).")] = None,
+    refine_rounds: Annotated[Optional[int], typer.Option(min=0, max=10, help="Learned methods: rounds of the refinement network after the coarse ones (0: none; at most 10).")] = None,
+    search: Annotated[Optional[int], typer.Option(min=0, max=4, help="Learned methods: when the answer is doubted, retry from a (2N+1)^2 grid of shifts up to half the frame (0: off; at most 4).")] = None,
     precision: Annotated[Optional[str], typer.Option(help="Learned methods: which shipped networks, int8 (the default where shipped) or fp32.")] = None,
     work_size: Annotated[int, typer.Option(help="Estimate with the images' longer side shrunk to this many pixels; the answer is in full-resolution pixels.")] = ESTIMATE_WORK_SIZE,
     full_resolution: Annotated[bool, typer.Option("--full-resolution", help="Estimate at the images' full resolution (slow and memory-hungry on large photos).")] = False,
@@ -354,7 +358,36 @@ def _finish_bench(result, out: Path, plots: bool) -> None:
 
 
 def main() -> None:
-    """Console-script entry point: runs the app and turns errors into one line and an exit code."""
+    """Console-script entry point: runs the app and turns errors into one line and an exit code.
+
+    Exit codes: 0 done; 1 an error (one line on stderr, ``error: ...``); 2 a usage error (Click's convention:
+    a missing argument, a malformed option); 3 ``udh estimate`` printed an answer that did not verify;
+    130 interrupted, by Ctrl-C or by SIGTERM (handled alike: temporary files are removed, a mosaic keeps its
+    pair cache for --resume).
+    """
+    previous = _terminate_as_interrupt()
+    try:
+        _run()
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate_as_interrupt():
+    """Make SIGTERM (``kill``, a job scheduler's stop) raise KeyboardInterrupt, as Ctrl-C does, so that the
+    command unwinds the same way; returns the handler to restore (None when none could be installed)."""
+
+    def interrupt(signum, frame):  # noqa: ARG001 - signal handler signature
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, interrupt)
+    except (ValueError, OSError, AttributeError):  # not the main thread, or no SIGTERM here
+        return None
+    return signal.SIG_DFL if previous is None else previous
+
+
+def _run() -> None:
     try:
         # standalone_mode=False hands usage errors to us, so that they too come out as one line.
         code = app(standalone_mode=False)

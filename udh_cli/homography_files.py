@@ -36,7 +36,7 @@ def read_homography(path: str | Path) -> np.ndarray:
             values = parse_numbers(path.read_text())
     except OSError as exc:
         raise UdhError(f"{path}: cannot read it ({exc.strerror}); check its permissions") from None
-    except (ValueError, TypeError, AttributeError, json.JSONDecodeError, cv2.error):
+    except (ValueError, TypeError, AttributeError, RecursionError, json.JSONDecodeError, cv2.error):  # RecursionError: absurdly nested JSON
         values = None
     return homography_from_values(values, str(path))
 

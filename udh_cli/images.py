@@ -281,12 +281,24 @@ def check_output_path(path: str | os.PathLike, suffixes: tuple[str, ...] | None 
     folder = path.parent
     if suffixes is not None and path.suffix.lower() not in suffixes:
         raise UdhError(f"{path}: unknown file type '{path.suffix}'; use one of {', '.join(suffixes)}")
-    if path.is_dir():
-        raise UdhError(f"{path}: is a folder; give a file name")
-    if not folder.is_dir():
-        raise UdhError(f"{path}: the folder {folder} does not exist; create it first")
-    if not os.access(folder, os.W_OK):
-        raise UdhError(f"{path}: the folder {folder} is not writable; choose another output path")
+    try:
+        if path.is_dir():
+            raise UdhError(f"{path}: is a folder; give a file name")
+        if not folder.is_dir():
+            raise UdhError(f"{path}: the folder {folder} does not exist; create it first")
+        if not os.access(folder, os.W_OK):
+            raise UdhError(f"{path}: the folder {folder} is not writable; choose another output path")
+    except OSError as exc:  # e.g. a name longer than the file system takes (ENAMETOOLONG)
+        raise UdhError(f"{path}: cannot write a file there ({exc.strerror or exc}); choose another output path") from None
+    # The temporary file atomic_write_bytes writes first is named ".NAME.xxxxxxxx.part": it must fit the file system too.
+    temporary = len(os.fsencode(path.name)) + 15
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        limit = 255
+    if temporary > limit:
+        raise UdhError(f"{path}: the name is too long for this file system (with the temporary name it is written under, "
+                       f"{temporary} bytes where {limit} are allowed); choose a shorter name")
     return path
 
 

@@ -52,6 +52,8 @@ class OnnxHomographyModel:
         import onnxruntime as ort
 
         path = Path(path)
+        if threads is not None and threads < 0:
+            raise UdhError(f"threads {threads!r}: give a positive number of CPU threads (0 or none: onnxruntime's choice)")
         if not path.is_file():
             raise UdhError(f"{path}: no such model file")
         options = ort.SessionOptions()

@@ -306,6 +306,8 @@ def load_ground_truth(path: str | Path) -> dict:
         data = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
         raise UdhError(f"{path}: cannot read the ground truth ({exc})") from None
+    except RecursionError:  # absurdly nested JSON
+        raise UdhError(f"{path}: not a udh simulated-flight ground truth (its JSON nests too deeply)") from None
     if not isinstance(data, dict) or data.get("format") != GROUND_TRUTH_FORMAT:
         raise UdhError(f"{path}: not a udh simulated-flight ground truth (format {GROUND_TRUTH_FORMAT})")
     try:

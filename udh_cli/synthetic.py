@@ -272,4 +272,6 @@ def _read_npz(path: str | Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
             return {key: data[key] for key in keys}
     except Exception as exc:  # noqa: BLE001 - missing, truncated, non-zip, pickled or key-less files alike
         reason = str(exc) if isinstance(exc, (OSError, ValueError)) else f"{type(exc).__name__}: {exc}"
+        if "pickle" in reason:  # numpy's advice to unpickle would be bad advice for an untrusted file
+            reason = "not an .npz archive of arrays"
         raise UdhError(f"{path}: not a udh pair set ({reason}); give an .npz written by --save-pairs") from None

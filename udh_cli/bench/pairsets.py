@@ -268,11 +268,28 @@ def save_sets(path: str | Path, sets: list[PairSet], meta: dict) -> None:
     atomic_write_bytes(path, buffer.getvalue())
 
 
+def _check_is_zip(path: str | Path) -> None:
+    """An .npz is a zip archive: anything else (a CSV renamed, a single .npy) is refused here, in plain words,
+    before numpy reads it as a pickle and answers with advice about allow_pickle."""
+    path = Path(path)
+    if not path.is_file():
+        return  # load_pairs names the problem
+    try:
+        with path.open("rb") as handle:
+            magic = handle.read(6)
+    except OSError as exc:
+        raise UdhError(f"{path}: cannot read it ({exc.strerror}); check its permissions") from None
+    # A zip's first entry or an empty zip; a single .npy array is left to load_pairs, which names it.
+    if magic[:4] not in (b"PK\x03\x04", b"PK\x05\x06") and magic != b"\x93NUMPY":
+        raise UdhError(f"{path}: not a udh pair set (not an .npz archive); give an .npz written by --save-pairs")
+
+
 def load_sets(path: str | Path) -> tuple[list[PairSet], dict]:
     """Load sets written by :func:`save_sets` (or a plain :func:`udh_cli.synthetic.save_pairs` file).
 
     Returns the sets, one per rho, and the stored ``meta`` (empty for a plain file).
     """
+    _check_is_zip(path)
     batch = synthetic.load_pairs(path)  # checks shapes and finiteness of the shared keys
     with np.load(Path(path), allow_pickle=False) as data:
         n = len(batch.patch_a)
@@ -283,7 +300,7 @@ def load_sets(path: str | Path) -> tuple[list[PairSet], dict]:
         meta_text = str(data["meta"]) if "meta" in data else "{}"
     try:
         meta = json.loads(meta_text)
-    except ValueError:
+    except (ValueError, RecursionError):  # RecursionError: absurdly nested JSON
         meta = None
     if not isinstance(meta, dict):
         raise UdhError(f"{path}: the pair set's 'meta' entry is not a JSON object")

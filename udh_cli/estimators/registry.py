@@ -41,7 +41,7 @@ def parse_key_value(item: str) -> tuple[str, Any] | None:
         return None
     try:
         return key.strip(), json.loads(text)
-    except ValueError:
+    except (ValueError, RecursionError):  # not JSON, or absurdly nested: kept as text
         return key.strip(), text
 
 

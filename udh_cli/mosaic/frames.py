@@ -6,6 +6,7 @@ Full-resolution pixels are not kept: compositing reads them again one frame at a
 
 from __future__ import annotations
 
+import os
 import re
 from collections import Counter
 from dataclasses import dataclass, field
@@ -16,7 +17,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import IMAGE_SUFFIXES, read_image, scaled_size, to_bgr_u8, to_gray_u8
+from udh_cli.images import IMAGE_SUFFIXES, _native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_u8
 from udh_cli.mosaic.exif import capture_time
 from udh_cli.mosaic.report import Reporter
 
@@ -74,7 +75,7 @@ class FrameSet:
                 yield index, to_bgr_u8(read_image(self.frames[index].path))
             return
         by_video_frame = {self.frames[i].video_frame: i for i in wanted}
-        capture = cv2.VideoCapture(str(self.source))
+        capture = _open_capture(self.source)
         try:
             number, last = 0, max(by_video_frame)
             while number <= last:
@@ -189,10 +190,22 @@ def _subfolder_hint(folder: Path) -> str:
     return ""
 
 
+def _open_capture(path: Path) -> cv2.VideoCapture:
+    """``cv2.VideoCapture(path)`` without FFmpeg's own lines on stderr ("moov atom not found"...): udh says
+    what is wrong in one line. FFmpeg's log level is also set to quiet for the decoding that follows, where
+    the process has not chosen one (OPENCV_FFMPEG_LOGLEVEL is read when the first video is opened)."""
+    if "OPENCV_FFMPEG_LOGLEVEL" not in os.environ and "OPENCV_FFMPEG_DEBUG" not in os.environ:
+        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "-8"  # AV_LOG_QUIET
+    with _native_messages_silenced():
+        capture = cv2.VideoCapture(str(path))
+        capture.isOpened()  # FFmpeg probes the file while opening; its complaints are muted with it
+    return capture
+
+
 def _open_video(path: Path, work_size: int, every: int, reporter: Reporter) -> FrameSet:
     if path.suffix.lower() in IMAGE_SUFFIXES:
         raise UdhError(f"{path}: is a single image; give a folder of frames or a video")
-    capture = cv2.VideoCapture(str(path))
+    capture = _open_capture(path)
     if not capture.isOpened():
         raise UdhError(f"{path}: cannot open this as a video; give a folder of frames or a video OpenCV can decode (e.g. MP4/H.264)")
     total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None

@@ -41,9 +41,15 @@ def _is_udh_json(path: Path, formats: tuple[str, ...]) -> bool:
     try:
         if path.stat().st_size > 256 * 2**20:  # no sidecar or pair cache of ours is this large
             return False
-        data = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError):
+        text = path.read_text(errors="replace")
+    except OSError:
         return False
+    try:
+        data = json.loads(text)
+    except (ValueError, RecursionError):
+        # Damaged further on (absurdly nested, cut short, edited): still ours if it opens as udh writes it.
+        opening = re.match(r'\s*\{\s*"format"\s*:\s*"([^"\\]*)"', text[:1000])
+        return opening is not None and opening.group(1).startswith(formats)
     return isinstance(data, dict) and isinstance(data.get("format"), str) and data["format"].startswith(formats)
 
 

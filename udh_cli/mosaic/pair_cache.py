@@ -19,21 +19,24 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from udh_cli import __version__
+from udh_cli import __version__, geometry
 from udh_cli.estimators import Estimate, Estimator
+from udh_cli.estimators.base import TYPED_FIELDS
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult
+from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, _full_resolution, _work_inputs
 from udh_cli.mosaic.report import Reporter
 
 CACHE_FORMAT = "udh-mosaic-pairs/1"
 _MAX_DEPTH = 6  # how deep estimator settings are searched for model files (auto -> its network -> stages -> model -> path)
+_MAX_RECORD_DEPTH = 64  # a pair record nests a few levels (estimates, details); deeper is damage, and could not be written back
 
 
 def cache_path(output: str | Path) -> Path:
@@ -115,13 +118,16 @@ class PairCache:
         entries: key -> cache record of every pair finished (or taken from the file) in this run.
     """
 
-    def __init__(self, path: Path, frames: Sequence[Frame], context: dict[str, Any], previous: dict[str, dict] | None = None) -> None:
+    def __init__(self, path: Path, frames: Sequence[Frame], context: dict[str, Any], previous: dict[str, dict] | None = None,
+                 reporter: Reporter | None = None) -> None:
         self.path = Path(path)
         self.frames = frames
         self.context = context
         self.previous = previous or {}
+        self.reporter = reporter
         self.entries: dict[str, dict] = {}
         self.hits = 0
+        self.damaged = 0  # matching records that failed the checks and were estimated again
         self._frame_ids: dict[int, dict[str, Any]] = {}
 
     @classmethod
@@ -152,7 +158,7 @@ class PairCache:
             previous = _read(path, reporter)
             if previous:
                 reporter.info(f"resuming: {len(previous)} pair estimates in {path}")
-        return cls(path, frames, context, previous)
+        return cls(path, frames, context, previous, reporter)
 
     def key(self, request: PairRequest) -> str:
         """SHA-1 over the request's frames, prior, and the run's estimators and confidence threshold."""
@@ -169,8 +175,14 @@ class PairCache:
         if record is None:
             return None
         try:
-            result = _result_from_record(record, request)
-        except (KeyError, TypeError, ValueError):  # a damaged record is estimated again
+            result = _result_from_record(record, request, self.frames)
+        except Exception as exc:  # noqa: BLE001 - whatever the damage (NaN, wrong types or shapes), the pair is estimated again
+            self.previous.pop(key, None)  # and never written back
+            self.damaged += 1
+            if self.reporter is not None:
+                frames = self.frames
+                self.reporter.warn(f"--resume: the cached estimate of {frames[request.a].name} -> {frames[request.b].name} in {self.path} "
+                                   f"is damaged ({_describe(exc)}); estimating it again")
             return None
         self.entries[key] = record
         self.hits += 1
@@ -203,12 +215,38 @@ def _read(path: Path, reporter: Reporter) -> dict[str, dict]:
         return {}
     try:
         data = json.loads(path.read_text())
-        if data.get("format") != CACHE_FORMAT:
-            raise ValueError(f"format {data.get('format')!r}")
-        return {record["key"]: record for record in data["pairs"]}
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        reporter.warn(f"--resume: cannot use the pair cache {path} ({type(exc).__name__}: {exc}); estimating every pair")
+        if not isinstance(data, dict) or data.get("format") != CACHE_FORMAT:
+            raise ValueError(f"format {data.get('format') if isinstance(data, dict) else type(data).__name__!r}")
+        if not isinstance(data.get("pairs"), list):
+            raise ValueError("no list of pairs")
+    except (OSError, ValueError, RecursionError, MemoryError) as exc:  # RecursionError: absurdly nested JSON
+        reporter.warn(f"--resume: cannot use the pair cache {path} ({_describe(exc)}); estimating every pair")
         return {}
+    # Records are checked one by one: a damaged one costs its own pair, not the whole cache.
+    records = {record["key"]: record for record in data["pairs"]
+               if isinstance(record, dict) and isinstance(record.get("key"), str) and _depth(record) <= _MAX_RECORD_DEPTH}
+    if len(records) < len(data["pairs"]):
+        reporter.warn(f"--resume: {len(data['pairs']) - len(records)} entries of the pair cache {path} are damaged; their pairs are estimated again")
+    return records
+
+
+def _depth(value: Any) -> int:
+    """How deeply lists and dicts nest in ``value`` (iteratively: a hostile file must not exhaust the stack)."""
+    deepest, stack = 0, [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, (list, dict)):
+            deepest = max(deepest, depth)
+            if deepest > _MAX_RECORD_DEPTH:
+                break
+            stack.extend((child, depth + 1) for child in (item.values() if isinstance(item, dict) else item))
+    return deepest
+
+
+def _describe(exc: BaseException) -> str:
+    """``Type: message`` of an exception, on one line and not too long (a record's repr can be huge)."""
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text[:200]}{'...' if len(text) > 200 else ''}"
 
 
 def _record(result: PairResult, frames: Sequence[Frame]) -> dict[str, Any]:
@@ -229,26 +267,72 @@ def _record(result: PairResult, frames: Sequence[Frame]) -> dict[str, Any]:
     }
 
 
-def _result_from_record(record: dict[str, Any], request: PairRequest) -> PairResult:
-    estimates = [
-        Estimate(
-            e["method"],
-            None if e["homography"] is None else _matrix(e["homography"]),
-            float(e["confidence"]),
-            float(e["elapsed_ms"]),
-            e["failure"],
-            dict(e["details"]),
-        )
-        for e in record["estimates"]
-    ]
+def _result_from_record(record: dict[str, Any], request: PairRequest, frames: Sequence[Frame]) -> PairResult:
+    """The record as a PairResult, after the checks a fresh estimate passes; ValueError (or another
+    exception) when it is damaged.
+
+    Every estimate's homography must be a valid one (:func:`udh_cli.geometry.is_valid_homography`) for the
+    working image A the estimator saw, as :class:`~udh_cli.estimators.Estimator` demands of a fresh one;
+    an ``ok`` pair's ``b_from_a`` must be the one its accepted estimate gives, so a NaN or singular matrix
+    never reaches the chaining (where it would silently unplace frames).
+    """
+    if not isinstance(record.get("estimates"), list) or not record["estimates"]:
+        raise ValueError("no estimates")
+    image_a, _, undo = _work_inputs(request, frames)  # what the estimator saw (cropped when pre-warped)
+    size_a = (image_a.shape[1], image_a.shape[0])
+    estimates = []
+    for e in record["estimates"]:
+        homography = None if e["homography"] is None else _matrix(e["homography"])
+        if homography is not None and not geometry.is_valid_homography(homography, *size_a):
+            raise ValueError("an estimate's homography is degenerate (non-finite, singular or folded)")
+        confidence, elapsed_ms = float(e["confidence"]), float(e["elapsed_ms"])
+        if not (0.0 <= confidence <= 1.0 and math.isfinite(elapsed_ms)):
+            raise ValueError(f"confidence {confidence} or time {elapsed_ms} out of range")
+        estimates.append(Estimate(_text(e["method"]), homography, confidence, elapsed_ms, _text(e["failure"], True), dict(e["details"]),
+                                  **_typed_fields(e)))
     b_from_a = None if record["b_from_a"] is None else _matrix(record["b_from_a"])
     status = record["status"]
     if status not in ("ok", "failed") or (status == "ok") != (b_from_a is not None):
         raise ValueError(f"inconsistent cached pair (status {status!r})")
+    method = _text(record["method"], optional=status != "ok")
+    if b_from_a is not None:
+        accepted = estimates[-1]  # attempts stop at the accepted one
+        if not accepted.ok or accepted.method != method:
+            raise ValueError(f"its last estimate is not an answer of its method {method!r}")
+        expected = _full_resolution(accepted, request, frames, undo)
+        if not (np.all(np.isfinite(b_from_a)) and np.allclose(b_from_a, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())):
+            raise ValueError("its homography is not the one its estimate gives (NaN or altered)")
     verified = record.get("verified")
-    result = PairResult(request.a, request.b, request.kind, estimates, b_from_a, status, record["reason"], record["method"], request.prior)
+    if verified is not None and not math.isfinite(float(verified)):
+        raise ValueError(f"alignment check {verified!r}")
+    result = PairResult(request.a, request.b, request.kind, estimates, b_from_a, status, _text(record["reason"], True), method, request.prior)
     result.verified = None if verified is None else float(verified)
     return result
+
+
+_TYPED_CHECKS = {  # Estimate's typed fields (TYPED_FIELDS), as to_json writes them; absent (older caches): None
+    "inliers": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+    "verification_score": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v),
+    "verified": lambda v: isinstance(v, bool),
+    "verified_by": lambda v: isinstance(v, str),
+    "stage": lambda v: isinstance(v, str),
+}
+
+
+def _typed_fields(record: dict[str, Any]) -> dict[str, Any]:
+    typed = {key: record.get(key) for key in TYPED_FIELDS}
+    for key, value in typed.items():
+        if value is not None and not _TYPED_CHECKS.get(key, lambda v: True)(value):
+            raise ValueError(f"an estimate's {key} is {type(value).__name__} {str(value)[:20]}")
+    return typed
+
+
+def _text(value: Any, optional: bool = False) -> str | None:
+    if value is None and optional:
+        return None
+    if not isinstance(value, str):
+        raise ValueError(f"{type(value).__name__} where text was expected")
+    return value
 
 
 def _matrix(values: Any) -> np.ndarray:

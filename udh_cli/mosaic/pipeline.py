@@ -6,6 +6,7 @@ Each step is one call into a module of this package; this file only wires them a
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -111,7 +112,35 @@ def check_output(output: Path) -> None:
     """Fail before any work when the mosaic could not be written."""
     if output.suffix.lower() not in OUTPUT_SUFFIXES:
         raise UdhError(f"{output}: unknown image type '{output.suffix}'; use .png or .tif (they keep the alpha channel)")
+    longest, limit = len(os.fsencode(longest_derived_name(output))), _name_max(output.parent)
+    if limit is not None and longest > limit:
+        raise UdhError(f"{output}: the name is too long for this file system: the files a run writes beside it (NAME.part12.preview.jpg, "
+                       f"hidden temporary names) need {longest} bytes where {limit} are allowed; shorten the name to at most "
+                       f"{max(1, len(os.fsencode(output.stem)) - (longest - limit))} bytes before its suffix")
     check_output_path(output)  # folder exists and is writable, and the name is not a folder
+
+
+MAX_PART_DIGITS = 4  # the name check makes room for part numbers up to 9999
+
+
+def longest_derived_name(output: Path) -> str:
+    """The longest file name a run writing ``output`` may create, temporary ones included: a part's preview,
+    staged (``.NAME.partK.preview.xxxxxxxx.staged.jpg``) and written through a temporary file of
+    :func:`udh_cli.images.atomic_write_bytes` (``.<that name>.xxxxxxxx.part``)."""
+    part = output.with_name(f"{output.stem}.part{'9' * MAX_PART_DIGITS}{output.suffix}")
+    finals = [output, part, preview_path(output), preview_path(part), sidecar_path(output)]
+    written = [f".{f.stem}.{'0' * 8}.staged{f.suffix}" for f in finals] + [cache_path(output).name]  # see StagedFiles.path_for
+    return max((f".{name}.{'x' * 8}.part" for name in written), key=lambda name: len(os.fsencode(name)))
+
+
+def _name_max(folder: Path) -> int | None:
+    """The longest file name (bytes) ``folder``'s file system takes; None when the folder does not exist."""
+    try:
+        if not folder.is_dir():
+            return None
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError, AttributeError):  # no pathconf (Windows) or no answer: the usual limit
+        return 255
 
 
 def check_config(config: MosaicConfig) -> None:

@@ -43,10 +43,58 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     for key in ("model", "config", "step", "normalization"):
         if key not in state:
             raise UdhError(f"{path}: the checkpoint lacks '{key}'; it is incomplete or foreign")
+    if not isinstance(state["model"], dict) or not all(isinstance(t, torch.Tensor) for t in state["model"].values()):
+        raise UdhError(f"{path}: the checkpoint's 'model' is not a set of weights; it is damaged or foreign")
     for name, tensor in state["model"].items():
         if torch.is_floating_point(tensor) and not torch.isfinite(tensor).all():
             raise UdhError(f"{path}: weight '{name}' holds NaN or infinite values")
-    mean, std = state["normalization"]["mean"], state["normalization"]["std"]
-    if not (math.isfinite(mean) and math.isfinite(std) and std > 0):
-        raise UdhError(f"{path}: the stored normalisation (mean {mean}, std {std}) is unusable")
+    normalization = state["normalization"]
+    mean, std = (normalization.get("mean"), normalization.get("std")) if isinstance(normalization, dict) else (None, None)
+    if not (_is_number(mean) and _is_number(std) and math.isfinite(mean) and math.isfinite(std) and std > 0):
+        raise UdhError(f"{path}: the stored normalisation (mean {_short(mean)}, std {_short(std)}) is unusable")
+    if not _is_integer(state["step"]) or state["step"] < 0:
+        raise UdhError(f"{path}: the stored step count {_short(state['step'])} is not a whole number; the checkpoint is damaged")
+    _check_config(path, state["config"])
     return state
+
+
+MAX_PATCH_SIZE = 512  # px; the shipped networks take 128. Larger inputs would build networks of gigabytes.
+# What the loaders rely on in a checkpoint's config: key -> (test, what it must be). Keys marked optional may be absent
+# (checkpoints written before they existed).
+_CONFIG_FIELDS = {
+    "arch": (lambda v: isinstance(v, str), "an architecture name", False),
+    "mode": (lambda v: isinstance(v, str), "a training mode", False),
+    "patch_size": (lambda v: _is_integer(v) and v % 32 == 0 and 32 <= v <= MAX_PATCH_SIZE, f"a multiple of 32 from 32 to {MAX_PATCH_SIZE}", False),
+    "rho": (lambda v: _is_number(v) and math.isfinite(v) and v > 0, "a positive number", False),
+    "data": (lambda v: isinstance(v, (list, tuple)) and all(isinstance(d, str) for d in v), "a list of folders", False),
+    "motion": (lambda v: isinstance(v, str), "a motion name", True),
+    "max_heading": (lambda v: _is_number(v) and math.isfinite(v), "a number", True),
+    "max_scale": (lambda v: _is_number(v) and math.isfinite(v), "a number", True),
+    "max_shift": (lambda v: _is_number(v) and math.isfinite(v), "a number", True),
+}
+
+
+def _check_config(path: Path, config: Any) -> None:
+    """The config fields export and --init/--teacher/--resume read must be there and of the right kind."""
+    if not isinstance(config, dict):
+        raise UdhError(f"{path}: the checkpoint's config is not a dict; it is damaged or foreign")
+    for key, (test, wanted, optional) in _CONFIG_FIELDS.items():
+        if key not in config:
+            if optional:
+                continue
+            raise UdhError(f"{path}: the checkpoint's config lacks '{key}'; it is damaged or foreign")
+        if not test(config[key]):
+            raise UdhError(f"{path}: the checkpoint's config gives {key} {_short(config[key])}, not {wanted}; it is damaged or foreign")
+
+
+def _short(value: Any) -> str:
+    text = " ".join(repr(value).split())
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _is_integer(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)

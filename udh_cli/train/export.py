@@ -65,8 +65,9 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
     if Path(output).exists() and Path(checkpoint).exists() and Path(output).resolve() == Path(checkpoint).resolve():
         raise UdhError(f"{output}: is the checkpoint being exported; choose another output name")
     check_output_path(output)
-    state = load_checkpoint(checkpoint)
+    state = load_checkpoint(checkpoint)  # checks the config's fields, patch_size among them
     size = int(state["config"]["patch_size"])
+    _check_weights_fit(checkpoint, state, size)
     model = create_model(state["config"]["arch"], size)
     try:
         model.load_state_dict(state["model"])
@@ -101,6 +102,24 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
         raise UdhError(f"ONNX and torch disagree by {max_diff:.3g} px; the export is not trustworthy")
     atomic_write_bytes(output, data)
     return {"path": str(output), "max_abs_diff": max_diff, "metadata": metadata}
+
+
+def _check_weights_fit(checkpoint: str | Path, state: dict[str, Any], size: int) -> None:
+    """Refuse weights that do not fit the checkpoint's network at ``size`` before that network is built: a
+    damaged patch_size can ask for gigabytes (the network is laid out on torch's 'meta' device, which
+    allocates nothing)."""
+    arch = state["config"]["arch"]
+    with torch.device("meta"):
+        skeleton = create_model(arch, size)
+    expected = {name: tuple(t.shape) for name, t in skeleton.state_dict().items()}
+    found = {name: tuple(t.shape) for name, t in state["model"].items()}
+    differing = sorted(name for name in expected.keys() | found.keys() if expected.get(name) != found.get(name))
+    if differing:
+        name = differing[0]
+        example = (f"'{name}' is not one of its weights" if name not in expected else f"'{name}' is missing" if name not in found
+                   else f"'{name}' is {found[name]} where {expected[name]} is needed")
+        raise UdhError(f"{checkpoint}: the weights do not fit the '{arch}' architecture at {size}px patches ({len(differing)} tensors differ; "
+                       f"{example}); the checkpoint is damaged or foreign")
 
 
 def _at_input_size(patches: np.ndarray, size: int) -> np.ndarray:

@@ -140,6 +140,8 @@ class Trainer:
                  overwrite: bool = False):
         if config.mode not in PAPER_LR:
             raise UdhError(f"unknown --mode '{config.mode}'; choose unsupervised or supervised")
+        if threads is not None and threads < 1:
+            raise UdhError(f"--threads {threads}: give a positive number of CPU threads, or leave it out for torch's choice")
         self.rank, self.world = _distributed()
         self.out = Path(config.out)
         self.checkpoint_path = self.out / "checkpoint.pt"
@@ -147,23 +149,27 @@ class Trainer:
         self.progress = progress and self.rank == 0
         saved = None
         self.notes: list[str] = []
-        if not resume and self.rank == 0:
-            _check_fresh_out(self.out, overwrite)
+        if not resume and self.rank == 0 and not overwrite:
+            _check_fresh_out(self.out, overwrite)  # refused at once; with --overwrite the old run goes only once this one can start
         if resume:
             if not self.checkpoint_path.is_file():
                 raise UdhError(f"--resume: no checkpoint at {self.checkpoint_path}; start without --resume or give the run's --out")
             saved = load_checkpoint(self.checkpoint_path)
             stored = saved["config"]
-            stored["betas"] = tuple(stored["betas"])
-            # The stored run defines everything except how long to train and where the data lies now.
-            steps = config.steps if config.steps is not None else stored["steps"]
-            lr = stored["lr"]
-            if config.lr is not None and config.lr != stored["lr"]:
-                # Lowering the rate is the advice after a diverged run, so a new --lr is honoured, and said.
-                self.notes.append(f"--lr {config.lr} replaces the run's {stored['lr']} from step {int(saved['step'])} on")
-                lr = config.lr
-            config = TrainConfig(**{**stored, "steps": max(steps, int(saved["step"])), "lr": lr, "data": config.data or stored["data"],
-                                    "out": config.out})
+            try:
+                stored["betas"] = tuple(stored["betas"])
+                # The stored run defines everything except how long to train and where the data lies now.
+                steps = config.steps if config.steps is not None else stored["steps"]
+                lr = stored["lr"]
+                if config.lr is not None and config.lr != stored["lr"]:
+                    # Lowering the rate is the advice after a diverged run, so a new --lr is honoured, and said.
+                    self.notes.append(f"--lr {config.lr} replaces the run's {stored['lr']} from step {int(saved['step'])} on")
+                    lr = config.lr
+                config = TrainConfig(**{**stored, "steps": max(steps, int(saved["step"])), "lr": lr, "data": config.data or stored["data"],
+                                        "out": config.out})
+            except (KeyError, TypeError, ValueError) as exc:  # a damaged or foreign config: one line, not a traceback
+                raise UdhError(f"{self.checkpoint_path}: the run's stored settings are damaged ({type(exc).__name__}: {exc}); "
+                               f"start a new run with --overwrite or another --out") from None
         elif config.steps is None:
             config = replace(config, steps=DEFAULT_STEPS)
         self.config = config
@@ -211,6 +217,8 @@ class Trainer:
         if self.world > 1:
             self.model = torch.nn.parallel.DistributedDataParallel(self.model)
         self.validation = self.data.validation(config.val_pairs)
+        if not resume and self.rank == 0 and overwrite:  # every setting, the data and --init checked: replace the old run
+            _check_fresh_out(self.out, overwrite)
 
     # ------------------------------------------------------------------------------------ state
 
@@ -273,7 +281,7 @@ class Trainer:
         """Drop log lines written after the checkpoint we resume from: they will be written again."""
         if self.rank != 0 or not self.metrics_path.is_file():
             return
-        kept = [line for line in self.metrics_path.read_text().splitlines() if line.strip() and json.loads(line).get("step", 0) <= step]
+        kept = [line for line in self.metrics_path.read_text(errors="replace").splitlines() if _logged_step(line) <= step]
         from udh_cli.images import atomic_write_bytes
 
         atomic_write_bytes(self.metrics_path, ("\n".join(kept) + "\n" if kept else "").encode())
@@ -409,6 +417,17 @@ class Trainer:
                 "trained_before": self.trained_before, "data_description": self.data.description, "best_val": self.best_val}
 
 
+def _logged_step(line: str) -> float:
+    """The step of a metrics.jsonl line; infinity (dropped on resume) for a blank or damaged one, such as the
+    half-written last line of a killed run."""
+    try:
+        record = json.loads(line)
+        step = record.get("step", 0)
+        return float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) else math.inf
+    except (ValueError, RecursionError, AttributeError):
+        return math.inf
+
+
 def motion_config(config: TrainConfig) -> MotionConfig | None:
     """The flight-motion distribution a run trains on, or None for the paper's corner perturbation."""
     if config.motion == "paper":
@@ -435,8 +454,14 @@ def _check_config(config: TrainConfig, out: Path) -> None:
         raise UdhError(f"--teacher-weight {config.teacher_weight}: must be positive when distilling from --teacher")
     if config.teacher and config.mode != "unsupervised":
         raise UdhError("--teacher distils without labels; it needs --mode unsupervised (supervised training has the true labels)")
-    if not config.rho > 0:
-        raise UdhError(f"--rho {config.rho}: must be positive")
+    if not (config.rho > 0 and math.isfinite(config.rho)):
+        raise UdhError(f"--rho {config.rho}: must be positive and finite")
+    if config.lr is not None and not (config.lr > 0 and math.isfinite(config.lr)):
+        raise UdhError(f"--lr {config.lr}: the learning rate must be positive and finite (the paper's: 1e-4 unsupervised, 5e-4 supervised)")
+    if not 0.0 <= config.small_motion_fraction <= 1.0:
+        raise UdhError(f"--small-motion {config.small_motion_fraction}: give a share of pairs from 0 to 1")
+    if not 0.0 <= float(config.occluders) <= 1.0:
+        raise UdhError(f"--occluders {config.occluders}: give a share of pairs from 0 to 1")
     if config.motion not in MOTIONS:
         raise UdhError(f"--motion {config.motion}: choose one of {', '.join(MOTIONS)}")
     if not (0 <= config.max_heading <= 180 and 1 <= config.max_scale <= 4 and 0 <= config.max_shift <= 1 and 0.05 <= config.min_overlap <= 1):

@@ -152,6 +152,10 @@ def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndar
     if model.metadata.get("precision") == "int8":
         raise UdhError(f"{source}: already an int8 model; quantize the float32 network it came from")
     standardised = model.standardise(calibration_patches(sources, model, pairs_per_motion, seed))
+    # A network whose own answers are NaN or infinite has no ranges to calibrate (onnxruntime fails deep inside).
+    if not np.isfinite(model.session.run(None, {model.session.get_inputs()[0].name: standardised[:8]})[0]).all():
+        raise UdhError(f"{source}: the float32 network gives NaN or infinite offsets, so it cannot be quantized; "
+                       f"export it again from a good checkpoint (`udh export-onnx`)")
     input_name = model.session.get_inputs()[0].name
 
     class _Reader(CalibrationDataReader):

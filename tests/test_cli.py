@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from udh_cli.estimators import estimator_names
 from udh_cli import cli, geometry
 from udh_cli.homography_files import format_homography
 
@@ -137,7 +138,7 @@ def test_table_output_and_viz(files, tmp_path):
         (["flat.png", "a.png", "-m", "ecc"], "ecc found no homography"),
         (["a.png", "b16.png", "--gt", "bad_gt.txt"], "not a 3x3 homography"),
         (["a.png", "b16.png", "--gt", "missing.txt"], "no such homography file"),
-        (["a.png", "b16.png", "-m", "surf"], "unknown method 'surf'"),
+        (["a.png", "b16.png", "-m", "surf"], "'surf' is not one of"),
         (["a.png", "b16.png", "-m", "ecc", "--best-features", "50"], "does not take"),
     ],
 )
@@ -145,7 +146,7 @@ def test_bad_input_fails_in_one_line_without_leftovers(files, tmp_path, monkeypa
     args = [str(files[a]) if a in files else (str(tmp_path / a) if a.endswith((".png", ".txt")) else a) for a in case]
     picture = tmp_path / "viz.png"
     code, out, err = run_main(monkeypatch, capfd, "estimate", *args, "--viz", str(picture), "--json")
-    assert code == 1
+    assert code == (2 if "is not one of" in message else 1)  # an unknown choice is a usage error
     if out:  # errors the command itself meets are also one JSON object on stdout; usage errors come before it
         report = json.loads(out)
         assert report["ok"] is False and report["exit_code"] == 1 and message in report["failure"]
@@ -242,3 +243,13 @@ def test_error_messages_are_printed_as_text_not_markup(tmp_path):
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 1
     assert "flight[train].png" in result.stderr
+
+
+def test_method_names_are_case_insensitive_and_bool_flags_show_no_metavar(files):
+    result = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(files["b16.png"]), "-m", "SIFT", "--json"])
+    assert result.exit_code == 0 and json.loads(result.stdout)["method"] == "sift"
+    help_text = CliRunner().invoke(cli.app, ["estimate", "--help"], terminal_width=200).stdout
+    flag_lines = [line for line in help_text.splitlines() if "--json" in line or "--full-resolution" in line]
+    assert len(flag_lines) == 2 and not any("<bool>" in line for line in flag_lines) and "IMAGE_A" in help_text
+    for name in estimator_names():  # the --method help is the registry's, every method described
+        assert name in help_text

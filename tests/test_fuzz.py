@@ -197,7 +197,7 @@ CASES = [
     Case("estimate-viz-missing-folder", ["estimate", "{a}", "{b}", "--viz", "{out}/no/v.png"], 1, "does not exist"),
     Case("estimate-viz-name-too-long", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{out}/" + LONG + ".png"], 1, "too long"),
     Case("estimate-viz-unwritable-folder", ["estimate", "{a}", "{b}", "--viz", "{out}/ro/v.png"], 1, "not writable", "user", read_only_folder),
-    Case("estimate-unknown-method", ["estimate", "{a}", "{b}", "-m", "surf"], 1, "unknown method 'surf'"),
+    Case("estimate-unknown-method", ["estimate", "{a}", "{b}", "-m", "surf"], 2, "'surf' is not one of"),  # a choice: usage error
     Case("estimate-option-of-another-method", ["estimate", "{a}", "{b}", "-m", "ecc", "--best-features", "5"], 1, "does not take"),
     Case("estimate-iterations-zero", ["estimate", "{a}", "{b}", "-m", "ecc", "--iterations", "0"], 2, "--iterations"),
     Case("estimate-iterations-huge", ["estimate", "{a}", "{b}", "-m", "ecc", "--iterations", "100000000"], 2, "--iterations"),
@@ -225,8 +225,8 @@ CASES = [
     Case("mosaic-output-unknown-type", ["mosaic", "{frames}", "-o", "{out}/m.gif"], 1, "unknown image type"),
     Case("mosaic-output-missing-folder", ["mosaic", "{frames}", "-o", "{out}/no/m.png"], 1, "does not exist"),
     Case("mosaic-output-unwritable-folder", ["mosaic", "{frames}", "-o", "{out}/ro/m.png"], 1, "not writable", "user", read_only_folder),
-    Case("mosaic-unknown-method", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "surf"], 1, "unknown method 'surf'"),
-    Case("mosaic-unknown-blend", ["mosaic", "{frames}", "-o", "{out}/m.png", "--blend", "soft"], 1, "unknown blend"),
+    Case("mosaic-unknown-method", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "surf"], 2, "'surf' is not one of"),
+    Case("mosaic-unknown-blend", ["mosaic", "{frames}", "-o", "{out}/m.png", "--blend", "soft"], 2, "'soft' is not one of"),
     Case("mosaic-work-size-tiny", ["mosaic", "{frames}", "-o", "{out}/m.png", "--work-size", "4"], 1, "--work-size"),
     Case("mosaic-every-zero", ["mosaic", "{frames}", "-o", "{out}/m.png", "--every", "0"], 1, "--every"),
     Case("mosaic-confidence-above-one", ["mosaic", "{frames}", "-o", "{out}/m.png", "--min-confidence", "2"], 1, "--min-confidence"),
@@ -356,7 +356,7 @@ def finished_run(inputs, tmp_path_factory):
     from udh_cli.mosaic import MosaicConfig, run_mosaic
 
     folder = tmp_path_factory.mktemp("fuzz-mosaic")
-    run_mosaic(inputs["frames"], folder / "m.png", MosaicConfig(method="sift", overlap_per_frame=1))
+    run_mosaic(inputs["frames"], folder / "m.png", MosaicConfig(method="sift", overlap_per_frame=1), resume=True)
     return json.loads((folder / "m.pairs.json").read_text()), json.loads((folder / "m.json").read_text())
 
 
@@ -464,7 +464,7 @@ def test_a_mosaic_killed_by_sigterm_keeps_its_pairs_and_resumes(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     output, cache = out / "m.png", out / "m.pairs.json"
-    args = [sys.executable, "-m", "udh_cli", "mosaic", str(frames), "-o", str(output), "-m", "sift", "--quiet"]
+    args = [sys.executable, "-m", "udh_cli", "mosaic", str(frames), "-o", str(output), "-m", "sift", "--quiet", "--resume"]
     env = dict(os.environ, OMP_NUM_THREADS="1", COLUMNS="200")
     process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.time() + 120
@@ -481,7 +481,7 @@ def test_a_mosaic_killed_by_sigterm_keeps_its_pairs_and_resumes(tmp_path):
     kept = len(json.loads(cache.read_text())["pairs"])
     assert kept >= 16
 
-    resumed = subprocess.run([*args, "--resume"], capture_output=True, text=True, env=env, timeout=300)
+    resumed = subprocess.run(args, capture_output=True, text=True, env=env, timeout=300)
     assert resumed.returncode == 0, resumed.stderr
     report = json.loads((out / "m.json").read_text())
     assert report["summary"]["pairs_from_cache"] == kept

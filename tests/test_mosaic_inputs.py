@@ -118,10 +118,12 @@ def test_video_input_and_undecodable_video(flight, tmp_path, monkeypatch, capfd)
     assert not (tmp_path / "b.png").exists() and not (tmp_path / "b.json").exists()
 
 
-@pytest.mark.parametrize(("option", "message"), [(["--blend", "smooth"], "unknown blend 'smooth'"), (["--method", "nope"], "unknown method 'nope'"), (["--work-size", "0"], "--work-size 0")])
-def test_bad_options_fail_before_any_work(option, message, flight, tmp_path, monkeypatch, capfd):
+@pytest.mark.parametrize(("option", "message", "exit_code"), [(["--blend", "SMOOTH"], "'SMOOTH' is not one of", 2), (["--method", "nope"], "'nope' is not one of", 2),
+                                                  (["--work-size", "0"], "--work-size 0", 1)])
+def test_bad_options_fail_before_any_work(option, message, exit_code, flight, tmp_path, monkeypatch, capfd):
+    """Unknown choices are usage errors (exit 2, the choices listed); impossible values are errors (exit 1)."""
     code, _, err = run_main(monkeypatch, capfd, "mosaic", str(flight), "-o", str(tmp_path / "m.png"), *option, *FAST)
-    assert code == 1 and message in err
+    assert code == exit_code and message in err
     assert list(tmp_path.iterdir()) == []
 
 

@@ -51,7 +51,7 @@ def test_a_failing_later_part_leaves_no_part_behind(flight, tmp_path, monkeypatc
     fail_in_part(monkeypatch, 2)
     with pytest.raises(UdhError, match="made to fail"):
         run_mosaic(folder, tmp_path / "m.png", FAST, estimator=split(prints), fallback=split(prints))
-    assert [p.name for p in tmp_path.iterdir()] == ["m.pairs.json"]  # no part 1, no preview, no temporary file
+    assert [p.name for p in tmp_path.iterdir()] == []  # no part 1, no preview, no temporary file
 
 
 def test_a_failing_later_part_leaves_the_earlier_run_whole(flight, tmp_path, monkeypatch):
@@ -59,11 +59,11 @@ def test_a_failing_later_part_leaves_the_earlier_run_whole(flight, tmp_path, mon
     out = tmp_path / "m.png"
     run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))
     before = snapshot(tmp_path)
-    assert sorted(before) == ["m.json", "m.pairs.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg"]
+    assert sorted(before) == ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg"]
     fail_in_part(monkeypatch, 2)
     with pytest.raises(UdhError, match="made to fail"):  # another blend: part 1 would differ from the earlier one
-        run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, blend="none"), estimator=split(prints), fallback=split(prints), resume=True)
-    assert snapshot(tmp_path) == before  # byte for byte: images, previews, sidecar and pair cache
+        run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, blend="none"), estimator=split(prints), fallback=split(prints))
+    assert snapshot(tmp_path) == before  # byte for byte: images, previews and sidecar
 
 
 def test_stale_parts_of_an_earlier_run_are_removed_and_nothing_else(flight, tmp_path):
@@ -74,20 +74,20 @@ def test_stale_parts_of_an_earlier_run_are_removed_and_nothing_else(flight, tmp_
         (tmp_path / name).write_bytes(b"earlier")
     report = run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))
     assert report["summary"]["parts"] == 2
-    expected = ["m.json", "m.pairs.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg"]
+    expected = ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg"]
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(expected + others)
 
     # Now in one part, without previews: every part file goes, and the single mosaic takes their place.
     reporter = Reporter(quiet=True)
     report = run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, preview=False), reporter, estimator=FailOn(prints, lambda a, b: False))
     assert report["summary"]["parts"] == 1
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.pairs.json", "m.png", *others])
-    assert json.loads((tmp_path / "m.json").read_text())["parts"][0]["file"] == str(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", *others])
+    assert json.loads((tmp_path / "m.json").read_text())["parts"][0]["file"] == out.name  # relative to the sidecar
 
     # Split again: the single mosaic of the run before is not a part file; it stays, with a warning.
     reporter = Reporter(quiet=True)
     run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, preview=False), reporter, estimator=split(prints), fallback=split(prints))
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.pairs.json", "m.png", "m.part1.png", "m.part2.png", *others])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", "m.part1.png", "m.part2.png", *others])
     assert any("m.png is left from an earlier run" in w for w in reporter.warnings)
 
 
@@ -144,3 +144,19 @@ def test_temporary_files_of_a_killed_run_are_removed_by_the_next(flight, tmp_pat
     assert not any(p.exists() for p in leftovers)
     assert all(p.exists() for p in unrelated)
     assert json.loads((tmp_path / "m.json").read_text())["format"].startswith("udh-mosaic/")
+
+
+def test_the_pair_cache_is_written_only_when_asked_and_the_sidecar_paths_are_relative(flight, tmp_path):
+    folder, _ = flight
+    run_mosaic(folder, tmp_path / "m.png", FAST)
+    assert not (tmp_path / "m.pairs.json").exists()
+    sidecar = json.loads((tmp_path / "m.json").read_text())
+    assert sidecar["pair_cache"] is None and not Path(sidecar["source"]).is_absolute()
+    assert (tmp_path / sidecar["source"]).resolve() == folder.resolve()
+    caches = tmp_path / "caches"
+    caches.mkdir()
+    run_mosaic(folder, tmp_path / "n.png", FAST, cache_dir=caches)
+    assert (caches / "n.pairs.json").is_file() and not (tmp_path / "n.pairs.json").exists()
+    assert json.loads((tmp_path / "n.json").read_text())["pair_cache"] == "caches/n.pairs.json"
+    with pytest.raises(UdhError, match="no such folder"):
+        run_mosaic(folder, tmp_path / "o.png", FAST, cache_dir=tmp_path / "missing")

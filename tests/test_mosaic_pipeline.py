@@ -118,8 +118,8 @@ def test_max_size_bounds_the_canvas(small_flight, tmp_path):
 def test_too_big_canvas_is_refused_before_writing(small_flight, tmp_path):
     out = tmp_path / "big.png"
     with pytest.raises(UdhError, match="--max-size"):
-        run_mosaic(small_flight, out, MosaicConfig(method="orb", overlap_per_frame=0, max_canvas_bytes=100_000))
-    # No image and no sidecar; only the pair cache, so that the fix (--max-size) need not estimate again.
+        run_mosaic(small_flight, out, MosaicConfig(method="orb", overlap_per_frame=0, max_canvas_bytes=100_000), resume=True)
+    # No image and no sidecar; only the pair cache (--resume), so that the fix (--max-size) need not estimate again.
     assert [p.name for p in tmp_path.iterdir()] == ["big.pairs.json"]
     report = run_mosaic(small_flight, out, MosaicConfig(method="orb", overlap_per_frame=0, max_size=200), resume=True)
     assert report["summary"]["pairs_from_cache"] == len(report["pairs"]) == 7

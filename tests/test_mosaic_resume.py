@@ -77,7 +77,7 @@ def test_resume_estimates_only_the_pairs_the_interrupt_lost(flight, uninterrupte
     out = tmp_path / "m.png"
     reporter = Reporter(quiet=True)
     with pytest.raises(KeyboardInterrupt):
-        run_mosaic(folder, out, CONFIG, reporter, estimator=Interrupted(prints, interrupt_after))
+        run_mosaic(folder, out, CONFIG, reporter, estimator=Interrupted(prints, interrupt_after), resume=True)
     assert [p.name for p in tmp_path.iterdir()] == ["m.pairs.json"]  # no mosaic, no sidecar
     assert len(cached_pairs(out)) == finished  # every finished batch, none of the interrupted one
     assert any("--resume" in w for w in reporter.warnings)
@@ -90,20 +90,20 @@ def test_resume_estimates_only_the_pairs_the_interrupt_lost(flight, uninterrupte
     assert_same_geometry(report, uninterrupted)
     assert len(cached_pairs(out)) == total  # kept after a successful run, complete
 
-    # Resuming a finished run estimates nothing; without --resume the cache is ignored and replaced.
+    # Resuming a finished run estimates nothing; without --resume the cache is ignored and left as it is.
     again = Interrupted(prints)
     assert run_mosaic(folder, out, CONFIG, estimator=again, resume=True)["summary"]["pairs_from_cache"] == total
     assert again.calls == []
     fresh = Interrupted(prints)
     assert run_mosaic(folder, out, CONFIG, estimator=fresh)["summary"]["pairs_from_cache"] == 0
-    assert len(fresh.calls) == total
+    assert len(fresh.calls) == total and len(cached_pairs(out)) == total
 
 
 def test_a_second_interrupt_loses_nothing_either(flight, uninterrupted, tmp_path):
     folder, prints = flight
     out = tmp_path / "m.png"
     with pytest.raises(KeyboardInterrupt):
-        run_mosaic(folder, out, CONFIG, estimator=Interrupted(prints, 5))  # 3 pairs finished
+        run_mosaic(folder, out, CONFIG, estimator=Interrupted(prints, 5), resume=True)  # 3 pairs finished
     with pytest.raises(KeyboardInterrupt):
         run_mosaic(folder, out, CONFIG, estimator=Interrupted(prints, 6), resume=True)  # 3 + 1 consecutive, 2 of a loop batch
     assert len(cached_pairs(out)) == 7
@@ -120,7 +120,7 @@ def test_pairs_that_no_longer_match_are_estimated_again(flight, uninterrupted, t
     for path in folder.iterdir():
         (work / path.name).write_bytes(path.read_bytes())
     out = tmp_path / "m.png"
-    run_mosaic(work, out, CONFIG, estimator=Interrupted(prints))
+    run_mosaic(work, out, CONFIG, estimator=Interrupted(prints), resume=True)
 
     # Another confidence threshold changes every key.
     counted = Interrupted(prints)
@@ -160,8 +160,8 @@ def test_cli_resume_with_the_output_inside_the_frames_folder(flight, tmp_path, m
     folder = tmp_path / "frames"
     shutil.copytree(flight[0], folder)
     out = folder / "m.png"
-    args = ["udh", "mosaic", str(folder), "-o", str(out), "--overlap-pairs", "1", "--quiet"]
-    for extra in ([], ["--resume"]):
+    args = ["udh", "mosaic", str(folder), "-o", str(out), "--overlap-pairs", "1", "--quiet", "--resume"]
+    for extra in ([], []):  # a first run that keeps its pairs, then a run that takes them all
         monkeypatch.setattr(sys, "argv", args + extra)
         with pytest.raises(SystemExit) as stop:
             cli.main()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import signal
 import sys
+from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -17,7 +18,7 @@ from rich.table import Table
 from udh_cli import __version__, geometry
 from udh_cli.errors import UdhError
 from udh_cli.api import ESTIMATE_WORK_SIZE
-from udh_cli.estimators.registry import DEFAULT_METHOD
+from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS
 from udh_cli.flight_motion import MotionConfig as _MotionDefaults
 
 app = typer.Typer(
@@ -32,6 +33,16 @@ app = typer.Typer(
 )
 console = Console()
 err_console = Console(stderr=True)
+
+
+def _choices(name: str, values) -> type[Enum]:
+    """A str Enum of ``values`` (taken from the library, never re-typed here): typer then checks the choice,
+    matches it case-insensitively (with ``case_sensitive=False``) and completes it in the shell."""
+    return Enum(name, {value: value for value in values}, type=str)
+
+
+Method = _choices("Method", ESTIMATORS)
+METHOD_HELP = "; ".join(f"[bold]{name}[/bold]: {description}" for name, (_, _, description) in ESTIMATORS.items())
 _state = {"debug": False}
 INTERRUPTED = 130  # the shell's exit code for Ctrl-C
 UNVERIFIED = 3  # udh estimate: an answer was found but did not verify
@@ -46,18 +57,18 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _root(
-    debug: Annotated[bool, typer.Option("--debug", help="Show full tracebacks on errors.")] = False,
-    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")] = False,
+    debug: Annotated[bool, typer.Option("--debug", help="Show full tracebacks on errors.", metavar="")] = False,
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.", metavar="")] = False,
 ) -> None:
     _state["debug"] = debug
 
 
 @app.command()
 def estimate(
-    image_a: Annotated[Path, typer.Argument(help="Image A (any size; colour or grey; 8 or 16 bit).")],
-    image_b: Annotated[Path, typer.Argument(help="Image B.")],
-    method: Annotated[str, typer.Option("--method", "-m", help="auto (the default: the network, ECC and verification, with SIFT as a second opinion), sift, orb, ecc, identity, unsupervised, supervised or unsupervised+ecc.")] = DEFAULT_METHOD,
-    json_output: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of tables.")] = False,
+    image_a: Annotated[Path, typer.Argument(metavar="IMAGE_A", help="Image A (any size; colour or grey; 8 or 16 bit).")],
+    image_b: Annotated[Path, typer.Argument(metavar="IMAGE_B", help="Image B.")],
+    method: Annotated[Method, typer.Option("--method", "-m", case_sensitive=False, help=METHOD_HELP)] = Method(DEFAULT_METHOD),
+    json_output: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of tables.", metavar="")] = False,
     viz: Annotated[Optional[Path], typer.Option("--viz", help="Write a picture: A's border warped onto B.")] = None,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Ground-truth homography file (A to B) to report the corner error.")] = None,
     best_features: Annotated[Optional[int], typer.Option(help="sift/orb: keep only the N strongest keypoints.")] = None,
@@ -69,7 +80,7 @@ def estimate(
     search: Annotated[Optional[int], typer.Option(min=0, max=4, help="Learned methods: when the answer is doubted, retry from a (2N+1)^2 grid of shifts up to half the frame (0: off; at most 4).")] = None,
     precision: Annotated[Optional[str], typer.Option(help="Learned methods: which shipped networks, int8 (the default where shipped) or fp32.")] = None,
     work_size: Annotated[int, typer.Option(help="Estimate with the images' longer side shrunk to this many pixels; the answer is in full-resolution pixels.")] = ESTIMATE_WORK_SIZE,
-    full_resolution: Annotated[bool, typer.Option("--full-resolution", help="Estimate at the images' full resolution (slow and memory-hungry on large photos).")] = False,
+    full_resolution: Annotated[bool, typer.Option("--full-resolution", help="Estimate at the images' full resolution (slow and memory-hungry on large photos).", metavar="")] = False,
 ) -> None:
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold]).
 
@@ -82,10 +93,10 @@ def estimate(
              "precision": precision}
     options = {key: value for key, value in given.items() if value is not None}
     try:
-        report = estimate_report(image_a, image_b, method, gt=gt, viz=viz, work_size=None if full_resolution else work_size, **options)
+        report = estimate_report(image_a, image_b, method.value, gt=gt, viz=viz, work_size=None if full_resolution else work_size, **options)
     except UdhError as exc:
         if json_output:  # scripts read stdout: one object, whatever happened
-            sys.stdout.write(json.dumps({"method": method, "ok": False, "verified": False, "failure": str(exc), "exit_code": 1}) + "\n")
+            sys.stdout.write(json.dumps({"method": method.value, "ok": False, "verified": False, "failure": str(exc), "exit_code": 1}) + "\n")
         raise
     code = 0 if report["verified"] else UNVERIFIED
     if json_output:
@@ -132,11 +143,11 @@ def train(
     init: Annotated[Optional[str], typer.Option(help="Fine-tune from a checkpoint file or a shipped model (unsupervised, supervised).")] = None,
     teacher: Annotated[Optional[str], typer.Option(help="Distil from this checkpoint or shipped model (unsupervised mode): its answers join the loss, no labels.")] = None,
     teacher_weight: Annotated[float, typer.Option(help="Weight of the mean |offset - teacher's offset| (px) beside the photometric loss.")] = 0.01,
-    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.")] = False,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the run in --out (without it, a folder holding a run is refused).")] = False,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.", metavar="")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the run in --out (without it, a folder holding a run is refused).", metavar="")] = False,
     data_kind: Annotated[str, typer.Option(help="auto, pool or flight.")] = "auto",
     small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = 0.3,
-    illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.")] = True,
+    illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.", metavar="")] = True,
     occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = 0.0,
     motion: Annotated[str, typer.Option(help="paper (corner perturbation by --rho) or flight (whole frames with real flight motion; --rho is then the perspective jitter).")] = "paper",
     max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = _MotionDefaults.max_heading,
@@ -166,12 +177,12 @@ def _require_torch() -> None:
     try:
         import torch  # noqa: F401
     except ImportError:
-        raise UdhError("training and export need torch: pip install 'udh[train]'") from None
+        raise UdhError("training and export need torch: from the udh checkout, pip install '.[train]'") from None
 
 
 @app.command("export-onnx")
 def export_onnx(
-    checkpoint: Annotated[Path, typer.Argument(help="A checkpoint written by `udh train` (checkpoint.pt or best.pt).")],
+    checkpoint: Annotated[Path, typer.Argument(metavar="CHECKPOINT", help="A checkpoint written by `udh train` (checkpoint.pt or best.pt).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="The .onnx file to write.")] = Path("model.onnx"),
     check_images: Annotated[Optional[Path], typer.Option(help="Folder of images whose synthetic pairs join the parity check.")] = None,
 ) -> None:
@@ -196,7 +207,7 @@ def export_onnx(
 
 @app.command()
 def quantize(
-    model: Annotated[Path, typer.Argument(help="A float32 udh ONNX model (from `udh export-onnx`).")],
+    model: Annotated[Path, typer.Argument(metavar="MODEL", help="A float32 udh ONNX model (from `udh export-onnx`).")],
     data: Annotated[list[Path], typer.Option("--data", "-d", help="Folders of training images to calibrate on (repeatable); every 10th image, the benchmarks' held-out split, is left out.")],
     output: Annotated[Optional[Path], typer.Option("--output", "-o", help="The int8 .onnx file to write (default: MODEL's name with -int8, beside it).")] = None,
     pairs: Annotated[int, typer.Option(help="Calibration pairs per motion level (4 levels up to the model's training rho).")] = 64,
@@ -212,16 +223,18 @@ def quantize(
                   f"{result['median_drift_px']:.3f} px median, {result['max_drift_px']:.2f} px at most ({result['check_pairs']} check pairs)")
 
 
+from udh_cli.mosaic.composite import BLENDS as _BLENDS  # noqa: E402 - the --blend choices live there
 from udh_cli.mosaic.pipeline import MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
 
 _MOSAIC = _MosaicConfig()
+Blend = _choices("Blend", _BLENDS)
 
 
 @app.command()
 def mosaic(
-    source: Annotated[Path, typer.Argument(help="Folder of JPEG/PNG/TIFF frames (consecutive frames overlap), or a video file.")],
+    source: Annotated[Path, typer.Argument(metavar="SOURCE", help="Folder of JPEG/PNG/TIFF frames (consecutive frames overlap), or a video file.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Mosaic image (.png or .tif keep the alpha channel). Split runs write NAME.partK.png.")] = Path("mosaic.png"),
-    method: Annotated[str, typer.Option("--method", "-m", help="Any registered estimator: auto (the default), sift, orb, ecc, ... and the learned methods.")] = _MOSAIC.method,
+    method: Annotated[Method, typer.Option("--method", "-m", case_sensitive=False, help=METHOD_HELP)] = Method(_MOSAIC.method),
     fallback: Annotated[Optional[str], typer.Option("--fallback", help="Method for the pairs --method fails or doubts (e.g. sift).")] = _MOSAIC.fallback,
     method_option: Annotated[Optional[list[str]], typer.Option("--method-option", "-O", help="KEY=VALUE option for --method, repeatable (e.g. model=my.onnx); VALUE is read as JSON when it parses.")] = None,
     work_size: Annotated[int, typer.Option("--work-size", help="Longest side, pixels, of the copies the estimators see; homographies are rescaled exactly.")] = _MOSAIC.work_size,
@@ -229,24 +242,25 @@ def mosaic(
     every: Annotated[int, typer.Option("--every", help="Video: keep every N-th frame.")] = _MOSAIC.every,
     min_confidence: Annotated[float, typer.Option("--min-confidence", help="Estimates below this confidence count as failed.")] = _MOSAIC.min_confidence,
     min_verified: Annotated[float, typer.Option("--min-verified", help="Estimates whose alignment check (the lower of intensity and gradient NCC at 256 px) is below this count as failed; 0: no check.")] = _MOSAIC.min_verified,
-    blend: Annotated[str, typer.Option("--blend", help="feather, multiband or none.")] = _MOSAIC.blend,
+    blend: Annotated[Blend, typer.Option("--blend", case_sensitive=False, help="How overlapping frames are mixed.")] = Blend(_MOSAIC.blend),
     max_size: Annotated[Optional[int], typer.Option("--max-size", help="Downscale the mosaic so its longest side is at most this many pixels.")] = _MOSAIC.max_size,
     max_frame_scale: Annotated[float, typer.Option("--max-frame-scale", help="Report (leave out) frames the solve draws more than this many times larger or smaller than the reference frame.")] = _MOSAIC.max_frame_scale,
-    no_gain: Annotated[bool, typer.Option("--no-gain", help="Skip gain (exposure) compensation.")] = False,
+    no_gain: Annotated[bool, typer.Option("--no-gain", help="Skip gain (exposure) compensation.", metavar="")] = False,
     overlap_per_frame: Annotated[int, typer.Option("--overlap-pairs", help="Loop-closure pairs per frame at most (0: plain chaining).")] = _MOSAIC.overlap_per_frame,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Simulator ground truth (default: SOURCE/ground_truth.json when present) to report the corner error.")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars; warnings and the summary only.")] = False,
-    resume: Annotated[bool, typer.Option("--resume", help="Reuse the pair estimates of an earlier (interrupted) run from NAME.pairs.json where frames, methods and settings match.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars; warnings and the summary only.", metavar="")] = False,
+    resume: Annotated[bool, typer.Option("--resume", help="Keep every pair estimate in NAME.pairs.json as it is made, and reuse an earlier (interrupted) run's where frames, methods and settings match. Without it no cache file is written.", metavar="")] = False,
+    cache_dir: Annotated[Optional[Path], typer.Option("--cache-dir", help="Write the pair cache (NAME.pairs.json) in this folder instead of beside the mosaic; it is read only with --resume.")] = None,
 ) -> None:
     """Stitch a folder of UAV frames (or a video) into one mosaic, drift-free, with any estimator."""
     from udh_cli.mosaic import Reporter, run_mosaic
 
     config = _MosaicConfig(
-        method=method, fallback=fallback, method_options=_key_values(method_option or []), work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
-        blend=blend, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame,
+        method=method.value, fallback=fallback, method_options=_key_values(method_option or []), work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
+        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
-    report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume)
+    report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume, cache_dir=cache_dir)
     _print_mosaic(report)
 
 
@@ -303,15 +317,15 @@ def bench_synthetic(
     rho: Annotated[str, typer.Option("--rho", help="Corner perturbations in px, comma-separated (16,32,45 = the paper's 85/75/65 % overlap).")] = "16,32,45",
     n: Annotated[int, typer.Option("--n", help="Pairs per rho.")] = 500,
     seed: Annotated[int, typer.Option("--seed", help="Seed: the same seed gives the same pairs.")] = 0,
-    illumination: Annotated[bool, typer.Option("--illumination/--no-illumination", help="Random brightness, contrast and gamma per image, as in the paper.")] = True,
-    occluders: Annotated[bool, typer.Option("--occluders/--no-occluders", help="Random textured blobs on the patches (the paper's future work).")] = False,
+    illumination: Annotated[bool, typer.Option("--illumination/--no-illumination", help="Random brightness, contrast and gamma per image, as in the paper.", metavar="")] = True,
+    occluders: Annotated[bool, typer.Option("--occluders/--no-occluders", help="Random textured blobs on the patches (the paper's future work).", metavar="")] = False,
     methods: Annotated[Optional[str], typer.Option("--methods", "-m", help=_METHODS_HELP)] = None,
     mode: Annotated[str, typer.Option("--mode", help="What sift/orb/ecc see: patch (128x128), full (320x240 frames, as the paper) or both. Other methods always get patches.")] = "both",
     out: Annotated[Path, typer.Option("--out", help="Folder for results.md/.csv/.json, per_pair.csv and the two PNG plots.")] = Path("bench-results"),
     save_pairs: Annotated[Optional[Path], typer.Option("--save-pairs", help="Also save the generated pairs to this .npz.")] = None,
     load_pairs: Annotated[Optional[Path], typer.Option("--load-pairs", help="Run on pairs saved with --save-pairs (replaces --images/--rho/--n/--seed).")] = None,
     option: Annotated[Optional[list[str]], typer.Option("--option", help=_OPTION_HELP)] = None,
-    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.")] = True,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.", metavar="")] = True,
     motion: Annotated[str, typer.Option("--motion", help="paper (128x128 patches, corners moved by --rho) or flight (whole 320x240 frames with real flight motion: turns, scale, low overlap).")] = "paper",
 ) -> None:
     """Benchmark on synthetic pairs from held-out images, drawn with the training generator."""
@@ -330,13 +344,13 @@ def bench_synthetic(
 
 @bench_app.command("pairs")
 def bench_pairs(
-    source: Annotated[Path, typer.Argument(help="A CSV (img1,img2,H: nine numbers, x2 ~ H x1) or an Oxford/HPatches folder (imgN + H1toNp).")],
+    source: Annotated[Path, typer.Argument(metavar="SOURCE", help="A CSV (img1,img2,H: nine numbers, x2 ~ H x1) or an Oxford/HPatches folder (imgN + H1toNp).")],
     methods: Annotated[Optional[str], typer.Option("--methods", "-m", help=_METHODS_HELP)] = None,
     h_column: Annotated[str, typer.Option("--h-column", help="CSV column holding H.")] = "H",
     prefix: Annotated[Optional[str], typer.Option("--prefix", help="Folder: the image series, e.g. graf for graf1/graf3, when several match.")] = None,
     out: Annotated[Path, typer.Option("--out", help="Folder for the result files and plots.")] = Path("bench-results"),
     option: Annotated[Optional[list[str]], typer.Option("--option", help=_OPTION_HELP)] = None,
-    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.")] = True,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.", metavar="")] = True,
 ) -> None:
     """Benchmark on real image pairs with known homographies."""
     from udh_cli.bench import check_output_folder, run_pairs_bench

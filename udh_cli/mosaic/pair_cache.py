@@ -119,8 +119,9 @@ class PairCache:
     """
 
     def __init__(self, path: Path, frames: Sequence[Frame], context: dict[str, Any], previous: dict[str, dict] | None = None,
-                 reporter: Reporter | None = None) -> None:
+                 reporter: Reporter | None = None, keep: bool = True) -> None:
         self.path = Path(path)
+        self.keep = keep  # False: nothing is ever written (a run without --resume or a cache folder)
         self.frames = frames
         self.context = context
         self.previous = previous or {}
@@ -140,11 +141,13 @@ class PairCache:
         acceptance: Acceptance,
         resume: bool,
         reporter: Reporter,
+        keep: bool = True,
     ) -> "PairCache":
         """The cache of a run; with ``resume`` the pairs of ``path`` (if it exists) can be reused.
 
-        Without ``resume`` an existing file is ignored, and replaced after the first batch. An unreadable
-        or foreign file is a warning, not an error: every pair is then estimated.
+        Without ``resume`` an existing file is ignored, and (``keep``) replaced after the first batch; with
+        ``keep`` False nothing is written. An unreadable or foreign file is a warning, not an error: every
+        pair is then estimated.
         """
         context = {
             "udh_version": __version__,  # a different release may estimate differently
@@ -158,7 +161,7 @@ class PairCache:
             previous = _read(path, reporter)
             if previous:
                 reporter.info(f"resuming: {len(previous)} pair estimates in {path}")
-        return cls(path, frames, context, previous, reporter)
+        return cls(path, frames, context, previous, reporter, keep)
 
     def key(self, request: PairRequest) -> str:
         """SHA-1 over the request's frames, prior, and the run's estimators and confidence threshold."""
@@ -198,6 +201,8 @@ class PairCache:
         The previous file's pairs that this run has not reached yet are kept too, so a second interrupt
         loses nothing either; ``prune`` (once every pair of the run is known) drops the ones it did not use.
         """
+        if not self.keep:
+            return
         records = dict(self.entries) if prune else {**self.previous, **self.entries}
         pairs = [{"key": key, **record} for key, record in records.items()]
         text = json.dumps({"format": CACHE_FORMAT, "pairs": pairs}, indent=None, separators=(",", ":"))

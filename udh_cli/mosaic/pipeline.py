@@ -194,6 +194,7 @@ def run_mosaic(
     fallback: Estimator | None = None,
     ground_truth: str | Path | None = None,
     resume: bool = False,
+    cache_dir: str | Path | None = None,
 ) -> dict[str, Any]:
     """Mosaic a folder of frames (or a video) into ``output``; returns the sidecar dict (also written).
 
@@ -201,17 +202,21 @@ def run_mosaic(
     ``ground_truth`` is a simulator ground-truth file; when ``None``, ``FOLDER/ground_truth.json`` is used
     if present. Raises :class:`UdhError` for unusable input; a failing pair never raises, it splits the run.
 
-    Every finished pair estimate is saved to ``cache_path(output)`` (``NAME.pairs.json``) after each batch,
-    and the file is kept after the run. With ``resume`` the pairs whose frames, estimators and settings
-    match that file are taken from it instead of estimated again (see :mod:`.pair_cache`); without it the
-    file is ignored and replaced.
+    With ``resume``, every finished pair estimate is saved to ``NAME.pairs.json`` beside ``output`` (or in
+    ``cache_dir``) after each batch, the file is kept after the run, and the pairs of an earlier file whose
+    frames, estimators and settings match are taken from it instead of estimated again (see
+    :mod:`.pair_cache`). With ``cache_dir`` alone the file is written there but not read. Without either,
+    no cache file is written.
     """
     reporter = reporter or Reporter(quiet=True)
     source, output = Path(source), Path(output)
     check_output(output)
     check_config(config)
+    pair_cache_file = cache_path(output) if cache_dir is None else Path(cache_dir) / cache_path(output).name
+    if cache_dir is not None and not Path(cache_dir).is_dir():
+        raise UdhError(f"--cache-dir {cache_dir}: no such folder; create it first")
     check_outputs_are_not_inputs(source, {"mosaic": output, "sidecar": sidecar_path(output), "preview": preview_path(output),
-                                          "pair cache": cache_path(output)}, sidecar_path(output))
+                                          "pair cache": pair_cache_file}, sidecar_path(output))
     remove_stale_staged(output)
     started = time.perf_counter()
     truth = _load_truth(source, ground_truth)
@@ -220,14 +225,17 @@ def run_mosaic(
 
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter)
     frames = frameset.frames
-    cache = PairCache.open(cache_path(output), frames, estimator, fallback, acceptance(config), resume, reporter)
+    cache = PairCache.open(pair_cache_file, frames, estimator, fallback, acceptance(config), resume, reporter,
+                           keep=resume or cache_dir is not None)
     try:
         pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter, cache)
         parts = _chain_parts(frameset, pairs)
         pairs += _close_loops(frameset, parts, pairs, estimator, fallback, config, reporter, cache)
     except KeyboardInterrupt:
-        if cache.entries:
+        if cache.entries and cache.keep:
             reporter.warn(f"interrupted: the finished pair estimates are kept in {cache.path}; add --resume to the same command to go on from them")
+        elif cache.entries:
+            reporter.warn("interrupted: run with --resume to keep the pair estimates, so that a rerun goes on from them")
         raise
     cache.save(prune=True)
     if resume:
@@ -240,8 +248,8 @@ def run_mosaic(
         for part in parts:
             _composite_part(frameset, part, gains, config, reporter, staged)
         _warn_about_earlier_output(output, parts, reporter)
-        report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter)
-        report["pair_cache"] = str(cache.path)
+        report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter, sidecar_path(output).parent)
+        report["pair_cache"] = _relative_to(cache.path, sidecar_path(output).parent) if cache.keep else None
         report["summary"]["pairs_from_cache"] = cache.hits
         report["timings_s"]["total"] = time.perf_counter() - started
         # The sidecar is staged with the images and renamed last: a run that fails while writing leaves
@@ -256,6 +264,15 @@ def run_mosaic(
 
 
 # ------------------------------------------------------------------------------------------ steps
+
+
+def _relative_to(path: Path, folder: Path) -> str:
+    """``path`` as the sidecar records it: relative to the sidecar's folder (the mosaic can move with its
+    files), absolute only where no relative path exists (another drive)."""
+    try:
+        return os.path.relpath(Path(path).absolute(), Path(folder).absolute())
+    except ValueError:
+        return str(Path(path).absolute())
 
 
 def _own_files(output: Path) -> list[Path]:
@@ -425,7 +442,9 @@ def _remove_stale_parts(output: Path, parts: list[Part], reporter: Reporter) -> 
         reporter.info(f"removed {len(stale)} part files of an earlier run: {', '.join(p.name for p in stale)}")
 
 
-def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter: Reporter) -> dict[str, Any]:
+def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter: Reporter,
+             folder: Path) -> dict[str, Any]:
+    """The sidecar's content; its paths are relative to ``folder``, where it is written."""
     frames = frameset.frames
     part_of = {i: part for part in parts for i in part.frames}
     dropped = {i: reason for part in parts for i, reason in part.dropped.items()}
@@ -456,7 +475,7 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, esti
     report: dict[str, Any] = {
         "format": SIDECAR_FORMAT,
         "udh_version": __version__,
-        "source": str(frameset.source),
+        "source": _relative_to(frameset.source, folder),
         "method": estimator.name,
         "method_settings": estimator_identity(estimator)["settings"],  # with the mosaic's defaults (search)
         "fallback": None if fallback is None else fallback.name,
@@ -464,8 +483,8 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, esti
         "parts": [
             {
                 "part": p.number,
-                "file": str(p.file),
-                "preview": None if p.preview is None else str(p.preview),
+                "file": _relative_to(p.file, folder),
+                "preview": None if p.preview is None else _relative_to(p.preview, folder),
                 "width": p.canvas.size[0],
                 "height": p.canvas.size[1],
                 "scale": p.canvas.scale,

@@ -117,7 +117,7 @@ def _check_request(source: Path, output: Path, pairs_per_motion: int, seed: int)
     """Fail before any work on a missing onnx package or source, a bad output path, an output that would
     replace the source, or bad numbers."""
     if importlib.util.find_spec("onnx") is None:  # onnxruntime's quantisation tools need it
-        raise UdhError("quantisation needs the onnx package: pip install onnx (it comes with udh[train])")
+        raise UdhError("quantisation needs the onnx package: pip install onnx (it comes with the udh checkout's train extra: pip install '.[train]')")
     if not Path(source).is_file():
         raise UdhError(f"{source}: no such model file")
     output = check_output_path(output, (".onnx",))

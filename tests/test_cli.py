@@ -253,3 +253,15 @@ def test_method_names_are_case_insensitive_and_bool_flags_show_no_metavar(files)
     assert len(flag_lines) == 2 and not any("<bool>" in line for line in flag_lines) and "IMAGE_A" in help_text
     for name in estimator_names():  # the --method help is the registry's, every method described
         assert name in help_text
+
+
+def test_simulate_writes_a_flight_with_ground_truth_and_never_into_a_used_folder(tmp_path):
+    folder = tmp_path / "flight"
+    result = CliRunner().invoke(cli.app, ["simulate", str(folder), "--strips", "2", "--frames-per-strip", "3", "--width", "320", "--height", "240"])
+    assert result.exit_code == 0, result.output
+    truth = json.loads((folder / "ground_truth.json").read_text())
+    assert len(truth["frames"]) == 6 and len(list(folder.glob("frame_*.jpg"))) == 6
+    assert cv2.imread(str(folder / "frame_000.jpg")).shape == (240, 320, 3)
+    before = (folder / "frame_000.jpg").read_bytes()
+    again = CliRunner().invoke(cli.app, ["simulate", str(folder)])
+    assert again.exit_code == 1 and (folder / "frame_000.jpg").read_bytes() == before

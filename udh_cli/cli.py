@@ -223,6 +223,35 @@ def quantize(
                   f"{result['median_drift_px']:.3f} px median, {result['max_drift_px']:.2f} px at most ({result['check_pairs']} check pairs)")
 
 
+from udh_cli.simulate import FlightConfig as _FlightConfig  # noqa: E402 - the simulator's defaults live there
+
+_FLIGHT = _FlightConfig()
+
+
+@app.command()
+def simulate(
+    folder: Annotated[Path, typer.Argument(metavar="FOLDER", help="Folder to write the frames and ground_truth.json into (created; must be empty or new).")],
+    seed: Annotated[int, typer.Option(help="Seed: the same seed gives the same flight.")] = 0,
+    strips: Annotated[int, typer.Option(min=1, max=100, help="Parallel flight lines, flown back and forth.")] = _FLIGHT.strips,
+    frames_per_strip: Annotated[int, typer.Option(min=2, max=1000, help="Frames along each line.")] = _FLIGHT.frames_per_strip,
+    width: Annotated[int, typer.Option(min=64, max=8000, help="Frame width, pixels.")] = _FLIGHT.frame_size[0],
+    height: Annotated[int, typer.Option(min=64, max=8000, help="Frame height, pixels.")] = _FLIGHT.frame_size[1],
+    forward_overlap: Annotated[float, typer.Option(min=0.1, max=0.95, help="Share of a frame the next one on its line sees again.")] = _FLIGHT.forward_overlap,
+    side_overlap: Annotated[float, typer.Option(min=0.0, max=0.95, help="Share of a frame that neighbouring lines share.")] = _FLIGHT.side_overlap,
+    tilt_deg: Annotated[float, typer.Option(min=0.0, max=30.0, help="Largest camera roll and pitch, degrees.")] = _FLIGHT.tilt_deg,
+    noise_sigma: Annotated[float, typer.Option(min=0.0, max=50.0, help="Sensor noise, grey levels.")] = _FLIGHT.noise_sigma,
+    ground_preview: Annotated[bool, typer.Option("--ground-preview", help="Also write FOLDER_ground.jpg, the whole ground, beside the folder.", metavar="")] = False,
+) -> None:
+    """Write a simulated drone flight with exact ground truth (frames + ground_truth.json), for trying udh anywhere."""
+    from udh_cli.simulate import write_flight
+
+    config = _FlightConfig(frame_size=(width, height), strips=strips, frames_per_strip=frames_per_strip, forward_overlap=forward_overlap,
+                           side_overlap=side_overlap, tilt_deg=tilt_deg, noise_sigma=noise_sigma,
+                           focal_px=_FLIGHT.focal_px * width / _FLIGHT.frame_size[0])
+    path = write_flight(folder, config, seed, ground_preview=ground_preview)
+    err_console.print(f"wrote {strips * frames_per_strip} frames and {path}", highlight=False, soft_wrap=True)
+
+
 from udh_cli.mosaic.composite import BLENDS as _BLENDS  # noqa: E402 - the --blend choices live there
 from udh_cli.mosaic.pipeline import MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
 

@@ -11,12 +11,11 @@ and its image axes line up with the ground's. A camera centred at ``(X, Y, -alti
 ``R`` and intrinsics ``K`` sees ground pixel ``(x, y)`` at ``K R [[1, 0, -X], [0, 1, -Y], [0, 0, altitude]]
 (x, y, 1)``: that product is ``frame_from_ground``.
 
-Run ``python -m udh_cli.simulate OUT_FOLDER --seed 7`` to write a flight; see :func:`main` for options.
+Run ``udh simulate OUT_FOLDER --seed 7`` to write a flight (``udh simulate --help`` for the options).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from dataclasses import asdict, dataclass
@@ -264,6 +263,8 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
     (pixels of frame a to pixels of frame b). Returns the path of the ground-truth file.
     """
     folder = Path(folder)
+    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+        raise UdhError(f"{folder}: exists and is not an empty folder; the simulator writes only into a new or empty one")
     folder.mkdir(parents=True, exist_ok=True)
     frames, ground = simulate_flight(config, seed)
     records = []
@@ -329,37 +330,3 @@ def _homography(values) -> np.ndarray:
     if matrix.shape != (3, 3) or not np.isfinite(matrix).all():
         raise ValueError("not a finite 3x3 matrix")
     return matrix
-
-
-def main(argv: list[str] | None = None) -> None:
-    """``python -m udh_cli.simulate OUT_FOLDER [--seed S] [--strips N] [--frames-per-strip M] ...``."""
-    defaults = FlightConfig()
-    parser = argparse.ArgumentParser(prog="python -m udh_cli.simulate", description="Write a simulated drone flight with ground truth.")
-    parser.add_argument("folder", type=Path)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--strips", type=int, default=defaults.strips)
-    parser.add_argument("--frames-per-strip", type=int, default=defaults.frames_per_strip)
-    parser.add_argument("--width", type=int, default=defaults.frame_size[0])
-    parser.add_argument("--height", type=int, default=defaults.frame_size[1])
-    parser.add_argument("--forward-overlap", type=float, default=defaults.forward_overlap)
-    parser.add_argument("--side-overlap", type=float, default=defaults.side_overlap)
-    parser.add_argument("--tilt-deg", type=float, default=defaults.tilt_deg)
-    parser.add_argument("--noise-sigma", type=float, default=defaults.noise_sigma)
-    parser.add_argument("--ground-preview", action="store_true", help="also write FOLDER_ground.jpg beside the folder")
-    args = parser.parse_args(argv)
-    config = FlightConfig(
-        frame_size=(args.width, args.height),
-        strips=args.strips,
-        frames_per_strip=args.frames_per_strip,
-        forward_overlap=args.forward_overlap,
-        side_overlap=args.side_overlap,
-        tilt_deg=args.tilt_deg,
-        noise_sigma=args.noise_sigma,
-        focal_px=defaults.focal_px * args.width / defaults.frame_size[0],
-    )
-    path = write_flight(args.folder, config, args.seed, ground_preview=args.ground_preview)
-    print(f"wrote {config.strips * config.frames_per_strip} frames and {path}")
-
-
-if __name__ == "__main__":
-    main()

@@ -101,3 +101,37 @@ def test_unlistable_folders_give_a_clear_error(tmp_path, monkeypatch):
     refuse({"frames"})
     with pytest.raises(UdhError, match=r"cannot list the folder \(Permission denied\)"):
         open_frames(tmp_path / "frames", 800)
+
+
+def test_narrow_range_16_bit_frames_mosaic_as_well_as_their_8_bit_originals(tmp_path):
+    """Thermal-like frames (7000-8000 of 65535): one flight-wide stretch for the work copies and the mosaic."""
+    import json
+
+    from mosaic_flights import SMALL, make_flight
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+    from udh_cli.mosaic.frames import open_frames
+
+    eight = tmp_path / "eight"
+    eight.mkdir()
+    make_flight(eight, SMALL, seed=5)
+    sixteen = tmp_path / "sixteen"
+    sixteen.mkdir()
+    for path in sorted(eight.glob("frame_*.jpg")):
+        grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(np.float64)
+        cv2.imwrite(str(sixteen / path.with_suffix(".png").name), (7000 + grey / 255 * 1000).astype(np.uint16))
+    (sixteen / "ground_truth.json").write_text((eight / "ground_truth.json").read_text().replace(".jpg", ".png"))
+
+    frames = open_frames(sixteen, 800)
+    low, high = frames.value_range
+    assert 7000 / 65535 - 1e-3 < low < high < 8000 / 65535 + 1e-3
+    assert all(f.work.dtype == np.uint8 and np.percentile(f.work, 99) - np.percentile(f.work, 1) > 100 for f in frames.frames)
+
+    config = MosaicConfig(method="sift", overlap_per_frame=1)
+    reference = run_mosaic(eight, tmp_path / "eight.png", config)
+    thermal = run_mosaic(sixteen, tmp_path / "sixteen.png", config)
+    assert thermal["summary"]["placed"] == reference["summary"]["placed"] == 8 and thermal["summary"]["parts"] == 1
+    assert thermal["ground_truth_error"]["solved"]["mean_corner_px"] < reference["ground_truth_error"]["solved"]["mean_corner_px"] + 0.2
+    mosaic = cv2.imread(str(tmp_path / "sixteen.png"), cv2.IMREAD_UNCHANGED)
+    covered = mosaic[..., 3] > 0
+    assert mosaic.dtype == np.uint8 and np.percentile(mosaic[..., 0][covered], 99) > 150  # not 0-35 of 255
+    assert json.loads((tmp_path / "sixteen.json").read_text())["display_range"]["high"] == pytest.approx(high)

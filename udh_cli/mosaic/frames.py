@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import IMAGE_SUFFIXES, _native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_u8
+from udh_cli.images import IMAGE_SUFFIXES, _native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
 from udh_cli.mosaic.exif import capture_time
 from udh_cli.mosaic.report import Reporter
 
@@ -59,6 +59,9 @@ class FrameSet:
     source: Path
     frames: list[Frame]
     skipped: list[dict] = field(default_factory=list)  # {"file": name, "reason": text}
+    # For 16-bit or float frames: the flight-wide (low, high) grey range, in units where the type's maximum
+    # is 1, that maps to 0-255 in the work copies and the mosaic. None for 8-bit frames, used as they are.
+    value_range: tuple[float, float] | None = None
 
     @property
     def is_video(self) -> bool:
@@ -72,7 +75,7 @@ class FrameSet:
         wanted = sorted(set(indices))
         if not self.is_video:
             for index in wanted:
-                yield index, to_bgr_u8(read_image(self.frames[index].path))
+                yield index, display_u8(read_image(self.frames[index].path), self.value_range)
             return
         by_video_frame = {self.frames[i].video_frame: i for i in wanted}
         capture = _open_capture(self.source)
@@ -90,13 +93,56 @@ class FrameSet:
 
 
 def work_copy(image: np.ndarray, work_size: int) -> np.ndarray:
-    """(h', w') uint8 grey copy whose longest side is at most ``work_size`` pixels (never enlarged)."""
-    grey = to_gray_u8(image)
+    """(h', w') grey copy whose longest side is at most ``work_size`` pixels (never enlarged): uint8 for
+    8-bit frames, float32 in [0, 1] of the type's range otherwise (see :func:`stretch_work_copies`)."""
+    grey = to_gray_u8(image) if image.dtype == np.uint8 else to_gray_float(image)
     h, w = grey.shape
     scale = min(1.0, work_size / max(w, h))
     if scale >= 1.0:
         return grey
     return cv2.resize(grey, scaled_size((w, h), scale), interpolation=cv2.INTER_AREA)
+
+
+DISPLAY_PERCENTILES = (0.1, 99.9)  # the grey range of 16-bit frames kept in 8 bits; outliers (hot pixels) clip
+
+
+def flight_value_range(works: list[np.ndarray]) -> tuple[float, float]:
+    """One (low, high) grey range for every frame of a 16-bit or float flight, from all their work copies.
+
+    Why one range: thermal and raw frames fill a sliver of their 16 bits (7000-8000 of 65535), so 8 bits of
+    the whole range hold a few grey levels; stretching each frame on its own would give neighbours different
+    greys for the same ground, and seams in the mosaic.
+    """
+    sample = np.concatenate([w[:: max(1, w.shape[0] // 200), :: max(1, w.shape[1] // 200)].ravel() for w in works])
+    low, high = (float(v) for v in np.percentile(sample, DISPLAY_PERCENTILES))
+    return (low, high) if high > low else (low, low + 1e-6)
+
+
+def to_display(grey_or_colour: np.ndarray, value_range: tuple[float, float]) -> np.ndarray:
+    """Float data in [0, 1] of its type's range -> uint8 with ``value_range`` mapped to 0-255."""
+    low, high = value_range
+    return np.clip((grey_or_colour - low) / (high - low) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def stretch_work_copies(frames: list[Frame]) -> tuple[float, float] | None:
+    """Turn float work copies (16-bit or float frames) into uint8 with one flight-wide range; returns the
+    range, or None when every frame is 8-bit already."""
+    floats = [f for f in frames if f.work.dtype != np.uint8]
+    if not floats:
+        return None
+    value_range = flight_value_range([f.work for f in floats])
+    for frame in floats:
+        frame.work = to_display(frame.work, value_range)
+    return value_range
+
+
+def display_u8(image: np.ndarray, value_range: tuple[float, float] | None) -> np.ndarray:
+    """A full-resolution frame as (H, W, 3) uint8 BGR for compositing, with the flight's range for 16-bit data."""
+    if image.dtype == np.uint8 or value_range is None:
+        return to_bgr_u8(image)
+    from udh_cli.images import _unit_float
+
+    return to_bgr_u8(to_display(_unit_float(image), value_range))
 
 
 def _natural_key(name: str) -> list:
@@ -176,7 +222,7 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
     if len(frames) < 2:
         found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"
         raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames{_subfolder_hint(folder)}")
-    return FrameSet(folder, frames, skipped)
+    return FrameSet(folder, frames, skipped, stretch_work_copies(frames))
 
 
 def _subfolder_hint(folder: Path) -> str:
@@ -227,7 +273,7 @@ def _open_video(path: Path, work_size: int, every: int, reporter: Reporter) -> F
         raise UdhError(f"{path}: no frame could be decoded from this video; check the file or extract its frames to a folder")
     if len(frames) < 2:
         raise UdhError(f"{path}: only {len(frames)} frame kept of {number} (--every {every}); a mosaic needs at least two")
-    return FrameSet(path, frames)
+    return FrameSet(path, frames, value_range=stretch_work_copies(frames))
 
 
 def _check_sizes(frames: FrameSet, reporter: Reporter) -> None:

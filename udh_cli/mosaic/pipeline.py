@@ -480,6 +480,8 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, esti
         "method_settings": estimator_identity(estimator)["settings"],  # with the mosaic's defaults (search)
         "fallback": None if fallback is None else fallback.name,
         "config": {k: v for k, v in asdict(config).items() if k not in ("method", "fallback")},
+        # 16-bit or float frames: the grey range drawn as 0-255 in the 8-bit mosaic (fractions of the type's maximum)
+        "display_range": None if frameset.value_range is None else {"low": frameset.value_range[0], "high": frameset.value_range[1]},
         "parts": [
             {
                 "part": p.number,

@@ -13,7 +13,7 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimator, create_estimator
 from udh_cli.mosaic import MosaicConfig, run_mosaic
-from udh_cli.mosaic.exif import capture_time
+from udh_cli.mosaic.metadata import capture_time, read_metadata
 from udh_cli.mosaic.frames import open_frames
 
 from conftest import textured_image
@@ -135,3 +135,30 @@ def test_narrow_range_16_bit_frames_mosaic_as_well_as_their_8_bit_originals(tmp_
     covered = mosaic[..., 3] > 0
     assert mosaic.dtype == np.uint8 and np.percentile(mosaic[..., 0][covered], 99) > 150  # not 0-35 of 255
     assert json.loads((tmp_path / "sixteen.json").read_text())["display_range"]["high"] == pytest.approx(high)
+
+
+def test_metadata_reads_gps_camera_and_dji_flight_data(tmp_path):
+    from PIL import Image
+
+    path = tmp_path / "dji.jpg"
+    exif = Image.Exif()
+    exif[0x010F], exif[0x0110] = "DJI", "FC300S"
+    gps = exif.get_ifd(0x8825)
+    gps.update({1: "S", 2: (33.0, 51.0, 54.0), 3: "W", 4: (70.0, 30.0, 0.0), 5: b"\x00", 6: 123.5})
+    xmp = b'<x:xmpmeta><rdf:Description drone-dji:RelativeAltitude="+60.20" drone-dji:FlightYawDegree="-87.4"/></x:xmpmeta>'
+    Image.fromarray(textured_image(64, 48)).save(path, exif=exif, xmp=xmp)
+    found = read_metadata(path)
+    assert found.latitude == pytest.approx(-(33 + 51 / 60 + 54 / 3600)) and found.longitude == pytest.approx(-70.5)
+    assert found.altitude_m == pytest.approx(123.5) and found.has_gps and found.camera == "DJI FC300S"
+    assert found.relative_altitude_m == pytest.approx(60.2) and found.flight_yaw_deg == pytest.approx(-87.4)
+    assert read_metadata(tmp_path / "missing.jpg") == type(found)()  # nothing known, no error
+    plain = tmp_path / "plain.png"
+    cv2.imwrite(str(plain), textured_image(64, 48))
+    assert not read_metadata(plain).has_gps and read_metadata(plain).to_json() == {}
+
+
+def test_metadata_of_a_real_dji_flight(shared_data):
+    folder = shared_data / "flights" / "brighton-beach" / "images"
+    first = read_metadata(sorted(folder.iterdir())[0])
+    assert first.has_gps and 46.8 < first.latitude < 46.9 and -92.1 < first.longitude < -91.9
+    assert first.focal_length_mm == pytest.approx(3.61) and first.capture_time.startswith("2016:06:23")

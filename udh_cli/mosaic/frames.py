@@ -18,7 +18,7 @@ import numpy as np
 
 from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES, _native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
-from udh_cli.mosaic.exif import capture_time
+from udh_cli.mosaic.metadata import FrameMetadata, read_metadata
 from udh_cli.mosaic.report import Reporter
 
 ORDERS = ("name", "time")  # the --order choices
@@ -37,6 +37,7 @@ class Frame:
         path: the image file; ``None`` for video frames.
         video_frame: the frame number in the video; ``None`` for image files.
         capture_time: EXIF capture time, when ordering by time.
+        metadata: what the file's EXIF and XMP say (GPS, camera, DJI flight data); None for video frames.
     """
 
     index: int
@@ -46,6 +47,7 @@ class Frame:
     path: Path | None = None
     video_frame: int | None = None
     capture_time: str | None = None
+    metadata: FrameMetadata | None = None
 
     @property
     def work_size(self) -> tuple[int, int]:
@@ -201,8 +203,9 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
             reporter.warn(f"skipping {path.name}: not an image file")
     if not candidates:
         raise UdhError(f"{folder}: no image files found (looked for {', '.join(IMAGE_SUFFIXES)}); point to a folder of frames or a video{_subfolder_hint(folder)}")
+    metadata = {p: read_metadata(p) for p in candidates}  # headers only: GPS and time for the sidecar and the order
     if order == "time":
-        times = {p: capture_time(p) for p in candidates}
+        times = {p: metadata[p].capture_time for p in candidates}
         missing = [p.name for p in candidates if times[p] is None]
         if missing:
             reporter.warn(f"{len(missing)} frames have no EXIF capture time and go last, by name: {', '.join(missing[:5])}{'...' if len(missing) > 5 else ''}")
@@ -217,7 +220,8 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
                 reporter.warn(f"skipping {path.name}: cannot be decoded (corrupt or not an image)")
                 advance(1)
                 continue
-            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(image, work_size), path, None, capture_time(path) if order == "time" else None))
+            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(image, work_size), path, None,
+                                metadata[path].capture_time if order == "time" else None, metadata[path]))
             advance(1)
     if len(frames) < 2:
         found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"

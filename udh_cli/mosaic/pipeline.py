@@ -466,6 +466,7 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, esti
                 "reason": reason,
                 "part": part.number if placed else None,
                 "gain": float(gains[frame.index]),
+                "metadata": None if frame.metadata is None else frame.metadata.to_json(),
                 "mosaic_from_frame": None if mosaic_from_frame is None else (mosaic_from_frame / mosaic_from_frame[2, 2]).tolist(),
             }
         )

@@ -5,7 +5,8 @@ Each pair ``b_from_a`` gives point correspondences ``p`` (in A) and ``q = b_from
 reference (held at the identity, which fixes the gauge) minimising the Huber-robust sum over pairs of
 ``|ref_from_a(p) - ref_from_b(q)|``, in reference-frame pixels, by Levenberg-Marquardt. Each homography is
 parameterised by 8 entries (h33 = 1) in Hartley-normalised coordinates, so the normal equations are well
-conditioned; they are dense, 8 (N - 1) square, which is small for the hundreds of frames of a flight.
+conditioned. They are 8 (N - 1) square but sparse (a pair ties two frames), and are assembled and solved
+with scipy's sparse matrices, so memory and time grow with the pairs, not with N squared.
 """
 
 from __future__ import annotations
@@ -13,8 +14,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
+import warnings
+
 import cv2
 import numpy as np
+from scipy import sparse
+from scipy.sparse import linalg as sparse_linalg
 
 from udh_cli import geometry
 from udh_cli.mosaic.pairwise import PairResult
@@ -130,28 +135,41 @@ def solve_part(
         residual = _project_with_jacobian(current[slot_a], points_a)[0] - _project_with_jacobian(current[slot_b], points_b)[0]
         return float(_huber(np.sqrt((residual**2).sum(-1)), k)[0].sum())
 
-    def normal_equations(current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    # 8x8 block (row, column) indices inside the 8n x 8n system, shared by every pair's four blocks.
+    block_rows, block_cols = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
+
+    def normal_equations(current: np.ndarray):
+        """The Gauss-Newton system (8n x 8n, scipy CSR: each pair touches two frames, so it is sparse and its
+        memory and time grow with the pairs, not with n squared) and the gradient (8n,)."""
         proj_a, jac_a = _project_with_jacobian(current[slot_a], points_a)
         proj_b, jac_b = _project_with_jacobian(current[slot_b], points_b)
         residual = proj_a - proj_b  # P, K, 2
         _, weight = _huber(np.sqrt((residual**2).sum(-1)), k)  # P, K
-        blocks = np.zeros((n + 1, n + 1, 8, 8))
         gradient = np.zeros((n + 1, 8))
+        rows, cols, values = [], [], []
         for s1, j1, sign1 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
             np.add.at(gradient, s1, sign1 * np.einsum("pk,pkij,pki->pj", weight, j1, residual))
             for s2, j2, sign2 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
-                np.add.at(blocks, (s1, s2), sign1 * sign2 * np.einsum("pk,pkij,pkil->pjl", weight, j1, j2))
-        system = blocks[:n, :n].transpose(0, 2, 1, 3).reshape(8 * n, 8 * n)
+                keep = (s1 < n) & (s2 < n)  # the reference's dummy slot is fixed: its rows and columns are dropped
+                block = sign1 * sign2 * np.einsum("pk,pkij,pkil->pjl", weight[keep], j1[keep], j2[keep])  # P', 8, 8
+                rows.append((s1[keep, None, None] * 8 + block_rows).ravel())
+                cols.append((s2[keep, None, None] * 8 + block_cols).ravel())
+                values.append(block.ravel())
+        system = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(8 * n, 8 * n))
         return system, gradient[:n].ravel()
 
     damping = 1e-3
     cost = cost_of(params)
     system, gradient = normal_equations(params)
     for _ in range(iterations):
-        diagonal = np.diag(system) + 1e-12
-        try:
-            step = np.linalg.solve(system + damping * np.diag(diagonal), -gradient)
-        except np.linalg.LinAlgError:
+        diagonal = system.diagonal() + 1e-12
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", sparse_linalg.MatrixRankWarning)
+            try:
+                step = sparse_linalg.spsolve((system + sparse.diags(damping * diagonal)).tocsc(), -gradient)
+            except (sparse_linalg.MatrixRankWarning, RuntimeError):
+                step = None
+        if step is None or not np.isfinite(step).all():
             damping *= 10
             continue
         trial = params.copy()

@@ -220,3 +220,23 @@ def test_bad_image_arrays_raise_udh_error():
     for bad in [np.zeros((1, 1), np.uint8), np.zeros((HEIGHT, WIDTH, 2), np.uint8), np.full((20, 20), np.nan, np.float32)]:
         with pytest.raises(UdhError):
             create_estimator("sift").estimate(good, bad)
+
+
+def test_features_are_detected_once_per_image_and_never_served_stale(monkeypatch):
+    import udh_cli.estimators.features as features
+
+    features._FEATURE_CACHE.clear()
+    a, b = warped_pair(np.array([[1.0, 0.0, 5.0], [0.0, 1.0, -3.0], [0.0, 0.0, 1.0]]), seed=21)
+    calls = []
+    real = features.FeatureRansacEstimator._detect_uncached
+    monkeypatch.setattr(features.FeatureRansacEstimator, "_detect_uncached", lambda self, gray: calls.append(1) or real(self, gray))
+    sift = create_estimator("sift")
+    first, second = sift.estimate(a, b), sift.estimate(b, a)
+    assert len(calls) == 2  # A and B once each, though each took part in two pairs
+    np.testing.assert_allclose(second.homography @ first.homography, np.eye(3), atol=0.02)
+    changed = a.copy()
+    changed[:20] = 0
+    sift.estimate(changed, b)
+    assert len(calls) == 3  # new pixels, new detection
+    create_estimator("sift", contrast_threshold=0.01).estimate(a, b)
+    assert len(calls) == 5  # other settings, other features

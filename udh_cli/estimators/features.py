@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -11,6 +13,12 @@ import numpy as np
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
 from udh_cli.images import to_gray_u8
+
+
+# Recently detected features, least recently used first: (method, settings, shape, digest) -> (keypoints,
+# descriptors). Eight images cover a frame's consecutive, bridge and loop pairs in a mosaic's batches.
+FEATURE_CACHE_IMAGES = 8
+_FEATURE_CACHE: OrderedDict = OrderedDict()
 
 
 @dataclass
@@ -59,6 +67,26 @@ class FeatureRansacEstimator(Estimator):
         raise NotImplementedError
 
     def _detect(self, gray: np.ndarray):
+        """Keypoints and descriptors of a grey image, from :data:`_FEATURE_CACHE` when this detector has seen
+        the same pixels recently. Why: in a mosaic each frame is in several pairs (consecutive, bridge, loop
+        closures), and detection is most of a matcher's time; the key is the pixels' digest, so a changed
+        image is never served stale features."""
+        key = (self.name, repr(self._cache_settings()), gray.shape, hashlib.blake2b(np.ascontiguousarray(gray).data, digest_size=16).digest())
+        found = _FEATURE_CACHE.get(key)
+        if found is None:
+            found = self._detect_uncached(gray)
+            _FEATURE_CACHE[key] = found
+            while len(_FEATURE_CACHE) > FEATURE_CACHE_IMAGES:
+                _FEATURE_CACHE.popitem(last=False)
+        else:
+            _FEATURE_CACHE.move_to_end(key)
+        return found
+
+    def _cache_settings(self) -> tuple:
+        """The settings that change what :meth:`_detect` returns."""
+        return (self.best_features,)
+
+    def _detect_uncached(self, gray: np.ndarray):
         keypoints, descriptors = self._detector().detectAndCompute(gray, None)
         if descriptors is None or len(keypoints) == 0:
             return [], None
@@ -122,6 +150,9 @@ class SiftRansac(FeatureRansacEstimator):
     def _detector(self):
         return cv2.SIFT_create(contrastThreshold=self.contrast_threshold)
 
+    def _cache_settings(self) -> tuple:
+        return (self.best_features, self.contrast_threshold)
+
 
 @dataclass
 class OrbRansac(FeatureRansacEstimator):
@@ -137,3 +168,6 @@ class OrbRansac(FeatureRansacEstimator):
 
     def _detector(self):
         return cv2.ORB_create(nfeatures=self.orb_features)
+
+    def _cache_settings(self) -> tuple:
+        return (self.best_features, self.orb_features)

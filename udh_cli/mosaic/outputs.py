@@ -19,6 +19,7 @@ from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES
 
 PREVIEW_SUFFIX = ".preview.jpg"
+GEOREFERENCE_SUFFIXES = (".pgw", ".tfw", ".jgw", ".prj")  # world and projection files beside a georeferenced mosaic
 
 
 def output_paths(output: Path, n_parts: int) -> list[Path]:
@@ -70,6 +71,8 @@ def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: 
         if resolved in sources or (is_frame and not earlier_run):
             raise UdhError(f"{path}: the {role} would replace an input file of {source}; choose another output name")
         if path.suffix.lower() == ".json" and not _is_udh_json(path, ("udh-mosaic",)):
+            raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
+        if path.suffix.lower() in GEOREFERENCE_SUFFIXES and not earlier_run:  # only an earlier run of ours wrote these
             raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
 
 

@@ -5,6 +5,7 @@ Each step is one call into a module of this package; this file only wires them a
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import time
@@ -25,6 +26,7 @@ from udh_cli.mosaic.gains import solve_gains
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
 from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
+from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
@@ -216,7 +218,8 @@ def run_mosaic(
     if cache_dir is not None and not Path(cache_dir).is_dir():
         raise UdhError(f"--cache-dir {cache_dir}: no such folder; create it first")
     check_outputs_are_not_inputs(source, {"mosaic": output, "sidecar": sidecar_path(output), "preview": preview_path(output),
-                                          "pair cache": pair_cache_file}, sidecar_path(output))
+                                          "pair cache": pair_cache_file, "world file": world_file_path(output),
+                                          "projection file": output.with_suffix(".prj")}, sidecar_path(output))
     remove_stale_staged(output)
     started = time.perf_counter()
     truth = _load_truth(source, ground_truth)
@@ -249,6 +252,7 @@ def run_mosaic(
             _composite_part(frameset, part, gains, config, reporter, staged)
         _warn_about_earlier_output(output, parts, reporter)
         report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter, sidecar_path(output).parent)
+        _georeference(frameset, parts, report, staged, reporter)
         report["pair_cache"] = _relative_to(cache.path, sidecar_path(output).parent) if cache.keep else None
         report["summary"]["pairs_from_cache"] = cache.hits
         report["timings_s"]["total"] = time.perf_counter() - started
@@ -264,6 +268,39 @@ def run_mosaic(
 
 
 # ------------------------------------------------------------------------------------------ steps
+
+
+def _georeference(frameset: FrameSet, parts: list[Part], report: dict[str, Any], staged: StagedFiles, reporter: Reporter) -> None:
+    """World and projection files for every written part whose frames carry GPS (see :mod:`.georef`), staged
+    with the images; the sidecar's parts get their ``georeference``."""
+    with_gps = {f.index: f.metadata for f in frameset.frames if f.metadata is not None and f.metadata.has_gps}
+    if not with_gps:
+        return
+    if importlib.util.find_spec("pyproj") is None:
+        reporter.warn("the frames carry GPS, but georeferencing needs pyproj: pip install pyproj (from the udh checkout: "
+                      "pip install '.[geo]'); the mosaic is written without a world file")
+        return
+    if len(with_gps) < len(frameset.frames):
+        reporter.warn(f"{len(frameset.frames) - len(with_gps)} of {len(frameset.frames)} frames carry no GPS; the map rests on the others")
+    records = {r["index"]: r for r in report["frames"]}
+    by_number = {entry["part"]: entry for entry in report["parts"]}
+    for part in parts:
+        if part.canvas is None or part.number not in by_number:
+            continue
+        entries = [(i, frameset.frames[i].size, np.asarray(records[i]["mosaic_from_frame"]), with_gps[i].latitude, with_gps[i].longitude)
+                   for i in part.frames if i in with_gps and records[i]["mosaic_from_frame"] is not None]
+        found = georeference_part(entries)
+        by_number[part.number]["georeference"] = None if found is None else found.to_json()
+        if found is None:
+            reporter.warn(f"{part.file.name}: fewer than {MIN_GPS_FRAMES} placed frames with GPS; written without a georeference")
+            continue
+        if found.frames_rejected:
+            names = ", ".join(frameset.frames[i].name for i in found.frames_rejected)
+            reporter.warn(f"{part.file.name}: the GPS of {names} disagrees with the other frames' by far (a bad fix); left out of the georeference")
+        atomic_write_bytes(staged.path_for(world_file_path(part.file)), world_file_text(found).encode())
+        atomic_write_bytes(staged.path_for(part.file.with_suffix(".prj")), projection_text(found.epsg).encode())
+        reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} from {len(found.frames_used)} frames' GPS, "
+                      f"{found.residual_rms_m:.1f} m RMS, {found.pixel_size_m * 100:.1f} cm per pixel")
 
 
 def _relative_to(path: Path, folder: Path) -> str:

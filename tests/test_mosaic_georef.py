@@ -1,0 +1,100 @@
+"""Georeferencing from the frames' GPS: the fit, the world and projection files, and a simulated flight end to end."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from udh_cli import geometry
+from udh_cli.mosaic.georef import fit_similarity, georeference_part, utm_epsg, world_file_text
+
+pyproj = pytest.importorskip("pyproj")
+
+GROUND_M_PER_PX = 0.05
+ORIGIN = (46.85, -92.0)  # latitude, longitude of the simulated ground's top-left corner: UTM zone 15N
+TURN_DEG = 30.0  # the ground's x axis points 30 degrees north of east: the mosaic is not north-up
+
+
+def test_utm_zones_and_hemispheres():
+    assert utm_epsg(46.85, -92.0) == 32615 and utm_epsg(-33.9, 151.2) == 32756 and utm_epsg(0.0, 179.99) == 32660
+
+
+def test_the_similarity_fit_recovers_a_known_map_with_the_image_y_axis_down():
+    theta, scale = math.radians(35.0), 0.07
+    truth = np.array([[scale * math.cos(theta), scale * math.sin(theta), 500000.0],
+                      [scale * math.sin(theta), -scale * math.cos(theta), 5.2e6], [0, 0, 1.0]])
+    pixels = np.random.default_rng(0).uniform(0, 4000, (12, 2))
+    fitted = fit_similarity(pixels, geometry.transform_points(truth, pixels))
+    np.testing.assert_allclose(fitted, truth, atol=1e-6)
+    lines = world_file_text(type("G", (), {"map_from_mosaic": truth})()).split()
+    assert [float(v) for v in lines] == pytest.approx([truth[0, 0], truth[1, 0], truth[0, 1], truth[1, 1], 500000.0, 5.2e6])
+
+
+def test_a_bad_gps_fix_is_left_out_and_too_few_frames_give_none():
+    to_utm = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:32615", always_xy=True)
+    to_gps = pyproj.Transformer.from_crs("EPSG:32615", "EPSG:4326", always_xy=True)
+    east0, north0 = to_utm.transform(ORIGIN[1], ORIGIN[0])
+    frames = []
+    for k in range(6):
+        h = geometry.translation(300.0 * k, 50.0 * k)
+        east, north = east0 + 300.0 * k * 0.1, north0 - 50.0 * k * 0.1
+        if k == 4:
+            east += 80.0  # a GPS jump
+        lon, lat = to_gps.transform(east + 0.1 * 99.5, north - 0.1 * 74.5)
+        frames.append((k, (200, 150), h, lat, lon))
+    found = georeference_part(frames)
+    assert found.epsg == 32615 and found.frames_rejected == (4,) and found.residual_rms_m < 0.01
+    assert found.pixel_size_m == pytest.approx(0.1, rel=1e-4) and abs(found.north_deg) < 0.01
+    assert georeference_part(frames[:2]) is None
+
+
+def test_a_simulated_flight_with_gps_lands_where_its_gps_says(tmp_path):
+    from PIL import Image
+
+    from mosaic_flights import SMALL, make_flight
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+
+    folder = tmp_path / "flight"
+    folder.mkdir()
+    make_flight(folder, SMALL, seed=6)
+    truth = json.loads((folder / "ground_truth.json").read_text())
+    to_utm = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:32615", always_xy=True)
+    to_gps = pyproj.Transformer.from_crs("EPSG:32615", "EPSG:4326", always_xy=True)
+    east0, north0 = to_utm.transform(ORIGIN[1], ORIGIN[0])
+    c, s = math.cos(math.radians(TURN_DEG)), math.sin(math.radians(TURN_DEG))
+    width, height = truth["frame_size"]
+    positions = {}
+    for record in truth["frames"]:
+        gx, gy = geometry.transform_points(np.array(record["ground_from_frame"]), np.array([[(width - 1) / 2, (height - 1) / 2]]))[0]
+        east = east0 + GROUND_M_PER_PX * (c * gx + s * gy)  # ground y points down, like image rows
+        north = north0 + GROUND_M_PER_PX * (s * gx - c * gy)
+        positions[record["file"]] = (east, north)
+        lon, lat = to_gps.transform(east, north)
+        path = folder / record["file"]
+        exif = Image.Exif()
+        exif.get_ifd(0x8825).update({1: "N" if lat >= 0 else "S", 2: _dms(abs(lat)), 3: "E" if lon >= 0 else "W", 4: _dms(abs(lon))})
+        with Image.open(path) as image:
+            pixels = image.copy()
+        pixels.save(path, exif=exif, quality=95)
+
+    report = run_mosaic(folder, tmp_path / "map.png", MosaicConfig(method="sift", overlap_per_frame=1))
+    georeference = report["parts"][0]["georeference"] if report["parts"] else None
+    assert georeference is not None and georeference["crs"] == "EPSG:32615" and georeference["gps_frames"] == 8
+    assert georeference["gps_residual_rms_m"] < 0.3 and georeference["pixel_size_m"] == pytest.approx(GROUND_M_PER_PX, rel=0.02)
+    assert "UTM_Zone_15N" in (tmp_path / "map.prj").read_text()
+    world = [float(v) for v in (tmp_path / "map.pgw").read_text().split()]
+    map_from_mosaic = np.array([[world[0], world[2], world[4]], [world[1], world[3], world[5]], [0, 0, 1.0]])
+    for record in report["frames"]:  # every frame's centre, through the mosaic and the world file, on its GPS
+        centre = geometry.transform_points(map_from_mosaic @ np.array(record["mosaic_from_frame"]), np.array([[(width - 1) / 2, (height - 1) / 2]]))[0]
+        assert np.linalg.norm(centre - positions[record["file"]]) < 0.5
+    # The ground's up direction (the first frame's, within its few degrees of yaw) is TURN_DEG west of north.
+    assert abs(georeference["north_deg"] + TURN_DEG) < 5.0
+
+
+def _dms(degrees: float) -> tuple[float, float, float]:
+    d = int(degrees)
+    m = int((degrees - d) * 60)
+    return (float(d), float(m), (degrees - d - m / 60) * 3600)

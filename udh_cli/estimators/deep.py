@@ -178,11 +178,15 @@ class DeepEstimator(Estimator):
             check_image(b, "image B")
         start = time.perf_counter()
         s = self.network.input_size
-        small_a = np.stack([self._small(a) for a, _ in pairs])
-        small_b = np.stack([self._small(b) for _, b in pairs])
+        # Each image becomes grey float once; the network's S x S view and the tiles both read that copy.
+        grey = [(to_gray_float(a), to_gray_float(b)) for a, b in pairs]
+        small_a = np.stack([cv2.resize(ga, (s, s), interpolation=cv2.INTER_AREA) for ga, _ in grey])
+        small_b = np.stack([cv2.resize(gb, (s, s), interpolation=cv2.INTER_AREA) for _, gb in grey])
+        prepared = time.perf_counter()
         small_h, scores = self._predict_headings(small_a, small_b)
-        grey = [(to_gray_float(a), to_gray_float(b)) for a, b in pairs] if self.tiles else []
+        coarse = time.perf_counter()
         tiled = [self._tiles(grey[i], pairs[i], small_h[i]) for i in range(len(pairs))] if self.tiles else [None] * len(pairs)
+        tiles_done = time.perf_counter()
         searched = [False] * len(pairs)
         # Doubted: a low score, or (with tiles) an answer no finer level could confirm, which on real flights
         # meant a start too far off for the tiles: both are worth the large-motion search.
@@ -194,7 +198,10 @@ class DeepEstimator(Estimator):
                 confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
                 if (confirmed, score) > (was_confirmed, scores[i]):
                     small_h[i], scores[i], tiled[i], searched[i] = h, score, retiled, True
-        per_pair_ms = (time.perf_counter() - start) * 1e3 / len(pairs)
+        finished = time.perf_counter()
+        per_pair_ms = (finished - start) * 1e3 / len(pairs)
+        stage_ms = {name: round((t1 - t0) * 1e3 / len(pairs), 2) for name, t0, t1 in
+                    (("prepare", start, prepared), ("network", prepared, coarse), ("tiles", coarse, tiles_done), ("search", tiles_done, finished))}
         precision = self.loaded_precision()
         out = []
         for (a, b), h, confidence, was_searched, refined in zip(pairs, small_h, scores, searched, tiled):
@@ -202,7 +209,7 @@ class DeepEstimator(Estimator):
             full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
             failure = None if valid else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
-                       "precision": precision, "provider": self.network.provider}
+                       "precision": precision, "provider": self.network.provider, "stage_ms": stage_ms}
             if full is not None and refined is not None:
                 full = refined.b_from_a
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),

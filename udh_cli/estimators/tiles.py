@@ -98,17 +98,9 @@ def _choose_tiles(gray_b: np.ndarray, a_from_b: np.ndarray, size_a: tuple[int, i
     if not inside.any():
         return []
     origins = origins[inside].astype(int)
-    # Tile standard deviations from two integral images: O(1) per tile instead of a pass over its pixels.
-    total, squares = cv2.integral2(gray_b, sdepth=cv2.CV_64F)[:2]
-    x0, y0 = origins[:, 0], origins[:, 1]
-    x1, y1 = x0 + tile, y0 + tile
-
-    def box(table):
-        return table[y1, x1] - table[y0, x1] - table[y1, x0] + table[y0, x0]
-
-    area = float(tile * tile)
-    mean = box(total) / area
-    texture = np.sqrt(np.maximum(box(squares) / area - mean * mean, 0.0))
+    # Texture: the standard deviation of every 4th pixel of each tile, enough to tell flat from textured
+    # (an integral image of a full-resolution level cost more than all the tiles' deviations).
+    texture = np.array([gray_b[y : y + tile : 4, x : x + tile : 4].std() for x, y in origins])
     # Flat tiles (water, bare sand, sky) give the network nothing to align; keep the better-textured ones.
     keep = texture >= max(0.01, 0.5 * float(np.median(texture)))
     kept = origins[keep]
@@ -156,6 +148,22 @@ def refine_level(network: OnnxHomographyModel, level_a: np.ndarray, level_b: np.
     return fitted / fitted[2, 2], len(origins), float(per_tile.mean()), float(np.median(residual))
 
 
+def _pyramid(gray_a: np.ndarray, gray_b: np.ndarray, sides: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Both images at every level side (0: full resolution), each level resized from the next finer one
+    rather than from full resolution: the full-resolution image is read once."""
+    size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
+    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    finer_a, finer_b = gray_a, gray_b
+    for side in sorted(set(sides), key=lambda v: -(v if v > 0 else 10**9)):  # finest first
+        level_size_a, level_size_b = _level_sizes(size_a, size_b, side)
+        if level_size_a != (finer_a.shape[1], finer_a.shape[0]):
+            finer_a = cv2.resize(finer_a, level_size_a, interpolation=cv2.INTER_AREA)
+        if level_size_b != (finer_b.shape[1], finer_b.shape[0]):
+            finer_b = cv2.resize(finer_b, level_size_b, interpolation=cv2.INTER_AREA)
+        out[side] = (finer_a, finer_b)
+    return out
+
+
 def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray,
                       config: TileRefinement = TileRefinement(), coarse_network: OnnxHomographyModel | None = None) -> TileResult:
     """Refine ``b_from_a`` (3x3, pixels of ``gray_a``/``gray_b``, (H, W) float32 in [0, 1]) level by level:
@@ -166,18 +174,17 @@ def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: 
     size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
     current = np.asarray(b_from_a, np.float64)
     used, agreeing, residual = 0, 0.0, float("nan")
-    done_sizes = set()
     plan = [(side, network, config.max_move) for side in config.levels]
     if coarse_network is not None and config.coarse_side > 0:
         plan.insert(0, (config.coarse_side, coarse_network, config.coarse_move))
+    levels = _pyramid(gray_a, gray_b, [side for side, _, _ in plan])
+    done_sizes = set()
     for side, level_network, max_move in plan:
-        level_size_a, level_size_b = _level_sizes(size_a, size_b, side)
+        level_a, level_b = levels[side]
+        level_size_a, level_size_b = (level_a.shape[1], level_a.shape[0]), (level_b.shape[1], level_b.shape[0])
         if (level_size_a, level_size_b) in done_sizes:
             continue
         done_sizes.add((level_size_a, level_size_b))
-        full = level_size_a == size_a and level_size_b == size_b
-        level_a = gray_a if full else cv2.resize(gray_a, level_size_a, interpolation=cv2.INTER_AREA)
-        level_b = gray_b if full else cv2.resize(gray_b, level_size_b, interpolation=cv2.INTER_AREA)
         start = geometry.rescale_homography(current, size_a, level_size_a, size_b, level_size_b)
         found = refine_level(level_network, level_a, level_b, start, config, max_move)
         if found is None:

@@ -1,7 +1,7 @@
 """Ship a trained coarse network: the float32 and int8 ONNX files, the fine-tuning weights, the resumable
 run and its learning curves, all in ``models/``. Needs the ``train`` extra (torch, onnx).
 
-    python examples/ship_network.py RUN_FOLDER --name udh-unsupervised --data IMAGES [--data IMAGES ...]
+    python examples/ship_network.py RUN_FOLDER --name udh-unsupervised-flight --data IMAGES [--data IMAGES ...]
 
 ``RUN_FOLDER`` is a ``udh train --out`` folder. Its ``best.pt`` becomes ``models/NAME.onnx`` (checked for
 parity against torch on synthetic pairs of the first ``--data`` folder), ``models/NAME-int8.onnx``
@@ -35,7 +35,7 @@ CURVES = {"coarse, flight motion": "unsupervised-flight", "coarse, paper motion"
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path)
-    parser.add_argument("--name", default="udh-unsupervised", help="file stem in models/")
+    parser.add_argument("--name", default="udh-unsupervised-flight", help="file stem in models/")
     parser.add_argument("--training-name", default="unsupervised-flight", help="folder in models/training/")
     parser.add_argument("--data", type=Path, action="append", required=True, help="training image folders (calibration)")
     args = parser.parse_args()

@@ -15,12 +15,14 @@ from udh_cli.errors import UdhError
 SHIPPED_MODELS = {
     "unsupervised": "udh-unsupervised",
     "unsupervised-refine": "udh-unsupervised-refine",  # the fine stage run after the coarse one
+    "unsupervised-flight": "udh-unsupervised-flight",  # a second coarse stage, for whole frames with flight motion
     "supervised": "udh-supervised",
 }
 # int8 copies (`udh quantize`) of some of them, for inference only: the default where shipped (DeepEstimator)
 SHIPPED_INT8 = {
     "unsupervised": "udh-unsupervised-int8",
     "unsupervised-refine": "udh-unsupervised-refine-int8",
+    "unsupervised-flight": "udh-unsupervised-flight-int8",
 }
 PRECISIONS = ("int8", "fp32")
 

@@ -51,6 +51,10 @@ class DeepEstimator(Estimator):
         precision: which shipped networks to load for those not given as ``model`` / ``refine_model`` files:
             "int8" (`udh quantize` copies: a network pass 1.7 -> 1.1 ms on one core, the same median accuracy
             on the bench, tails slightly worse), "fp32", or ``None``: int8 where shipped, else float32.
+        flight_model: a second coarse network, trained for whole frames with real flight motion (``udh train
+            --motion flight``); its cascade runs beside the first one's and the better-scoring answer is kept,
+            so each serves the motion it was trained for. ``None`` takes the shipped ``<name>-flight`` network
+            when there is one and ``model`` is not given; ``""`` turns it off.
         headings: 1 runs the network on B as given; 2 also on B turned half a turn, keeping the better-scoring
             answer. Why: a survey's strips alternate direction, and the network is trained for turns of up
             to 100 degrees; half a turn keeps the frame's shape (a quarter turn of a 4:3 frame would not).
@@ -72,15 +76,17 @@ class DeepEstimator(Estimator):
     search: int = 0
     search_below: float = 0.5
     precision: str | None = None
+    flight_model: str | None = None
     headings: int = 1
     tiles: bool | None = None
     batch_size: int = 64
     threads: int | None = None
     network: OnnxHomographyModel = field(init=False, repr=False)
     stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)
+    first_stages: list[OnnxHomographyModel] = field(init=False, repr=False)  # the coarse networks whose cascades compete
 
     def __post_init__(self) -> None:
-        from udh_cli.models_catalog import PRECISIONS, check_precision, shipped_onnx
+        from udh_cli.models_catalog import PRECISIONS, check_precision, has_shipped, shipped_onnx
 
         if self.iterations < 1 or self.batch_size < 1:  # 0 rounds would answer the identity as if estimated
             raise UdhError(f"method '{self.name}': iterations ({self.iterations}) and batch_size ({self.batch_size}) must be at least 1")
@@ -105,6 +111,14 @@ class DeepEstimator(Estimator):
                 raise UdhError(f"{refine_path}: the refinement network takes {refiner.input_size}px inputs but "
                                f"{path} takes {self.network.input_size}px; give two models of the same input size")
             self.stages.append((refiner, self.refine_rounds))
+        self.first_stages = [self.network]
+        if self.flight_model is None and self.model is None and has_shipped(f"{self.name}-flight", precision=None):
+            self.flight_model = str(shipped_onnx(f"{self.name}-flight", self.precision))
+        if self.flight_model:
+            flight = OnnxHomographyModel.load(self.flight_model, self.device, self.threads)
+            if flight.input_size != self.network.input_size:
+                raise UdhError(f"{self.flight_model}: the flight network takes {flight.input_size}px inputs, {path} {self.network.input_size}px")
+            self.first_stages.append(flight)
         if self.tiles is None:
             self.tiles = len(self.stages) > 1
         loaded = self.loaded_precision()
@@ -125,7 +139,7 @@ class DeepEstimator(Estimator):
     def loaded_precision(self) -> str:
         """What the cascade runs in: "int8", "fp32", or "mixed" (networks of both, e.g. a float32 ``model``
         file followed by the shipped int8 refinement network)."""
-        found = {network.metadata.get("precision", "fp32") for network, _ in self.stages}
+        found = {network.metadata.get("precision", "fp32") for network in [*(n for n, _ in self.stages), *self.first_stages]}
         return found.pop() if len(found) == 1 else "mixed"
 
     def _small(self, image: np.ndarray) -> np.ndarray:
@@ -229,19 +243,27 @@ class DeepEstimator(Estimator):
         return refine_with_tiles(self.stages[-1][0], gray_a, gray_b, full, coarse_network=self.network if len(self.stages) > 1 else None)
 
     def _predict_headings(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
-        """The cascade on every pair, from B as given and (``headings`` 2) from B turned half a turn: the
-        better-scoring answer of each pair, (N, 3, 3) ``b_from_a`` of the S x S images, and its score."""
+        """The cascade of every coarse network (:attr:`first_stages`), from B as given and (``headings`` 2)
+        from B turned half a turn: the best-scoring answer of each pair, (N, 3, 3) ``b_from_a`` of the S x S
+        images, and its score. With one network and one heading this is the plain cascade."""
         n, s = len(small_a), self.network.input_size
-        if self.headings == 1:
-            small_h = self.predict_small(small_a, small_b)
-            return small_h, [self.score(sa, sb, h) for sa, sb, h in zip(small_a, small_b, small_h)]
-        turned = np.ascontiguousarray(small_b[:, ::-1, ::-1])
-        both = self.predict_small(np.concatenate([small_a, small_a]), np.concatenate([small_b, turned]))
         half_turn = np.array([[-1.0, 0.0, s - 1.0], [0.0, -1.0, s - 1.0], [0.0, 0.0, 1.0]])  # its own inverse
+        views = [(small_b, np.eye(3))]
+        if self.headings == 2:
+            views.append((np.ascontiguousarray(small_b[:, ::-1, ::-1]), half_turn))
+        later = self.rounds()[self.iterations:]  # the refinement rounds, shared by every candidate
+        stacked_b = np.concatenate([view for view, _ in views])
+        stacked_a = np.concatenate([small_a] * len(views))
+        candidates = []  # per coarse network and view: (N, 3, 3) answers in the unturned B
+        for coarse in self.first_stages:
+            answers = self.predict_small(stacked_a, stacked_b, [coarse] * self.iterations + later)
+            candidates += [undo @ answers[k * n : (k + 1) * n] for k, (_, undo) in enumerate(views)]
+        if len(candidates) == 1:
+            found = candidates[0]
+            return found, [self.score(sa, sb, h) for sa, sb, h in zip(small_a, small_b, found)]
         found, scores = [], []
         for i in range(n):
-            candidates = [both[i], half_turn @ both[n + i]]
-            ranked = [(self.score(small_a[i], small_b[i], h), -k, h) for k, h in enumerate(candidates)]
+            ranked = [(self.score(small_a[i], small_b[i], c[i]), -k, c[i]) for k, c in enumerate(candidates)]
             score, _, h = max(ranked, key=lambda c: (c[0], c[1]))
             found.append(h / h[2, 2] if np.isfinite(h).all() and abs(h[2, 2]) > 1e-12 else h)
             scores.append(score)

@@ -3,12 +3,13 @@ run and its learning curves, all in ``models/``. Needs the ``train`` extra (torc
 
     python examples/ship_network.py RUN_FOLDER --name udh-unsupervised-flight --data IMAGES [--data IMAGES ...]
 
-``RUN_FOLDER`` is a ``udh train --out`` folder. Its ``best.pt`` becomes ``models/NAME.onnx`` (checked for
-parity against torch on synthetic pairs of the first ``--data`` folder), ``models/NAME-int8.onnx``
-(``udh quantize``, calibrated on ``--data``) and ``models/NAME.pt`` (weights for ``udh train --init``). The
-run's ``checkpoint.pt``, ``metrics.jsonl`` and ``config.json`` go to ``models/training/TRAINING_NAME/`` so that
-``udh train --out ... --resume`` continues it exactly, and ``models/learning_curves.png`` is redrawn from every
-shipped run's log.
+``RUN_FOLDER`` is a ``udh train --out`` folder. Its last checkpoint (the weights that resume and fine-tune
+are the weights that ship) becomes ``models/NAME.onnx`` (checked for
+parity against torch on synthetic pairs of the first ``--data`` folder) and ``models/NAME-int8.onnx``
+(``udh quantize``, calibrated on ``--data``). The run's ``checkpoint.pt``, ``metrics.jsonl`` and
+``config.json`` go to ``models/training/TRAINING_NAME/``: ``udh train --out ... --resume`` continues it
+exactly, and ``udh train --init`` fine-tunes from it (``models_catalog.SHIPPED_RUNS``). The learning curves,
+``models/learning_curves.png``, are redrawn from every shipped run's log.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import numpy as np
 from udh_cli.images import write_image
 from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs
 from udh_cli.train.curves import learning_curve_plot, read_metrics
-from udh_cli.train.export import export_onnx, export_weights
+from udh_cli.train.export import export_onnx
 from udh_cli.train.quantize import quantize_from_folders
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
@@ -42,11 +43,10 @@ def main() -> None:
 
     sources = load_sources(list_images(args.data[0])[:20], min_count=1)
     check = make_pairs(sources, 16, PairConfig(), np.random.default_rng(0), with_context=False)
-    exported = export_onnx(args.run / "best.pt", MODELS / f"{args.name}.onnx", np.stack([check.patch_a, check.patch_b], 1))
+    exported = export_onnx(args.run / "checkpoint.pt", MODELS / f"{args.name}.onnx", np.stack([check.patch_a, check.patch_b], 1))
     print(f"{exported['path']}: parity {exported['max_abs_diff']:.2e} px")
     quantized = quantize_from_folders(MODELS / f"{args.name}.onnx", MODELS / f"{args.name}-int8.onnx", args.data)
     print(f"{quantized['path']}: {quantized['median_drift_px']:.3f} px median from float32")
-    export_weights(args.run / "best.pt", MODELS / f"{args.name}.pt")
 
     kept = MODELS / "training" / args.training_name
     kept.mkdir(parents=True, exist_ok=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -187,8 +188,9 @@ def test_search_finds_a_shift_beyond_the_networks_range():
     dx, dy = 300, 100
     b = scene[100 + dy:500 + dy, 50 + dx:650 + dx]
     truth = geometry.translation(-dx, -dy)  # x_B = x_A - shift
-    plain = create_estimator("unsupervised", device="cpu").estimate(a, b)
-    searched = create_estimator("unsupervised", device="cpu", search=2).estimate(a, b)
+    # The paper-motion network alone (no flight-motion network beside it), without and with the search.
+    plain = create_estimator("unsupervised", device="cpu", flight_model="").estimate(a, b)
+    searched = create_estimator("unsupervised", device="cpu", search=2, flight_model="").estimate(a, b)
     assert geometry.mace(plain.homography, truth, 600, 400) > 50
     assert searched.details["searched"] and geometry.mace(searched.homography, truth, 600, 400) < 10
     assert searched.confidence > plain.confidence + 0.3
@@ -218,3 +220,25 @@ def test_estimates_say_which_provider_ran():
     a, b = warped_pair(np.array([[1, 0, 4.0], [0, 1, -3.0], [0, 0, 1]]))
     found = create_estimator("unsupervised", device="cpu").estimate(a, b)
     assert found.details["provider"] == "CPUExecutionProvider"
+
+
+def test_the_flight_network_joins_the_cascade_and_follows_large_whole_frame_motion():
+    """Whole frames shifted by 40 % of their width and turned 10 degrees: beyond the paper-motion network's
+    training (corners moved by up to 45 px of 128), within the flight network's."""
+    from udh_cli.models_catalog import has_shipped
+
+    if not has_shipped("unsupervised-flight", precision=None):
+        pytest.skip("shipped flight network not built yet")
+    scene = textured_image(1400, 1000, seed=13)
+    turn = geometry.translation(700, 500) @ np.array([[np.cos(0.17), -np.sin(0.17), 0], [np.sin(0.17), np.cos(0.17), 0], [0, 0, 1]]) @ geometry.translation(-700, -500)
+    a = scene[250:730, 300:940]
+    b_from_scene = geometry.translation(-(300 + 256), -250) @ turn
+    b = cv2.warpPerspective(scene, b_from_scene, (640, 480))
+    truth = b_from_scene @ geometry.translation(300, 250)
+    both = create_estimator("unsupervised", device="cpu")
+    assert len(both.first_stages) == 2
+    found = both.estimate(a, b)
+    paper_only = create_estimator("unsupervised", device="cpu", flight_model="").estimate(a, b)
+    error = float(geometry.mace(found.homography, truth, 640, 480))
+    assert error < 3.0, error
+    assert not paper_only.ok or float(geometry.mace(paper_only.homography, truth, 640, 480)) > error

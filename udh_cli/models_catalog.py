@@ -85,6 +85,16 @@ def shipped_onnx(name: str, precision: str | None = "fp32") -> Path:
     return _shipped(name, ".onnx")
 
 
+# Shipped networks whose weights for fine-tuning are their training run's resumable checkpoint (which holds
+# them) rather than a separate .pt: one file instead of two keeps models/ under 50 MB.
+SHIPPED_RUNS = {"unsupervised-flight": "training/unsupervised-flight/checkpoint.pt"}
+
+
 def shipped_checkpoint(name: str) -> Path:
     """The torch checkpoint of a shipped model, for ``udh train --init``."""
+    if name in SHIPPED_RUNS and not _shipped_path(name, ".pt").is_file():
+        path = models_dir() / SHIPPED_RUNS[name]
+        if not path.is_file():
+            raise UdhError(f"the shipped {name} model's weights are missing ({path}); reinstall udh or pass --init PATH")
+        return path
     return _shipped(name, ".pt")

@@ -129,12 +129,3 @@ def _at_input_size(patches: np.ndarray, size: int) -> np.ndarray:
     if patches.shape[2:] == (size, size):
         return patches
     return np.stack([[cv2.resize(p, (size, size), interpolation=cv2.INTER_AREA) for p in pair] for pair in patches])
-
-
-def export_weights(checkpoint: str | Path, output: str | Path) -> None:
-    """Strip a training checkpoint to what fine-tuning needs (weights, config, normalisation), atomically."""
-    from udh_cli.train.checkpoint import save_checkpoint
-
-    state = load_checkpoint(checkpoint)
-    keep = ("model", "config", "step", "normalization", "trained_before", "data_description", "best_val")
-    save_checkpoint(output, {k: state[k] for k in keep if k in state})

@@ -98,3 +98,29 @@ def _dms(degrees: float) -> tuple[float, float, float]:
     d = int(degrees)
     m = int((degrees - d) * 60)
     return (float(d), float(m), (degrees - d - m / 60) * 3600)
+
+
+def test_the_simulator_writes_noisy_gps_and_the_map_lands_closer_than_one_fix(tmp_path):
+    """`udh simulate --gps`: 2 m of noise on each fix; the fitted map, which averages the fixes, puts every
+    frame centre within 1.5 m of its exact position (the truth records it)."""
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+    from udh_cli.mosaic.metadata import read_metadata
+    from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
+
+    folder = tmp_path / "flight"
+    write_flight(folder, FlightConfig(frame_size=(320, 240), strips=3, frames_per_strip=5, focal_px=300.0), seed=2,
+                 gps=GpsConfig(46.85, -92.0, metres_per_pixel=0.05, noise_m=2.0))
+    truth = json.loads((folder / "ground_truth.json").read_text())
+    assert read_metadata(folder / "frame_000.jpg").has_gps
+    report = run_mosaic(folder, tmp_path / "map.png", MosaicConfig(method="sift", overlap_per_frame=1))
+    georeference = report["parts"][0]["georeference"]
+    assert georeference["gps_frames"] == 15 and 0.5 < georeference["gps_residual_rms_m"] < 5.0
+    to_utm = pyproj.Transformer.from_crs("EPSG:4326", georeference["crs"], always_xy=True)
+    map_from_mosaic = np.array(georeference["map_from_mosaic"])
+    width, height = truth["frame_size"]
+    errors = []
+    for record, frame in zip(truth["frames"], report["frames"]):
+        exact = np.array(to_utm.transform(record["gps"]["longitude"], record["gps"]["latitude"]))
+        centre = geometry.transform_points(map_from_mosaic @ np.array(frame["mosaic_from_frame"]), np.array([[(width - 1) / 2, (height - 1) / 2]]))[0]
+        errors.append(np.linalg.norm(centre - exact))
+    assert max(errors) < 1.5, errors

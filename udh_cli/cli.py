@@ -241,14 +241,26 @@ def simulate(
     tilt_deg: Annotated[float, typer.Option(min=0.0, max=30.0, help="Largest camera roll and pitch, degrees.")] = _FLIGHT.tilt_deg,
     noise_sigma: Annotated[float, typer.Option(min=0.0, max=50.0, help="Sensor noise, grey levels.")] = _FLIGHT.noise_sigma,
     ground_preview: Annotated[bool, typer.Option("--ground-preview", help="Also write FOLDER_ground.jpg, the whole ground, beside the folder.", metavar="")] = False,
+    gps: Annotated[Optional[str], typer.Option("--gps", metavar="LAT,LON", help="Write EXIF GPS into the frames, the ground's top-left corner at LAT,LON (WGS84 degrees).")] = None,
+    gps_noise: Annotated[float, typer.Option(min=0.0, max=100.0, help="With --gps: each fix's error, metres (standard deviation).")] = 2.0,
+    metres_per_pixel: Annotated[float, typer.Option(min=0.001, max=10.0, help="With --gps: ground size of one ground-image pixel, metres.")] = 0.05,
 ) -> None:
     """Write a simulated drone flight with exact ground truth (frames + ground_truth.json), for trying udh anywhere."""
-    from udh_cli.simulate import write_flight
+    from udh_cli.simulate import GpsConfig, write_flight
 
     config = _FlightConfig(frame_size=(width, height), strips=strips, frames_per_strip=frames_per_strip, forward_overlap=forward_overlap,
                            side_overlap=side_overlap, tilt_deg=tilt_deg, noise_sigma=noise_sigma,
                            focal_px=_FLIGHT.focal_px * width / _FLIGHT.frame_size[0])
-    path = write_flight(folder, config, seed, ground_preview=ground_preview)
+    gps_config = None
+    if gps is not None:
+        try:
+            latitude, longitude = (float(v) for v in gps.split(","))
+        except ValueError:
+            raise UdhError(f"--gps {gps}: give LAT,LON in degrees, e.g. --gps 46.85,-92.0") from None
+        if not (-80.0 <= latitude <= 84.0 and -180.0 <= longitude <= 180.0):
+            raise UdhError(f"--gps {gps}: latitude must be within -80..84 (UTM) and longitude within -180..180")
+        gps_config = GpsConfig(latitude, longitude, metres_per_pixel=metres_per_pixel, noise_m=gps_noise)
+    path = write_flight(folder, config, seed, ground_preview=ground_preview, gps=gps_config)
     err_console.print(f"wrote {strips * frames_per_strip} frames and {path}", highlight=False, soft_wrap=True)
 
 

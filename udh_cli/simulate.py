@@ -256,11 +256,67 @@ def simulate_flight(config: FlightConfig = FlightConfig(), seed: int = 0) -> tup
     return [render_frame(ground, pose, config, rng) for pose in poses], ground
 
 
-def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed: int = 0, ground_preview: bool = False) -> Path:
+@dataclass(frozen=True)
+class GpsConfig:
+    """GPS written into the simulated frames' EXIF, as a drone's receiver would.
+
+    Attributes:
+        latitude, longitude: WGS84 degrees of the ground image's top-left corner.
+        metres_per_pixel: ground size of one ground-image pixel.
+        heading_deg: the bearing of the ground image's x axis, degrees clockwise from north (90: x points east).
+        noise_m: standard deviation of each fix's horizontal error, metres (a small drone's GPS: 1-3 m).
+    """
+
+    latitude: float
+    longitude: float
+    metres_per_pixel: float = 0.05
+    heading_deg: float = 90.0
+    noise_m: float = 0.0
+
+
+EARTH_RADIUS_M = 6_371_008.8  # mean radius: the flights are a few hundred metres, where a sphere is exact to mm
+
+
+def gps_of(ground_xy: np.ndarray, gps: GpsConfig) -> tuple[float, float]:
+    """(latitude, longitude) of a ground-image point. Why not pyproj: over a flight's few hundred metres the
+    local tangent plane on a sphere is exact to millimetres, and the simulator then needs nothing more."""
+    theta = math.radians(gps.heading_deg)
+    x, y = float(ground_xy[0]) * gps.metres_per_pixel, float(ground_xy[1]) * gps.metres_per_pixel
+    # The x axis points along the bearing theta; image y points 90 degrees clockwise of it (down the image).
+    east = x * math.sin(theta) + y * math.cos(theta)
+    north = x * math.cos(theta) - y * math.sin(theta)
+    latitude = gps.latitude + math.degrees(north / EARTH_RADIUS_M)
+    longitude = gps.longitude + math.degrees(east / (EARTH_RADIUS_M * math.cos(math.radians(gps.latitude))))
+    return latitude, longitude
+
+
+def _jpeg_with_gps(image: np.ndarray, quality: int, latitude: float, longitude: float) -> bytes:
+    """JPEG bytes of a BGR frame with EXIF GPS (Pillow: OpenCV writes no EXIF)."""
+    import io
+
+    from PIL import Image
+
+    def dms(value: float) -> tuple[float, float, float]:
+        degrees = int(value)
+        minutes = int((value - degrees) * 60)
+        return float(degrees), float(minutes), (value - degrees - minutes / 60) * 3600
+
+    exif = Image.Exif()
+    exif.get_ifd(0x8825).update({1: "N" if latitude >= 0 else "S", 2: dms(abs(latitude)), 3: "E" if longitude >= 0 else "W",
+                                 4: dms(abs(longitude))})
+    buffer = io.BytesIO()
+    Image.fromarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB)).save(buffer, "JPEG", quality=quality, exif=exif)
+    return buffer.getvalue()
+
+
+def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed: int = 0, ground_preview: bool = False,
+                 gps: GpsConfig | None = None) -> Path:
     """Simulate a flight and write ``frame_NNN.jpg`` plus ``ground_truth.json`` into ``folder``.
 
     The ground truth holds every frame's ``ground_from_frame`` and every consecutive pair's ``b_from_a``
-    (pixels of frame a to pixels of frame b). Returns the path of the ground-truth file.
+    (pixels of frame a to pixels of frame b); with ``gps``, the frames carry EXIF GPS of their centres
+    (with the configured noise) and the truth records each frame's exact ``gps``. Returns the path of the
+    ground-truth file.
     """
     folder = Path(folder)
     if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
@@ -268,13 +324,23 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
     folder.mkdir(parents=True, exist_ok=True)
     frames, ground = simulate_flight(config, seed)
     records = []
+    noise = np.random.default_rng([seed, 17])
+    width, height = config.frame_size
     for index, frame in enumerate(frames):
         name = f"frame_{index:03d}.jpg"
-        ok, data = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, config.jpeg_quality])
-        if not ok:
-            raise UdhError(f"{name}: OpenCV could not encode the frame as JPEG")
-        atomic_write_bytes(folder / name, data.tobytes())
-        records.append({"file": name, "ground_from_frame": frame.ground_from_frame.tolist(), "pose": frame.pose})
+        record = {"file": name, "ground_from_frame": frame.ground_from_frame.tolist(), "pose": frame.pose}
+        if gps is None:
+            ok, data = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, config.jpeg_quality])
+            if not ok:
+                raise UdhError(f"{name}: OpenCV could not encode the frame as JPEG")
+            data = data.tobytes()
+        else:
+            centre = geometry.transform_points(frame.ground_from_frame, np.array([[(width - 1) / 2, (height - 1) / 2]]))[0]
+            record["gps"] = dict(zip(("latitude", "longitude"), gps_of(centre, gps)))
+            jitter = noise.normal(0.0, gps.noise_m, 2) / gps.metres_per_pixel if gps.noise_m > 0 else np.zeros(2)
+            data = _jpeg_with_gps(frame.image, config.jpeg_quality, *gps_of(centre + jitter, gps))
+        atomic_write_bytes(folder / name, data)
+        records.append(record)
     pairs = []
     for a, b in zip(frames[:-1], frames[1:]):
         b_from_a = geometry.invert(b.ground_from_frame) @ a.ground_from_frame

@@ -291,6 +291,8 @@ def mosaic(
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Simulator ground truth (default: SOURCE/ground_truth.json when present) to report the corner error.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars; warnings and the summary only.", metavar="")] = False,
     resume: Annotated[bool, typer.Option("--resume", help="Keep every pair estimate in NAME.pairs.json as it is made, and reuse an earlier (interrupted) run's where frames, methods and settings match. Without it no cache file is written.", metavar="")] = False,
+    gcp: Annotated[Optional[Path], typer.Option("--gcp", help="Ground-control points (OpenDroneMap's gcp_list.txt format) that place the mosaic on the map; each is checked by leaving it out.")] = None,
+    gcp_image_width: Annotated[Optional[int], typer.Option("--gcp-image-width", help="Width in pixels of the images the --gcp file's pixels refer to, when not the frames' own (originals before downscaling).")] = None,
     cache_dir: Annotated[Optional[Path], typer.Option("--cache-dir", help="Write the pair cache (NAME.pairs.json) in this folder instead of beside the mosaic; it is read only with --resume.")] = None,
 ) -> None:
     """Stitch a folder of UAV frames (or a video) into one mosaic, drift-free, with any estimator."""
@@ -301,7 +303,8 @@ def mosaic(
         blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
-    report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume, cache_dir=cache_dir)
+    report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume, cache_dir=cache_dir, gcp=gcp,
+                        gcp_image_width=gcp_image_width)
     _print_mosaic(report)
 
 

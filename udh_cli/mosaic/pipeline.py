@@ -26,6 +26,7 @@ from udh_cli.mosaic.gains import solve_gains
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
 from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
+from udh_cli.mosaic.gcp import fit_gcps, read_gcp_file
 from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, corner_disagreement_px, estimate_pairs
@@ -197,6 +198,8 @@ def run_mosaic(
     ground_truth: str | Path | None = None,
     resume: bool = False,
     cache_dir: str | Path | None = None,
+    gcp: str | Path | None = None,
+    gcp_image_width: int | None = None,
 ) -> dict[str, Any]:
     """Mosaic a folder of frames (or a video) into ``output``; returns the sidecar dict (also written).
 
@@ -209,6 +212,10 @@ def run_mosaic(
     frames, estimators and settings match are taken from it instead of estimated again (see
     :mod:`.pair_cache`). With ``cache_dir`` alone the file is written there but not read. Without either,
     no cache file is written.
+
+    ``gcp`` is a ground-control file in OpenDroneMap's format (:mod:`.gcp`; ``gcp_image_width``: the width of
+    the images its pixels refer to, when not the frames'): the mosaic is placed on the map by its points,
+    else (frames with EXIF GPS) by their GPS, and a world file and a .prj are written beside each part.
     """
     reporter = reporter or Reporter(quiet=True)
     source, output = Path(source), Path(output)
@@ -221,6 +228,9 @@ def run_mosaic(
                                           "pair cache": pair_cache_file, "world file": world_file_path(output),
                                           "projection file": output.with_suffix(".prj")}, sidecar_path(output))
     remove_stale_staged(output)
+    gcps = read_gcp_file(gcp) if gcp is not None else None  # a bad file fails before any work
+    if gcp_image_width is not None and gcp_image_width < 1:
+        raise UdhError(f"--gcp-image-width {gcp_image_width}: give the width in pixels of the images the GCP file refers to")
     started = time.perf_counter()
     truth = _load_truth(source, ground_truth)
     estimator = estimator or create_estimator(config.method, **mosaic_method_options(config.method, config.method_options))
@@ -228,6 +238,13 @@ def run_mosaic(
 
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter)
     frames = frameset.frames
+    if gcps is not None:
+        names = {f.name for f in frames}
+        missing = sorted({o.image for o in gcps.observations} - names)
+        if len(missing) == len({o.image for o in gcps.observations}):
+            raise UdhError(f"{gcp}: none of the images it names is among the frames of {source} (e.g. {missing[0]})")
+        if missing:
+            reporter.warn(f"{gcp}: {len(missing)} image(s) it names are not among the frames, their observations are skipped: {', '.join(missing[:5])}")
     cache = PairCache.open(pair_cache_file, frames, estimator, fallback, acceptance(config), resume, reporter,
                            keep=resume or cache_dir is not None)
     try:
@@ -252,7 +269,7 @@ def run_mosaic(
             _composite_part(frameset, part, gains, config, reporter, staged)
         _warn_about_earlier_output(output, parts, reporter)
         report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter, sidecar_path(output).parent)
-        _georeference(frameset, parts, report, staged, reporter)
+        _georeference(frameset, parts, report, staged, reporter, gcps, gcp_image_width)
         report["pair_cache"] = _relative_to(cache.path, sidecar_path(output).parent) if cache.keep else None
         report["summary"]["pairs_from_cache"] = cache.hits
         report["timings_s"]["total"] = time.perf_counter() - started
@@ -270,9 +287,14 @@ def run_mosaic(
 # ------------------------------------------------------------------------------------------ steps
 
 
-def _georeference(frameset: FrameSet, parts: list[Part], report: dict[str, Any], staged: StagedFiles, reporter: Reporter) -> None:
-    """World and projection files for every written part whose frames carry GPS (see :mod:`.georef`), staged
-    with the images; the sidecar's parts get their ``georeference``."""
+def _georeference(frameset: FrameSet, parts: list[Part], report: dict[str, Any], staged: StagedFiles, reporter: Reporter,
+                  gcps=None, gcp_image_width: int | None = None) -> None:
+    """World and projection files for every written part placed by ground-control points (``gcps``) or else
+    by its frames' GPS (see :mod:`.gcp`, :mod:`.georef`), staged with the images; the sidecar's parts get
+    their ``georeference``."""
+    if gcps is not None:
+        _georeference_by_gcps(frameset, parts, report, staged, reporter, gcps, gcp_image_width)
+        return
     with_gps = {f.index: f.metadata for f in frameset.frames if f.metadata is not None and f.metadata.has_gps}
     if not with_gps:
         return
@@ -301,6 +323,36 @@ def _georeference(frameset: FrameSet, parts: list[Part], report: dict[str, Any],
         atomic_write_bytes(staged.path_for(part.file.with_suffix(".prj")), projection_text(found.epsg).encode())
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} from {len(found.frames_used)} frames' GPS, "
                       f"{found.residual_rms_m:.1f} m RMS, {found.pixel_size_m * 100:.1f} cm per pixel")
+
+
+def _georeference_by_gcps(frameset: FrameSet, parts: list[Part], report: dict[str, Any], staged: StagedFiles, reporter: Reporter,
+                          gcps, gcp_image_width: int | None) -> None:
+    records = {r["index"]: r for r in report["frames"]}
+    by_number = {entry["part"]: entry for entry in report["parts"]}
+    for part in parts:
+        if part.canvas is None or part.number not in by_number:
+            continue
+        inside = set(part.frames)
+        frames = {f.name: (f.size, np.asarray(records[f.index]["mosaic_from_frame"]) if f.index in inside and records[f.index]["mosaic_from_frame"] else None)
+                  for f in frameset.frames}
+        try:
+            found = fit_gcps(gcps, frames, gcp_image_width)
+        except UdhError as exc:
+            by_number[part.number]["georeference"] = None
+            reporter.warn(f"{part.file.name}: not georeferenced: {exc}")
+            continue
+        by_number[part.number]["georeference"] = found.to_json()
+        for name, point in found.points.items():
+            if not point["used"]:
+                reporter.warn(f"{name}: contradicts the other ground-control points ({point['checkpoint_m']:.1f} m off when left out); "
+                              f"reported and left out of the fit")
+        for line in found.skipped[:5]:
+            reporter.warn(f"GCP skipped: {line}")
+        atomic_write_bytes(staged.path_for(world_file_path(part.file)), world_file_text(found).encode())
+        atomic_write_bytes(staged.path_for(part.file.with_suffix(".prj")), projection_text(found.epsg).encode())
+        used = sum(p["used"] for p in found.points.values())
+        reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} by {used} ground-control points, "
+                      f"{found.checkpoint_rms_m:.2f} m RMS at checkpoints (each point left out in turn)")
 
 
 def _relative_to(path: Path, folder: Path) -> str:

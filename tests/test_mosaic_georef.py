@@ -124,3 +124,29 @@ def test_the_simulator_writes_noisy_gps_and_the_map_lands_closer_than_one_fix(tm
         centre = geometry.transform_points(map_from_mosaic @ np.array(frame["mosaic_from_frame"]), np.array([[(width - 1) / 2, (height - 1) / 2]]))[0]
         errors.append(np.linalg.norm(centre - exact))
     assert max(errors) < 1.5, errors
+
+
+def test_a_georeferenced_mosaic_is_also_a_north_up_cloud_optimised_geotiff(tmp_path):
+    rasterio = pytest.importorskip("rasterio")
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+    from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
+
+    folder = tmp_path / "flight"
+    write_flight(folder, FlightConfig(frame_size=(320, 240), strips=2, frames_per_strip=5, focal_px=300.0), seed=4,
+                 gps=GpsConfig(-33.9, 151.2, metres_per_pixel=0.1, heading_deg=60.0, noise_m=0.5))
+    truth = json.loads((folder / "ground_truth.json").read_text())
+    report = run_mosaic(folder, tmp_path / "map.png", MosaicConfig(method="sift", overlap_per_frame=1))
+    geotiff = report["parts"][0]["geotiff"]
+    assert geotiff["file"] == "map.cog.tif" and geotiff["pixel_size_m"] == pytest.approx(0.1, rel=0.05)
+    with rasterio.open(tmp_path / "map.cog.tif") as dataset:
+        assert dataset.crs.to_epsg() == 32756  # Sydney: UTM zone 56 south
+        transform = dataset.transform
+        assert transform.b == 0 and transform.d == 0 and transform.e < 0  # north-up
+        assert dataset.count == 4 and dataset.colorinterp[3] == rasterio.enums.ColorInterp.alpha
+        assert dataset.overviews(1) and dataset.profile["tiled"]
+        alpha = dataset.read(4)
+        to_utm = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:32756", always_xy=True)
+        for record in truth["frames"]:  # every frame's true position is inside the drawn map
+            east, north = to_utm.transform(record["gps"]["longitude"], record["gps"]["latitude"])
+            row, column = dataset.index(east, north)
+            assert alpha[row, column] == 255

@@ -19,7 +19,7 @@ from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES
 
 PREVIEW_SUFFIX = ".preview.jpg"
-GEOREFERENCE_SUFFIXES = (".pgw", ".tfw", ".jgw", ".prj")  # world and projection files beside a georeferenced mosaic
+GEOREFERENCE_SUFFIXES = (".pgw", ".tfw", ".jgw", ".prj", ".cog.tif")  # world and projection files beside a georeferenced mosaic
 
 
 def output_paths(output: Path, n_parts: int) -> list[Path]:
@@ -72,7 +72,7 @@ def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: 
             raise UdhError(f"{path}: the {role} would replace an input file of {source}; choose another output name")
         if path.suffix.lower() == ".json" and not _is_udh_json(path, ("udh-mosaic",)):
             raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
-        if path.suffix.lower() in GEOREFERENCE_SUFFIXES and not earlier_run:  # only an earlier run of ours wrote these
+        if path.name.lower().endswith(GEOREFERENCE_SUFFIXES) and not earlier_run:  # only an earlier run of ours wrote these
             raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
 
 
@@ -123,6 +123,10 @@ class StagedFiles:
         temporary = final.with_name(f".{final.stem}.{secrets.token_hex(4)}.staged{final.suffix}")
         self.staged.append((temporary, final))
         return temporary
+
+    def temporary_of(self, final: Path) -> Path | None:
+        """The temporary name ``final`` is staged under, or None."""
+        return next((temporary for temporary, staged_final in self.staged if staged_final == final), None)
 
     def publish(self) -> None:
         """Rename every staged file to its final name. Raises :class:`UdhError` if a rename fails."""

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from udh_cli import __version__, geometry
@@ -27,6 +28,7 @@ from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_ca
 from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, read_gcp_file
+from udh_cli.mosaic.geotiff import cog_path, has_rasterio, write_cog
 from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, corner_disagreement_px, estimate_pairs
@@ -225,7 +227,7 @@ def run_mosaic(
     if cache_dir is not None and not Path(cache_dir).is_dir():
         raise UdhError(f"--cache-dir {cache_dir}: no such folder; create it first")
     check_outputs_are_not_inputs(source, {"mosaic": output, "sidecar": sidecar_path(output), "preview": preview_path(output),
-                                          "pair cache": pair_cache_file, "world file": world_file_path(output),
+                                          "pair cache": pair_cache_file, "world file": world_file_path(output), "GeoTIFF": cog_path(output),
                                           "projection file": output.with_suffix(".prj")}, sidecar_path(output))
     remove_stale_staged(output)
     gcps = read_gcp_file(gcp) if gcp is not None else None  # a bad file fails before any work
@@ -319,10 +321,23 @@ def _georeference(frameset: FrameSet, parts: list[Part], report: dict[str, Any],
         if found.frames_rejected:
             names = ", ".join(frameset.frames[i].name for i in found.frames_rejected)
             reporter.warn(f"{part.file.name}: the GPS of {names} disagrees with the other frames' by far (a bad fix); left out of the georeference")
-        atomic_write_bytes(staged.path_for(world_file_path(part.file)), world_file_text(found).encode())
-        atomic_write_bytes(staged.path_for(part.file.with_suffix(".prj")), projection_text(found.epsg).encode())
+        _write_georeference(part, found, staged, by_number[part.number], reporter)
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} from {len(found.frames_used)} frames' GPS, "
                       f"{found.residual_rms_m:.1f} m RMS, {found.pixel_size_m * 100:.1f} cm per pixel")
+
+
+def _write_georeference(part: Part, found, staged: StagedFiles, entry: dict[str, Any], reporter: Reporter) -> None:
+    """Stage a georeferenced part's world file, .prj and north-up COG (when rasterio is installed)."""
+    atomic_write_bytes(staged.path_for(world_file_path(part.file)), world_file_text(found).encode())
+    atomic_write_bytes(staged.path_for(part.file.with_suffix(".prj")), projection_text(found.epsg).encode())
+    if not has_rasterio():
+        reporter.warn("no north-up GeoTIFF: it needs rasterio (pip install rasterio; from the udh checkout: pip install '.[geo]')")
+        return
+    mosaic = cv2.imread(str(staged.temporary_of(part.file)), cv2.IMREAD_UNCHANGED)
+    if mosaic is None or mosaic.ndim != 3 or mosaic.shape[2] != 4:  # a JPEG mosaic has no alpha: add it
+        mosaic = cv2.cvtColor(cv2.imread(str(staged.temporary_of(part.file)), cv2.IMREAD_COLOR), cv2.COLOR_BGR2BGRA)
+    written = write_cog(mosaic, found.map_from_mosaic, found.epsg, staged.path_for(cog_path(part.file)))
+    entry["geotiff"] = {**written, "file": cog_path(part.file).name}
 
 
 def _georeference_by_gcps(frameset: FrameSet, parts: list[Part], report: dict[str, Any], staged: StagedFiles, reporter: Reporter,
@@ -348,8 +363,7 @@ def _georeference_by_gcps(frameset: FrameSet, parts: list[Part], report: dict[st
                               f"reported and left out of the fit")
         for line in found.skipped[:5]:
             reporter.warn(f"GCP skipped: {line}")
-        atomic_write_bytes(staged.path_for(world_file_path(part.file)), world_file_text(found).encode())
-        atomic_write_bytes(staged.path_for(part.file.with_suffix(".prj")), projection_text(found.epsg).encode())
+        _write_georeference(part, found, staged, by_number[part.number], reporter)
         used = sum(p["used"] for p in found.points.values())
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} by {used} ground-control points, "
                       f"{found.checkpoint_rms_m:.2f} m RMS at checkpoints (each point left out in turn)")

@@ -150,3 +150,27 @@ def test_a_georeferenced_mosaic_is_also_a_north_up_cloud_optimised_geotiff(tmp_p
             east, north = to_utm.transform(record["gps"]["longitude"], record["gps"]["latitude"])
             row, column = dataset.index(east, north)
             assert alpha[row, column] == 255
+
+
+def test_a_split_flight_becomes_one_map_with_gps(tmp_path):
+    """No estimated pair links the two strips; their frames' GPS puts both parts in one GeoTIFF."""
+    rasterio = pytest.importorskip("rasterio")
+    from mosaic_flights import FailOn, work_fingerprints
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+    from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
+
+    folder = tmp_path / "flight"
+    write_flight(folder, FlightConfig(frame_size=(320, 240), strips=2, frames_per_strip=5, focal_px=300.0), seed=5,
+                 gps=GpsConfig(46.85, -92.0, metres_per_pixel=0.1, noise_m=0.3))
+    truth = json.loads((folder / "ground_truth.json").read_text())
+    prints = work_fingerprints(sorted(folder.glob("frame_*.jpg")))
+    split = FailOn(prints, lambda a, b: a is None or b is None or (a < 5) != (b < 5))
+    report = run_mosaic(folder, tmp_path / "map.png", MosaicConfig(overlap_per_frame=1), estimator=split, fallback=split)
+    assert report["summary"]["parts"] == 2
+    assert report["map"]["parts"] == 2 and report["map"]["frames"] == 10 and report["map"]["frames_on_gps_alone"] == 5
+    with rasterio.open(tmp_path / "map.cog.tif") as dataset:
+        alpha = dataset.read(4)
+        to_utm = pyproj.Transformer.from_crs("EPSG:4326", dataset.crs.to_string(), always_xy=True)
+        for record in truth["frames"]:  # both strips' frames on the one map, where their GPS says
+            row, column = dataset.index(*to_utm.transform(record["gps"]["longitude"], record["gps"]["latitude"]))
+            assert alpha[row, column] == 255

@@ -51,7 +51,8 @@ class Georeference:
     north_deg: float
 
     def to_json(self) -> dict:
-        return {"crs": f"EPSG:{self.epsg}", "map_from_mosaic": self.map_from_mosaic.tolist(), "gps_frames": len(self.frames_used),
+        return {"source": "gps", "crs": f"EPSG:{self.epsg}", "map_from_mosaic": self.map_from_mosaic.tolist(), "gps_frames": len(self.frames_used),
+                "gps_checked": len(self.frames_used) >= MIN_GPS_FRAMES,
                 "gps_frames_rejected": list(self.frames_rejected), "gps_residual_rms_m": self.residual_rms_m,
                 "pixel_size_m": self.pixel_size_m, "north_deg": self.north_deg}
 
@@ -92,10 +93,12 @@ def fit_similarity(mosaic_points: np.ndarray, map_points: np.ndarray) -> np.ndar
     return out
 
 
-def georeference_part(frames: Sequence[tuple[int, tuple[int, int], np.ndarray, float, float]]) -> Georeference | None:
+def georeference_part(frames: Sequence[tuple[int, tuple[int, int], np.ndarray, float, float]],
+                      min_frames: int = MIN_GPS_FRAMES) -> Georeference | None:
     """Fit a part's georeference from ``(frame index, (width, height), mosaic_from_frame, latitude, longitude)``
-    of its placed frames that have GPS; None with fewer than :data:`MIN_GPS_FRAMES`."""
-    if len(frames) < MIN_GPS_FRAMES:
+    of its placed frames that have GPS; None with fewer than ``min_frames`` (two fix a similarity exactly,
+    with nothing left to check it)."""
+    if len(frames) < max(2, min_frames):
         return None
     latitudes, longitudes = np.array([f[3] for f in frames]), np.array([f[4] for f in frames])
     epsg = utm_epsg(float(np.median(latitudes)), float(np.median(longitudes)))
@@ -103,7 +106,7 @@ def georeference_part(frames: Sequence[tuple[int, tuple[int, int], np.ndarray, f
     map_points = np.column_stack([eastings, northings])
     centres = np.array([geometry.transform_points(h, np.array([[(w - 1) / 2, (hgt - 1) / 2]]))[0] for _, (w, hgt), h, _, _ in frames])
     used = np.ones(len(frames), bool)
-    for _ in range(3):  # refit without bad fixes (a GPS jump), a few rounds at most
+    for _ in range(3 if len(frames) >= MIN_GPS_FRAMES else 0):  # refit without bad fixes (a GPS jump), a few rounds at most
         if used.sum() < MIN_GPS_FRAMES:
             return None
         fit = fit_similarity(centres[used], map_points[used])

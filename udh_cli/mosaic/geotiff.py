@@ -30,44 +30,56 @@ def has_rasterio() -> bool:
     return importlib.util.find_spec("rasterio") is not None
 
 
-def north_up_grid(map_from_mosaic: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int], tuple[float, float, float]]:
-    """The north-up grid covering a ``size`` (width, height) mosaic: ``(out_from_mosaic (3, 3), (columns, rows),
-    (west, north, pixel size))``, with ``west``/``north`` the outer edges of the top-left output pixel."""
-    width, height = size
-    pixel = math.hypot(map_from_mosaic[0, 0], map_from_mosaic[1, 0])
-    corners = np.array([[-0.5, -0.5, 1], [width - 0.5, -0.5, 1], [width - 0.5, height - 0.5, 1], [-0.5, height - 0.5, 1]]).T
-    mapped = (map_from_mosaic @ corners)[:2]
-    west, east = mapped[0].min(), mapped[0].max()
-    south, north = mapped[1].min(), mapped[1].max()
-    columns, rows = int(math.ceil((east - west) / pixel)), int(math.ceil((north - south) / pixel))
-    # Output pixel centre (c, r) lies at (west + (c + 0.5) px, north - (r + 0.5) px).
-    out_from_map = np.array([[1 / pixel, 0, -west / pixel - 0.5], [0, -1 / pixel, north / pixel - 0.5], [0, 0, 1]])
-    return out_from_map @ map_from_mosaic, (columns, rows), (float(west), float(north), float(pixel))
-
-
 def write_cog(mosaic_bgra: np.ndarray, map_from_mosaic: np.ndarray, epsg: int, path: Path, max_pixels: int = 400_000_000) -> dict:
     """Resample an (H, W, 4) BGRA mosaic north-up and write it as a COG at ``path``; returns its size and grid."""
-    try:
-        import rasterio
-        from rasterio.io import MemoryFile
-        from rasterio.shutil import copy as raster_copy
-        from affine import Affine
-    except ImportError:
-        raise UdhError("a GeoTIFF needs rasterio: pip install rasterio (from the udh checkout: pip install '.[geo]')") from None
-    out_from_mosaic, (columns, rows), (west, north, pixel) = north_up_grid(map_from_mosaic, (mosaic_bgra.shape[1], mosaic_bgra.shape[0]))
+    return write_combined_cog([(mosaic_bgra, map_from_mosaic)], epsg, path, max_pixels)
+
+
+def write_combined_cog(layers: list[tuple[np.ndarray, np.ndarray]], epsg: int, path: Path, max_pixels: int = 400_000_000) -> dict:
+    """Several mosaics (``(bgra, map_from_mosaic)``, earlier ones on top) resampled onto one north-up grid of
+    the finest pixel size among them, written as one COG: the parts of a split flight in one map."""
+    _require_rasterio()
+    pixel = min(math.hypot(m[0, 0], m[1, 0]) for _, m in layers)
+    edges = []
+    for bgra, map_from_mosaic in layers:
+        height, width = bgra.shape[:2]
+        corners = np.array([[-0.5, -0.5, 1], [width - 0.5, -0.5, 1], [width - 0.5, height - 0.5, 1], [-0.5, height - 0.5, 1]]).T
+        edges.append((map_from_mosaic @ corners)[:2])
+    mapped = np.hstack(edges)
+    west, east, south, north = mapped[0].min(), mapped[0].max(), mapped[1].min(), mapped[1].max()
+    columns, rows = int(math.ceil((east - west) / pixel)), int(math.ceil((north - south) / pixel))
     if columns * rows > max_pixels:
         raise UdhError(f"the north-up GeoTIFF would be {columns}x{rows} pixels; use --max-size to make the mosaic smaller")
-    north_up = cv2.warpAffine(mosaic_bgra, out_from_mosaic[:2], (columns, rows), flags=cv2.INTER_LINEAR,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
-    bands = north_up[..., [2, 1, 0, 3]].transpose(2, 0, 1)  # RGBA, band-first
+    out_from_map = np.array([[1 / pixel, 0, -west / pixel - 0.5], [0, -1 / pixel, north / pixel - 0.5], [0, 0, 1]])
+    canvas = np.zeros((rows, columns, 4), np.uint8)
+    for bgra, map_from_mosaic in layers:
+        drawn = cv2.warpAffine(bgra, (out_from_map @ map_from_mosaic)[:2], (columns, rows), flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+        empty = (canvas[..., 3] == 0) & (drawn[..., 3] > 0)
+        canvas[empty] = drawn[empty]
+    _write_rgba_cog(canvas, west, north, pixel, epsg, path)
+    return {"file": path.name, "width": columns, "height": rows, "pixel_size_m": float(pixel), "west": float(west), "north": float(north)}
+
+
+def _require_rasterio() -> None:
+    if not has_rasterio():
+        raise UdhError("a GeoTIFF needs rasterio: pip install rasterio (from the udh checkout: pip install '.[geo]')")
+
+
+def _write_rgba_cog(bgra: np.ndarray, west: float, north: float, pixel: float, epsg: int, path: Path) -> None:
+    """An (H, W, 4) BGRA north-up image to a Cloud-Optimised GeoTIFF: RGBA with an alpha band, tiled, DEFLATE,
+    overviews; (west, north) is the outer corner of the top-left pixel."""
+    import rasterio
+    from affine import Affine
+    from rasterio.io import MemoryFile
+    from rasterio.shutil import copy as raster_copy
+
+    rows, columns = bgra.shape[:2]
     profile = {"driver": "GTiff", "width": columns, "height": rows, "count": 4, "dtype": "uint8", "crs": f"EPSG:{epsg}",
                "transform": Affine(pixel, 0.0, west, 0.0, -pixel, north), "photometric": "RGB", "alpha": "YES"}
     with rasterio.Env(GDAL_NUM_THREADS="1"):
         with MemoryFile() as memory:
             with memory.open(**profile) as dataset:
-                dataset.write(bands)
-                dataset.colorinterp = [rasterio.enums.ColorInterp.red, rasterio.enums.ColorInterp.green,
-                                       rasterio.enums.ColorInterp.blue, rasterio.enums.ColorInterp.alpha]
+                dataset.write(bgra[..., [2, 1, 0, 3]].transpose(2, 0, 1))
             with memory.open() as dataset:
                 raster_copy(dataset, str(path), driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=512, OVERVIEWS="AUTO")
-    return {"file": path.name, "width": columns, "height": rows, "pixel_size_m": pixel, "west": west, "north": north}

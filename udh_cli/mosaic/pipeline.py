@@ -28,7 +28,7 @@ from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_ca
 from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, read_gcp_file
-from udh_cli.mosaic.geotiff import cog_path, has_rasterio, write_cog
+from udh_cli.mosaic.geotiff import cog_path, has_rasterio, write_cog, write_combined_cog
 from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, corner_disagreement_px, estimate_pairs
@@ -271,7 +271,7 @@ def run_mosaic(
             _composite_part(frameset, part, gains, config, reporter, staged)
         _warn_about_earlier_output(output, parts, reporter)
         report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter, sidecar_path(output).parent)
-        _georeference(frameset, parts, report, staged, reporter, gcps, gcp_image_width)
+        _georeference(frameset, parts, report, staged, reporter, gcps, gcp_image_width, output)
         report["pair_cache"] = _relative_to(cache.path, sidecar_path(output).parent) if cache.keep else None
         report["summary"]["pairs_from_cache"] = cache.hits
         report["timings_s"]["total"] = time.perf_counter() - started
@@ -290,7 +290,7 @@ def run_mosaic(
 
 
 def _georeference(frameset: FrameSet, parts: list[Part], report: dict[str, Any], staged: StagedFiles, reporter: Reporter,
-                  gcps=None, gcp_image_width: int | None = None) -> None:
+                  gcps=None, gcp_image_width: int | None = None, output: Path | None = None) -> None:
     """World and projection files for every written part placed by ground-control points (``gcps``) or else
     by its frames' GPS (see :mod:`.gcp`, :mod:`.georef`), staged with the images; the sidecar's parts get
     their ``georeference``."""
@@ -308,22 +308,45 @@ def _georeference(frameset: FrameSet, parts: list[Part], report: dict[str, Any],
         reporter.warn(f"{len(frameset.frames) - len(with_gps)} of {len(frameset.frames)} frames carry no GPS; the map rests on the others")
     records = {r["index"]: r for r in report["frames"]}
     by_number = {entry["part"]: entry for entry in report["parts"]}
+    placed: list[tuple[Part, Any]] = []
     for part in parts:
         if part.canvas is None or part.number not in by_number:
             continue
         entries = [(i, frameset.frames[i].size, np.asarray(records[i]["mosaic_from_frame"]), with_gps[i].latitude, with_gps[i].longitude)
                    for i in part.frames if i in with_gps and records[i]["mosaic_from_frame"] is not None]
-        found = georeference_part(entries)
+        found = georeference_part(entries, min_frames=2)
         by_number[part.number]["georeference"] = None if found is None else found.to_json()
         if found is None:
-            reporter.warn(f"{part.file.name}: fewer than {MIN_GPS_FRAMES} placed frames with GPS; written without a georeference")
+            reporter.warn(f"{part.file.name}: fewer than 2 placed frames with GPS; written without a georeference")
             continue
+        if len(found.frames_used) < MIN_GPS_FRAMES:
+            reporter.warn(f"{part.file.name}: placed by 2 frames' GPS only, with nothing to check the placement")
+        placed.append((part, found))
         if found.frames_rejected:
             names = ", ".join(frameset.frames[i].name for i in found.frames_rejected)
             reporter.warn(f"{part.file.name}: the GPS of {names} disagrees with the other frames' by far (a bad fix); left out of the georeference")
         _write_georeference(part, found, staged, by_number[part.number], reporter)
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} from {len(found.frames_used)} frames' GPS, "
                       f"{found.residual_rms_m:.1f} m RMS, {found.pixel_size_m * 100:.1f} cm per pixel")
+    if len(placed) > 1 and output is not None and has_rasterio():
+        _write_combined_map(placed, frameset, report, staged, reporter, output)
+
+
+def _write_combined_map(placed: list, frameset: FrameSet, report: dict[str, Any], staged: StagedFiles, reporter: Reporter, output: Path) -> None:
+    """The parts of a split run in one north-up GeoTIFF, each placed by its own frames' GPS: GPS ties together
+    what no estimated pair could. The largest part is drawn on top; the others' frames rest on GPS alone."""
+    epsg = placed[0][1].epsg
+    same_zone = sorted((item for item in placed if item[1].epsg == epsg), key=lambda item: -len(item[0].frames))
+    layers = []
+    for part, found in same_zone:
+        image = cv2.imread(str(staged.temporary_of(part.file)), cv2.IMREAD_UNCHANGED)
+        layers.append((image if image.ndim == 3 and image.shape[2] == 4 else cv2.cvtColor(image, cv2.COLOR_BGR2BGRA), found.map_from_mosaic))
+    written = write_combined_cog(layers, epsg, staged.path_for(cog_path(output)))
+    on_gps_alone = sum(len(part.frames) for part, _ in same_zone[1:])
+    report["map"] = {**written, "file": cog_path(output).name, "crs": f"EPSG:{epsg}", "parts": len(same_zone),
+                     "frames": sum(len(part.frames) for part, _ in same_zone), "frames_on_gps_alone": on_gps_alone}
+    reporter.info(f"{cog_path(output).name}: {len(same_zone)} parts in one map, placed by GPS; {on_gps_alone} frames "
+                  f"rest on GPS alone (outside the largest part)")
 
 
 def _write_georeference(part: Part, found, staged: StagedFiles, entry: dict[str, Any], reporter: Reporter) -> None:

@@ -135,7 +135,7 @@ def train(
     data: Annotated[Optional[list[Path]], typer.Option("--data", "-d", help="Folder of images (synthetic pairs) or of a flight (consecutive frames). Repeat for more.")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Run folder: checkpoint.pt, best.pt, metrics.jsonl, config.json.")] = Path("runs/udh"),
     mode: Annotated[str, typer.Option(help="unsupervised (photometric L1, no labels) or supervised (L2 on synthetic labels).")] = "unsupervised",
-    arch: Annotated[str, typer.Option(help="Network: corr (CPU-friendly default), corr-lite (faster, slimmer), corr-fine (full-resolution refinement) or vgg-paper (the paper's 34 M network).")] = "corr",
+    arch: Annotated[Optional[str], typer.Option(help="Network: corr (CPU-friendly; the default, or --init's own), corr-global (corr with global matches, for flight motion), corr-lite (faster, slimmer), corr-fine (full-resolution refinement) or vgg-paper (the paper's 34 M network).")] = None,
     rho: Annotated[float, typer.Option(help="Largest corner perturbation of synthetic pairs, px (paper: 16/32/45 for 85/75/65 % overlap).")] = 32.0,
     steps: Annotated[Optional[int], typer.Option(help="Total optimiser steps (default 20000; with --resume, the run's own).")] = None,
     batch: Annotated[int, typer.Option(help="Pairs per step (per process under torchrun).")] = 32,
@@ -160,10 +160,10 @@ def train(
 ) -> None:
     """Train the unsupervised or supervised network (needs the [bold]train[/bold] extra: torch)."""
     _require_torch()
-    from udh_cli.train.loop import TrainConfig, train as run_training
+    from udh_cli.train.loop import TrainConfig, init_arch, train as run_training
 
     config = TrainConfig(
-        mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, arch=arch, rho=rho, small_motion_fraction=small_motion,
+        mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, arch=arch or init_arch(init), rho=rho, small_motion_fraction=small_motion,
         illumination=illumination, occluders=occluders, motion=motion, max_heading=max_heading, max_scale=max_scale,
         max_shift=max_shift, min_overlap=min_overlap, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
         checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),

@@ -123,6 +123,14 @@ def _standardise(patches: torch.Tensor, normalization: dict[str, float]) -> torc
     return (patches - normalization["mean"]) / normalization["std"]
 
 
+def init_arch(init: str | None) -> str:
+    """The architecture a run fine-tuning from ``init`` (a checkpoint or shipped name) has when none is asked
+    for: the checkpoint's own; :data:`DEFAULT_ARCH` without ``init``."""
+    if not init:
+        return DEFAULT_ARCH
+    return str(load_checkpoint(resolve_init(init))["config"]["arch"])
+
+
 def resolve_init(init: str) -> Path:
     """A checkpoint path, or the name of a shipped model ("unsupervised", "supervised")."""
     path = Path(init)

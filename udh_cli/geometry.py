@@ -19,10 +19,11 @@ Conventions (stated here once; every other module follows them)
 * **Resizing.** An image resized from ``(w, h)`` to ``(w', h')`` maps ``x`` to ``(w'/w)(x + 0.5) - 0.5``,
   which is what ``cv2.resize`` does. Homographies are rescaled with exactly this map.
 
-Every function accepts numpy arrays or torch tensors and returns the same kind, so the Tensor DLT used
-in training is the very code used at inference (numpy calls of up to 8 pairs, the batch-1 case, take a
-closed form of the same unique solution, tested equal to it). torch is never imported here: a tensor argument means
-the caller already imported it.
+The functions accept numpy arrays or torch tensors and return the same kind, so the Tensor DLT used in
+training is the very code used at inference (numpy calls of up to 8 pairs, the batch-1 case, take a closed
+form of the same unique solution, tested equal to it). The exceptions build or check one 3x3 matrix in numpy
+only: ``resize_matrix``, ``rescale_homography``, ``translation``, ``mirror_matrix`` and
+``is_valid_homography``. torch is never imported here: a tensor argument means the caller already imported it.
 """
 
 from __future__ import annotations

@@ -18,6 +18,9 @@ from udh_cli.images import to_gray_u8
 # Recently detected features, least recently used first: (method, settings, shape, digest) -> (keypoints,
 # descriptors). Eight images cover a frame's consecutive, bridge and loop pairs in a mosaic's batches.
 FEATURE_CACHE_IMAGES = 8
+# Above this many keypoints in an image, exact matching costs seconds (a 1600 px photo has 20,000); the
+# kd-trees then take a fraction of it for the same inliers. Below, exact matching is fast and stays exact.
+EXACT_MATCH_LIMIT = 5000
 _FEATURE_CACHE: OrderedDict = OrderedDict()
 
 
@@ -38,7 +41,8 @@ class FeatureRansacEstimator(Estimator):
             descriptors only: SIFT), seeded so that an answer is reproducible: it resets the calling thread's
             OpenCV random generator (``cv2.setRNGSeed(0)``) before each match. On 800-px seneca frames with
             5,000-12,000 SIFT keypoints flann took 0.1-0.7 s a pair against bf's 0.6-3.2 s, with the same
-            inlier counts (within 1 %).
+            inlier counts (within 1 %). "auto": bf up to :data:`EXACT_MATCH_LIMIT` keypoints in either image,
+            flann beyond (float descriptors; bf for ORB's binary ones).
     """
 
     ratio: float = 0.75
@@ -46,7 +50,7 @@ class FeatureRansacEstimator(Estimator):
     best_features: int | None = None
     min_inliers: int = 8
     lmeds_refit: bool = True
-    matcher: str = "bf"
+    matcher: str = "auto"
 
     norm: ClassVar[int] = cv2.NORM_L2
     verifies_itself: ClassVar[bool] = True  # an answer needs min_inliers matches that agree on it
@@ -56,8 +60,8 @@ class FeatureRansacEstimator(Estimator):
             raise UdhError(f"method '{self.name}': ratio {self.ratio} must be in (0, 1]")
         if not self.ransac_px > 0.0:
             raise UdhError(f"method '{self.name}': ransac_px {self.ransac_px} must be positive")
-        if self.matcher not in ("bf", "flann"):
-            raise UdhError(f"method '{self.name}': matcher '{self.matcher}' must be bf or flann")
+        if self.matcher not in ("bf", "flann", "auto"):
+            raise UdhError(f"method '{self.name}': matcher '{self.matcher}' must be bf, flann or auto")
         if self.matcher == "flann" and self.norm != cv2.NORM_L2:
             raise UdhError(f"method '{self.name}': matcher flann needs float descriptors (sift); use bf")
         if self.best_features is not None and self.best_features < 1:  # a negative N would slice off the best ones
@@ -98,7 +102,11 @@ class FeatureRansacEstimator(Estimator):
 
     def _match(self, descriptors_a: np.ndarray, descriptors_b: np.ndarray) -> list:
         """Each descriptor of A's two nearest in B (OpenCV DMatch lists)."""
-        if self.matcher == "flann":
+        matcher = self.matcher
+        if matcher == "auto":
+            many = max(len(descriptors_a), len(descriptors_b)) > EXACT_MATCH_LIMIT
+            matcher = "flann" if many and self.norm == cv2.NORM_L2 else "bf"
+        if matcher == "flann":
             cv2.setRNGSeed(0)  # the kd-trees are randomised from OpenCV's (per-thread) generator
             flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})  # 1: FLANN_INDEX_KDTREE
             return flann.knnMatch(descriptors_a, descriptors_b, k=2)

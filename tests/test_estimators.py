@@ -149,7 +149,7 @@ def test_registry():
         ("sift", {"best_features": -3}, "best_features -3 must be at least 1"),
         ("orb", {"ratio": 0.0}, r"ratio 0.0 must be in \(0, 1\]"),
         ("ecc", {"iterations": 0}, "iterations 0 must be at least 1"),
-        ("sift", {"matcher": "brute"}, "matcher 'brute' must be bf or flann"),
+        ("sift", {"matcher": "brute"}, "matcher 'brute' must be bf, flann or auto"),
         ("orb", {"matcher": "flann"}, "flann needs float descriptors"),
     ],
 )

@@ -422,7 +422,7 @@ def test_the_fallback_takes_its_role_options_unless_given_its_own():
     assert auto._fallback.matcher == "flann" and auto._fallback.best_features == 10000
     assert auto.fallback_options == FALLBACK_OPTIONS["sift"]  # recorded, so mosaic settings and caches say what ran
     plain = AutoEstimator(initial="identity", fallback_options={})
-    assert plain._fallback.contrast_threshold == 0.02 and plain._fallback.matcher == "bf"  # SIFT's own defaults
+    assert plain._fallback.contrast_threshold == 0.02 and plain._fallback.matcher == "auto"  # SIFT's own defaults
     assert AutoEstimator(initial="identity", fallback="orb")._fallback.name == "orb"  # no role options for orb
 
 

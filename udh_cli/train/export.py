@@ -6,7 +6,10 @@ The DLT and rescaling run in the numpy geometry core at inference, so the graph 
 
 from __future__ import annotations
 
+import contextlib
 import io
+import logging
+import warnings
 import json
 from pathlib import Path
 from typing import Any
@@ -21,7 +24,7 @@ from udh_cli.onnx_model import MODEL_FORMAT, write_metadata
 from udh_cli.train.archs import create_model
 from udh_cli.train.checkpoint import load_checkpoint
 
-OPSET = 17
+OPSET = 18  # the torch.export-based exporter's lowest
 
 
 def model_metadata(state: dict[str, Any]) -> dict[str, str]:
@@ -75,11 +78,20 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
         raise UdhError(f"{checkpoint}: the weights do not fit the '{state['config']['arch']}' architecture ({str(exc).splitlines()[0]})") from None
     model.eval()
     dummy = torch.zeros(2, 2, size, size)
-    buffer = io.BytesIO()
-    torch.onnx.export(
-        model, (dummy,), buffer, dynamo=False, opset_version=OPSET, input_names=["patches"], output_names=["offsets"],
-        dynamic_axes={"patches": {0: "batch"}, "offsets": {0: "batch"}},
-    )
+    # The torch.export-based exporter (the current API; the TorchScript one is deprecated). Its own progress
+    # lines and warnings about optional operator libraries (torchvision) are not the user's concern.
+    exporter_log = logging.getLogger("torch.onnx")
+    level = exporter_log.level
+    exporter_log.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(model, (dummy,), dynamo=True, opset_version=OPSET, input_names=["patches"],
+                                        output_names=["offsets"], dynamic_shapes={"patches": {0: torch.export.Dim("batch", min=1, max=4096)}},
+                                        verbose=False)
+    finally:
+        exporter_log.setLevel(level)
+    buffer = io.BytesIO(program.model_proto.SerializeToString())
     proto = onnx.load_from_string(buffer.getvalue())
     metadata = model_metadata(state)
     write_metadata(proto, metadata)

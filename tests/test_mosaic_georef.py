@@ -174,3 +174,24 @@ def test_a_split_flight_becomes_one_map_with_gps(tmp_path):
         for record in truth["frames"]:  # both strips' frames on the one map, where their GPS says
             row, column = dataset.index(*to_utm.transform(record["gps"]["longitude"], record["gps"]["latitude"]))
             assert alpha[row, column] == 255
+
+
+def test_an_earlier_runs_georeference_never_stays_beside_a_mosaic_without_one(tmp_path):
+    """Run 1 places the mosaic by GPS; run 2 (frames without GPS) writes a new mosaic under the same name: the
+    old world file, .prj and GeoTIFF go, or GIS tools would put the new mosaic where the old one was."""
+    pytest.importorskip("rasterio")
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+    from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
+
+    small = FlightConfig(frame_size=(320, 240), strips=1, frames_per_strip=4, focal_px=300.0)
+    with_gps, without = tmp_path / "gps", tmp_path / "plain"
+    write_flight(with_gps, small, seed=1, gps=GpsConfig(46.85, -92.0, noise_m=0.5))
+    write_flight(without, small, seed=1)
+    out = tmp_path / "out"
+    out.mkdir()
+    config = MosaicConfig(method="sift", overlap_per_frame=1)
+    run_mosaic(with_gps, out / "m.png", config)
+    assert {"m.pgw", "m.prj", "m.cog.tif"} <= {p.name for p in out.iterdir()}
+    report = run_mosaic(without, out / "m.png", config)
+    assert report["parts"] == [] or report["parts"][0].get("georeference") is None
+    assert not ({"m.pgw", "m.prj", "m.cog.tif"} & {p.name for p in out.iterdir()})

@@ -136,7 +136,9 @@ def test_the_sparse_system_solves_as_its_dense_form_does(monkeypatch):
 
 def test_a_long_survey_solves_with_memory_that_grows_with_its_pairs():
     """360 frames in 12 strips, every consecutive and cross-strip pair: a dense system would be 2,872 square
-    (66 MB of blocks in a dense assembly); the sparse one holds only the pairs' blocks."""
+    (66 MB of blocks in the dense assembly); the sparse one holds only the pairs' blocks, a few MB at peak."""
+    import tracemalloc
+
     rng = np.random.default_rng(3)
     strips, per_strip = 12, 30
     truth = {}
@@ -155,7 +157,11 @@ def test_a_long_survey_solves_with_memory_that_grows_with_its_pairs():
         pairs.append(_pair(truth, index, partner, "overlap", noise()))
     chained, _ = chain_to_reference(list(range(len(truth))), 0, pairs[: len(truth) - 1])
     points = [pair_points(p, SIZE, SIZE) for p in pairs]
+    tracemalloc.start()
     solved = solve_part(0, chained, sizes, points)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 40e6  # the dense assembly alone held (n+1)^2 8x8 blocks: 68 MB here
     loops = points[len(truth) - 1 :]
     before = np.mean([pair_rms_px(chained, p) for p in loops])
     after = np.mean([pair_rms_px(solved, p) for p in loops])

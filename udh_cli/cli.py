@@ -223,9 +223,10 @@ def quantize(
                   f"{result['median_drift_px']:.3f} px median, {result['max_drift_px']:.2f} px at most ({result['check_pairs']} check pairs)")
 
 
-from udh_cli.simulate import FlightConfig as _FlightConfig  # noqa: E402 - the simulator's defaults live there
+from udh_cli.simulate import FlightConfig as _FlightConfig, GpsConfig as _GpsConfig  # noqa: E402 - the simulator's defaults live there
 
 _FLIGHT = _FlightConfig()
+_GPS = _GpsConfig(0.0, 0.0)
 
 
 @app.command()
@@ -242,8 +243,8 @@ def simulate(
     noise_sigma: Annotated[float, typer.Option(min=0.0, max=50.0, help="Sensor noise, grey levels.")] = _FLIGHT.noise_sigma,
     ground_preview: Annotated[bool, typer.Option("--ground-preview", help="Also write FOLDER_ground.jpg, the whole ground, beside the folder.", metavar="")] = False,
     gps: Annotated[Optional[str], typer.Option("--gps", metavar="LAT,LON", help="Write EXIF GPS into the frames, the ground's top-left corner at LAT,LON (WGS84 degrees).")] = None,
-    gps_noise: Annotated[float, typer.Option(min=0.0, max=100.0, help="With --gps: each fix's error, metres (standard deviation).")] = 2.0,
-    metres_per_pixel: Annotated[float, typer.Option(min=0.001, max=10.0, help="With --gps: ground size of one ground-image pixel, metres.")] = 0.05,
+    gps_noise: Annotated[float, typer.Option(min=0.0, max=100.0, help="With --gps: each fix's error, metres (standard deviation).")] = _GPS.noise_m,
+    metres_per_pixel: Annotated[float, typer.Option(min=0.001, max=10.0, help="With --gps: ground size of one ground-image pixel, metres.")] = _GPS.metres_per_pixel,
 ) -> None:
     """Write a simulated drone flight with exact ground truth (frames + ground_truth.json), for trying udh anywhere."""
     from udh_cli.simulate import GpsConfig, write_flight

@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
+from udh_cli.errors import UdhError
 from udh_cli.synthetic import PairBatch, _occlude, illuminate
 
 ASPECTS = (1.0, 4.0 / 3.0, 3.0 / 2.0, 16.0 / 9.0)  # frame shapes of common drone cameras (w / h)
@@ -148,6 +149,20 @@ def _draw_geometry(rng: np.random.Generator, config: MotionConfig, view: tuple[i
     return source_from_b, source_from_a, b_from_a
 
 
+MAX_DRAWS = 1000  # a motion that fits this often fails for a reason: a source too small, an overlap too high
+
+
+def _draw_until_it_fits(rng: np.random.Generator, config: MotionConfig, view: tuple[int, int], source_wh: tuple[int, int],
+                        aspect: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_draw_geometry` again until a motion fits the source; :class:`UdhError` after :data:`MAX_DRAWS`."""
+    for _ in range(MAX_DRAWS):
+        drawn = _draw_geometry(rng, config, view, source_wh, aspect)
+        if drawn is not None:
+            return drawn
+    raise UdhError(f"no flight motion fits a {source_wh[0]}x{source_wh[1]} source in {MAX_DRAWS} draws "
+                   f"(overlap at least {config.min_overlap}); give larger images or a gentler motion")
+
+
 def make_flight_frames(sources: list[np.ndarray], count: int, config: MotionConfig, rng: np.random.Generator,
                        view: tuple[int, int] = (320, 240), illumination: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Whole frames with flight motion, for benchmarks: ``(frames_a, frames_b)`` (N, h, w) uint8 grey and the
@@ -159,10 +174,7 @@ def make_flight_frames(sources: list[np.ndarray], count: int, config: MotionConf
     truths = np.empty((count, 3, 3))
     for i in range(count):
         image = sources[int(rng.integers(0, len(sources)))].astype(np.float32) / 255.0
-        drawn = None
-        while drawn is None:
-            drawn = _draw_geometry(rng, config, view, (image.shape[1], image.shape[0]), aspect=width / height)
-        source_from_b, source_from_a, truths[i] = drawn
+        source_from_b, source_from_a, truths[i] = _draw_until_it_fits(rng, config, view, (image.shape[1], image.shape[0]), width / height)
         views = []
         for source_from_view in (source_from_a, source_from_b):
             seen = cv2.warpPerspective(image, source_from_view, view, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
@@ -238,14 +250,11 @@ def make_motion_pairs(sources: list[np.ndarray], count: int, config: MotionConfi
         h, w = image.shape
         amount = rng.uniform() if rng.uniform() < small_motion_fraction else 1.0
         motion = config.scaled(amount) if amount < 1.0 else config
-        drawn = None
-        while drawn is None:
-            drawn = _draw_geometry(rng, motion, (patch, patch), (w, h))
-        source_from_b, source_from_a, b_from_a = drawn
+        source_from_b, source_from_a, b_from_a = _draw_until_it_fits(rng, motion, (patch, patch), (w, h))
         offsets[i] = geometry.offsets_from_homography(b_from_a, patch, patch)
-        flags = cv2.INTER_AREA if source_from_b[0, 0] > 1.5 else cv2.INTER_LINEAR
         image_f = image.astype(np.float32) / 255.0
-        b = cv2.warpPerspective(image_f, source_from_b, (patch, patch), flags=flags | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+        b = cv2.warpPerspective(image_f, source_from_b, (patch, patch), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                borderMode=cv2.BORDER_REPLICATE)
         a = cv2.warpPerspective(image_f, source_from_a, (patch, patch), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
         if with_context:
             source_from_canvas = source_from_a @ geometry.translation(-patch, -patch)

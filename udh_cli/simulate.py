@@ -271,7 +271,7 @@ class GpsConfig:
     longitude: float
     metres_per_pixel: float = 0.05
     heading_deg: float = 90.0
-    noise_m: float = 0.0
+    noise_m: float = 2.0  # a small drone's GPS: 1-3 m
 
 
 EARTH_RADIUS_M = 6_371_008.8  # mean radius: the flights are a few hundred metres, where a sphere is exact to mm

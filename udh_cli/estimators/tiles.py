@@ -182,9 +182,11 @@ def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: 
     for side, level_network, max_move in plan:
         level_a, level_b = levels[side]
         level_size_a, level_size_b = (level_a.shape[1], level_a.shape[0]), (level_b.shape[1], level_b.shape[0])
-        if (level_size_a, level_size_b) in done_sizes:
+        # A level size once per network: on small images the coarse network's level is already full
+        # resolution, and the refinement network must still run there.
+        if (id(level_network), level_size_a, level_size_b) in done_sizes:
             continue
-        done_sizes.add((level_size_a, level_size_b))
+        done_sizes.add((id(level_network), level_size_a, level_size_b))
         start = geometry.rescale_homography(current, size_a, level_size_a, size_b, level_size_b)
         found = refine_level(level_network, level_a, level_b, start, config, max_move)
         if found is None:

@@ -106,8 +106,9 @@ def georeference_part(frames: Sequence[tuple[int, tuple[int, int], np.ndarray, f
     map_points = np.column_stack([eastings, northings])
     centres = np.array([geometry.transform_points(h, np.array([[(w - 1) / 2, (hgt - 1) / 2]]))[0] for _, (w, hgt), h, _, _ in frames])
     used = np.ones(len(frames), bool)
+    least = max(2, min_frames)
     for _ in range(3 if len(frames) >= MIN_GPS_FRAMES else 0):  # refit without bad fixes (a GPS jump), a few rounds at most
-        if used.sum() < MIN_GPS_FRAMES:
+        if used.sum() < least:
             return None
         fit = fit_similarity(centres[used], map_points[used])
         residuals = np.linalg.norm(geometry.transform_points(fit, centres) - map_points, axis=1)
@@ -116,6 +117,8 @@ def georeference_part(frames: Sequence[tuple[int, tuple[int, int], np.ndarray, f
         if np.array_equal(keep, used):
             break
         used = keep
+    if used.sum() < least:
+        return None
     fit = fit_similarity(centres[used], map_points[used])
     residuals = np.linalg.norm(geometry.transform_points(fit, centres) - map_points, axis=1)
     a, b = fit[0, 0], fit[1, 0]

@@ -98,6 +98,10 @@ def _gps(gps: dict) -> dict[str, float | None]:
         found["altitude_m"] = -altitude if below else altitude
     if "latitude" in found and abs(found["latitude"]) > 90.0:
         found.pop("latitude")
+    # A receiver without a fix writes 0, 0 (or status "V", void): that is no position, not the Gulf of Guinea.
+    if (found.get("latitude") == 0.0 and found.get("longitude") == 0.0) or _text(gps.get(9)) == "V":
+        found.pop("latitude", None)
+        found.pop("longitude", None)
     return found
 
 

@@ -281,7 +281,7 @@ def run_mosaic(
         staged.publish()
     finally:
         staged.discard()  # after a failure; nothing is left to discard after publish()
-    _remove_stale_parts(output, parts, reporter)
+    _remove_stale_parts(output, parts, reporter, report)
     report["sidecar"] = str(sidecar_path(output))
     return report
 
@@ -337,16 +337,32 @@ def _write_combined_map(placed: list, frameset: FrameSet, report: dict[str, Any]
     what no estimated pair could. The largest part is drawn on top; the others' frames rest on GPS alone."""
     epsg = placed[0][1].epsg
     same_zone = sorted((item for item in placed if item[1].epsg == epsg), key=lambda item: -len(item[0].frames))
+    if len(same_zone) < len(placed):
+        reporter.warn(f"{len(placed) - len(same_zone)} part(s) lie in another UTM zone than EPSG:{epsg} and are left out of the one map")
     layers = []
     for part, found in same_zone:
-        image = cv2.imread(str(staged.temporary_of(part.file)), cv2.IMREAD_UNCHANGED)
-        layers.append((image if image.ndim == 3 and image.shape[2] == 4 else cv2.cvtColor(image, cv2.COLOR_BGR2BGRA), found.map_from_mosaic))
+        image = _staged_bgra(staged, part)
+        if image is None:
+            reporter.warn(f"{part.file.name}: its image could not be read back; left out of the one map")
+            continue
+        layers.append((image, found.map_from_mosaic))
+    if len(layers) < 2:
+        return
     written = write_combined_cog(layers, epsg, staged.path_for(cog_path(output)))
     on_gps_alone = sum(len(part.frames) for part, _ in same_zone[1:])
     report["map"] = {**written, "file": cog_path(output).name, "crs": f"EPSG:{epsg}", "parts": len(same_zone),
                      "frames": sum(len(part.frames) for part, _ in same_zone), "frames_on_gps_alone": on_gps_alone}
     reporter.info(f"{cog_path(output).name}: {len(same_zone)} parts in one map, placed by GPS; {on_gps_alone} frames "
                   f"rest on GPS alone (outside the largest part)")
+
+
+def _staged_bgra(staged: StagedFiles, part: Part) -> np.ndarray | None:
+    """A part's mosaic as written this run (its staged file), as (H, W, 4) BGRA; None if it cannot be read."""
+    temporary = staged.temporary_of(part.file)
+    image = None if temporary is None else cv2.imread(str(temporary), cv2.IMREAD_UNCHANGED)
+    if image is None or image.ndim != 3 or image.dtype != np.uint8:
+        return None
+    return image if image.shape[2] == 4 else cv2.cvtColor(image, cv2.COLOR_BGR2BGRA)  # a JPEG mosaic has no alpha
 
 
 def _write_georeference(part: Part, found, staged: StagedFiles, entry: dict[str, Any], reporter: Reporter) -> None:
@@ -356,9 +372,10 @@ def _write_georeference(part: Part, found, staged: StagedFiles, entry: dict[str,
     if not has_rasterio():
         reporter.warn("no north-up GeoTIFF: it needs rasterio (pip install rasterio; from the udh checkout: pip install '.[geo]')")
         return
-    mosaic = cv2.imread(str(staged.temporary_of(part.file)), cv2.IMREAD_UNCHANGED)
-    if mosaic is None or mosaic.ndim != 3 or mosaic.shape[2] != 4:  # a JPEG mosaic has no alpha: add it
-        mosaic = cv2.cvtColor(cv2.imread(str(staged.temporary_of(part.file)), cv2.IMREAD_COLOR), cv2.COLOR_BGR2BGRA)
+    mosaic = _staged_bgra(staged, part)
+    if mosaic is None:
+        reporter.warn(f"{part.file.name}: its image could not be read back for the GeoTIFF; written without one")
+        return
     written = write_cog(mosaic, found.map_from_mosaic, found.epsg, staged.path_for(cog_path(part.file)))
     entry["geotiff"] = {**written, "file": cog_path(part.file).name}
 
@@ -403,7 +420,8 @@ def _relative_to(path: Path, folder: Path) -> str:
 
 def _own_files(output: Path) -> list[Path]:
     """Outputs of this run (or an earlier one), which must never be read back as frames."""
-    return [output, sidecar_path(output), preview_path(output), cache_path(output)] + [p for p in output.parent.glob(f"{output.stem}.part*")]
+    return ([output, sidecar_path(output), preview_path(output), cache_path(output), cog_path(output)]
+            + [p for p in output.parent.glob(f"{output.stem}.part*")])
 
 
 def _load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:
@@ -555,10 +573,25 @@ def _warn_about_earlier_output(output: Path, parts: list[Part], reporter: Report
         reporter.warn(f"{output.name} is left from an earlier run: this run is split into parts, which are written as {written[0].file.name}, ...")
 
 
-def _remove_stale_parts(output: Path, parts: list[Part], reporter: Reporter) -> None:
-    """Remove part files of this output name (an earlier run with more parts) that this run did not write."""
+def _part_number(parts: list[Part], mosaic: Path) -> int | None:
+    return next((p.number for p in parts if p.file == mosaic), None)
+
+
+def _remove_stale_parts(output: Path, parts: list[Part], reporter: Reporter, report: dict[str, Any] | None = None) -> None:
+    """Remove part files of this output name (an earlier run with more parts) that this run did not write, and
+    the georeference files (world, .prj, GeoTIFF) of an earlier run that this run did not write again: an old
+    world file beside a new mosaic would put it on the map in the wrong place."""
     produced = [f for p in parts for f in (p.file, p.preview) if f is not None and p.canvas is not None]
+    entries = {e["part"]: e for e in (report or {}).get("parts", [])}
+    georeferenced = [p.file for p in parts if p.canvas is not None and (entries.get(p.number) or {}).get("georeference")]
+    produced += [f for mosaic in georeferenced for f in (world_file_path(mosaic), mosaic.with_suffix(".prj"))]
+    produced += [cog_path(mosaic) for mosaic in georeferenced if (entries.get(_part_number(parts, mosaic)) or {}).get("geotiff")]
+    if (report or {}).get("map"):
+        produced.append(cog_path(output))
     stale = stale_part_files(output, produced)
+    for mosaic in [output, *(p.file for p in parts if p.file is not None)]:
+        stale += [f for f in (world_file_path(mosaic), mosaic.with_suffix(".prj"), cog_path(mosaic))
+                  if f.is_file() and f.resolve() not in {g.resolve() for g in produced} and f not in stale]
     for path in stale:
         try:
             path.unlink()

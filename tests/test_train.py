@@ -101,39 +101,44 @@ def test_unsupervised_loss_is_zero_at_the_truth_and_grows_away_from_it(pool):
     assert off_truth > 3 * at_truth
 
 
-@pytest.mark.slow
-def test_resume_after_kill_matches_an_uninterrupted_run(pool, tmp_path):
-    """SIGKILL a training process after its first checkpoint; --resume must end bit-identical."""
+def _interrupt_and_resume(pool: Path, tmp_path: Path, sig: int, slow_first_save: bool) -> None:
+    """Train 60 steps straight; train the same run in a subprocess, send ``sig`` once its first checkpoint
+    exists, resume it in this process: the weights, the Adam state and the log must equal the straight run's."""
     straight = tmp_path / "straight"
     train(tiny_config(pool, straight, steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False)
-
-    killed = tmp_path / "killed"
+    interrupted = tmp_path / "interrupted"
+    slow = ("import time, udh_cli.train.loop as loop; original = loop.Trainer.save\n"
+            "def slow_save(self):\n    original(self); time.sleep(0.5 if self.step == 20 else 0)\n"
+            "loop.Trainer.save = slow_save\n") if slow_first_save else ""
     script = (
         "import sys; sys.path.insert(0, %r); from test_train import tiny_config; from pathlib import Path;"
-        "from udh_cli.train.loop import train;"
-        "import time, udh_cli.train.loop as loop;"
-        "original = loop.Trainer.save\n"
-        "def slow_save(self):\n    original(self); time.sleep(0.5 if self.step == 20 else 0)\n"
-        "loop.Trainer.save = slow_save\n"
+        "from udh_cli.train.loop import train\n" + slow +
         "train(tiny_config(Path(%r), Path(%r), steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False)"
-    ) % (str(Path(__file__).parent), str(pool), str(killed))
-    process = subprocess.Popen([sys.executable, "-c", script], cwd=REPO)
+    ) % (str(Path(__file__).parent), str(pool), str(interrupted))
+    process = subprocess.Popen([sys.executable, "-c", script], cwd=REPO, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
-    while time.time() < deadline and not (killed / "checkpoint.pt").exists():
-        time.sleep(0.05)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
-    interrupted_at = load_checkpoint(killed / "checkpoint.pt")["step"]
-    assert 20 <= interrupted_at < 60
+    while time.time() < deadline and not (interrupted / "checkpoint.pt").exists():
+        time.sleep(0.02)
+    process.send_signal(sig)
+    assert process.wait(timeout=120) != 0
+    assert 20 <= load_checkpoint(interrupted / "checkpoint.pt")["step"] < 60
 
     # No steps given on resume: the run goes on to its own planned total (60), into the --out given now.
-    train(tiny_config(pool, killed, steps=None), resume=True, threads=1, progress=False)
-    a = load_checkpoint(straight / "checkpoint.pt")
-    b = load_checkpoint(killed / "checkpoint.pt")
+    train(tiny_config(pool, interrupted, steps=None), resume=True, threads=1, progress=False)
+    a, b = load_checkpoint(straight / "checkpoint.pt"), load_checkpoint(interrupted / "checkpoint.pt")
     assert a["step"] == b["step"] == 60
     for name, tensor in a["model"].items():
         assert torch.equal(tensor, b["model"][name]), name
-    assert [m["step"] for m in read_metrics(killed)] == [m["step"] for m in read_metrics(straight)]
+    for key, value in a["optimizer"]["state"].items():
+        for field, tensor in value.items():
+            assert torch.equal(tensor, b["optimizer"]["state"][key][field]), (key, field)
+    assert [m["step"] for m in read_metrics(interrupted)] == [m["step"] for m in read_metrics(straight)]
+
+
+@pytest.mark.slow
+def test_resume_after_kill_matches_an_uninterrupted_run(pool, tmp_path):
+    """SIGKILL after the first checkpoint (held open half a second so the kill lands on it)."""
+    _interrupt_and_resume(pool, tmp_path, signal.SIGKILL, slow_first_save=True)
 
 
 @pytest.mark.slow
@@ -260,33 +265,7 @@ def test_distillation_pulls_the_student_towards_the_teacher(pool, tmp_path):
 @pytest.mark.slow
 def test_sigterm_stops_at_a_step_boundary_and_resume_is_bit_identical(pool, tmp_path):
     """SIGTERM mid-run saves after a whole step (not mid-step); --resume then ends exactly as a straight run."""
-    straight = tmp_path / "straight"
-    train(tiny_config(pool, straight, steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False)
-
-    stopped = tmp_path / "stopped"
-    script = (
-        "import sys; sys.path.insert(0, %r); from test_train import tiny_config; from pathlib import Path;"
-        "from udh_cli.train.loop import train;"
-        "train(tiny_config(Path(%r), Path(%r), steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False)"
-    ) % (str(Path(__file__).parent), str(pool), str(stopped))
-    process = subprocess.Popen([sys.executable, "-c", script], cwd=REPO, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 120
-    while time.time() < deadline and not (stopped / "checkpoint.pt").exists():
-        time.sleep(0.02)
-    process.send_signal(signal.SIGTERM)
-    assert process.wait(timeout=120) != 0
-    interrupted_at = load_checkpoint(stopped / "checkpoint.pt")["step"]
-    assert 20 <= interrupted_at < 60
-
-    train(tiny_config(pool, stopped, steps=None), resume=True, threads=1, progress=False)
-    a, b = load_checkpoint(straight / "checkpoint.pt"), load_checkpoint(stopped / "checkpoint.pt")
-    assert a["step"] == b["step"] == 60
-    for name, tensor in a["model"].items():
-        assert torch.equal(tensor, b["model"][name]), name
-    for key, value in a["optimizer"]["state"].items():
-        for field, tensor in value.items():
-            assert torch.equal(tensor, b["optimizer"]["state"][key][field]), (key, field)
-    assert [m["step"] for m in read_metrics(stopped)] == [m["step"] for m in read_metrics(straight)]
+    _interrupt_and_resume(pool, tmp_path, signal.SIGTERM, slow_first_save=False)
 
 
 def test_an_out_holding_a_run_needs_resume_or_overwrite_and_one_run_at_a_time(pool, tmp_path):

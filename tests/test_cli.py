@@ -265,3 +265,14 @@ def test_simulate_writes_a_flight_with_ground_truth_and_never_into_a_used_folder
     before = (folder / "frame_000.jpg").read_bytes()
     again = CliRunner().invoke(cli.app, ["simulate", str(folder)])
     assert again.exit_code == 1 and (folder / "frame_000.jpg").read_bytes() == before
+
+
+def test_the_papers_single_pass_is_still_one_command(files):
+    args = ["estimate", str(files["a.png"]), str(files["b16.png"]), "-m", "unsupervised", "--iterations", "1", "--refine-rounds", "0",
+            "--headings", "1", "--no-tiles", "--flight-model", "none", "--json"]
+    result = CliRunner().invoke(cli.app, args)
+    report = json.loads(result.stdout)
+    assert report["ok"] and report["details"]["iterations"] == 1 and report["details"]["refine_rounds"] == 0
+    assert "tile_levels" not in report["details"] and report["details"]["stage_ms"]["tiles"] == 0.0
+    full = json.loads(CliRunner().invoke(cli.app, args[:5] + ["--json"]).stdout)
+    assert full["details"]["tile_levels"] >= 0 and full["details"]["refine_rounds"] == 2

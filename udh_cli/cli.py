@@ -79,6 +79,9 @@ def estimate(
     refine_rounds: Annotated[Optional[int], typer.Option(min=0, max=10, help="Learned methods: rounds of the refinement network after the coarse ones (0: none; at most 10).")] = None,
     search: Annotated[Optional[int], typer.Option(min=0, max=4, help="Learned methods: when the answer is doubted, retry from a (2N+1)^2 grid of shifts up to half the frame (0: off; at most 4).")] = None,
     precision: Annotated[Optional[str], typer.Option(help="Learned methods: which shipped networks, int8 (the default where shipped) or fp32.")] = None,
+    headings: Annotated[Optional[int], typer.Option(min=1, max=2, help="Learned methods: 2 also tries B turned half a turn (unsupervised's default), 1 only B as given.")] = None,
+    tiles: Annotated[Optional[bool], typer.Option("--tiles/--no-tiles", help="Learned methods: refine on tiles up to full resolution (on when there is a refinement stage).")] = None,
+    flight_model: Annotated[Optional[str], typer.Option(help="Learned methods: the flight-motion coarse network beside the first (default: the shipped one; 'none' for none).")] = None,
     work_size: Annotated[int, typer.Option(help="Estimate with the images' longer side shrunk to this many pixels; the answer is in full-resolution pixels.")] = ESTIMATE_WORK_SIZE,
     full_resolution: Annotated[bool, typer.Option("--full-resolution", help="Estimate at the images' full resolution (slow and memory-hungry on large photos).", metavar="")] = False,
 ) -> None:
@@ -90,7 +93,8 @@ def estimate(
 
     given = {"best_features": best_features, "model": None if model is None else str(model), "device": device, "iterations": iterations,
              "refine_model": None if refine_model is None else str(refine_model), "refine_rounds": refine_rounds, "search": search,
-             "precision": precision}
+             "precision": precision, "headings": headings, "tiles": tiles,
+             "flight_model": None if flight_model is None else ("" if flight_model.lower() == "none" else flight_model)}
     options = {key: value for key, value in given.items() if value is not None}
     try:
         report = estimate_report(image_a, image_b, method.value, gt=gt, viz=viz, work_size=None if full_resolution else work_size, **options)

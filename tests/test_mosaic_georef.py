@@ -195,3 +195,23 @@ def test_an_earlier_runs_georeference_never_stays_beside_a_mosaic_without_one(tm
     report = run_mosaic(without, out / "m.png", config)
     assert report["parts"] == [] or report["parts"][0].get("georeference") is None
     assert not ({"m.pgw", "m.prj", "m.cog.tif"} & {p.name for p in out.iterdir()})
+
+
+def test_a_geotiff_too_large_is_a_warning_and_nothing_half_written(tmp_path, monkeypatch):
+    pytest.importorskip("rasterio")
+    import udh_cli.mosaic.geotiff as geotiff
+    from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
+    from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
+
+    folder = tmp_path / "flight"
+    write_flight(folder, FlightConfig(frame_size=(320, 240), strips=1, frames_per_strip=4, focal_px=300.0), seed=1,
+                 gps=GpsConfig(46.85, -92.0, noise_m=0.5))
+    real = geotiff.write_combined_cog
+    monkeypatch.setattr(geotiff, "write_combined_cog", lambda layers, epsg, path, max_pixels=0: real(layers, epsg, path, max_pixels=10))
+    reporter = Reporter(quiet=True)
+    out = tmp_path / "out"
+    out.mkdir()
+    report = run_mosaic(folder, out / "m.png", MosaicConfig(method="sift", overlap_per_frame=1), reporter)
+    assert report["summary"]["placed"] == 4 and (out / "m.png").is_file() and (out / "m.pgw").is_file()
+    assert not (out / "m.cog.tif").exists() and not [p for p in out.iterdir() if p.name.startswith(".")]
+    assert any("no north-up GeoTIFF" in w for w in reporter.warnings)

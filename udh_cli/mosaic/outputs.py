@@ -126,6 +126,12 @@ class StagedFiles:
         self.staged.append((temporary, final))
         return temporary
 
+    def forget(self, final: Path) -> None:
+        """Drop ``final`` from the files to publish and delete what was staged for it (a write that failed)."""
+        for temporary, staged_final in [item for item in self.staged if item[1] == final]:
+            temporary.unlink(missing_ok=True)
+            self.staged.remove((temporary, staged_final))
+
     def temporary_of(self, final: Path) -> Path | None:
         """The temporary name ``final`` is staged under, or None."""
         return next((temporary for temporary, staged_final in self.staged if staged_final == final), None)

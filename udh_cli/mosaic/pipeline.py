@@ -335,7 +335,7 @@ def _georeference(frameset: FrameSet, parts: list[Part], report: dict[str, Any],
 def _write_combined_map(placed: list, frameset: FrameSet, report: dict[str, Any], staged: StagedFiles, reporter: Reporter, output: Path) -> None:
     """The parts of a split run in one north-up GeoTIFF, each placed by its own frames' GPS: GPS ties together
     what no estimated pair could. The largest part is drawn on top; the others' frames rest on GPS alone."""
-    epsg = placed[0][1].epsg
+    epsg = max(placed, key=lambda item: len(item[0].frames))[1].epsg  # the largest part's zone
     same_zone = sorted((item for item in placed if item[1].epsg == epsg), key=lambda item: -len(item[0].frames))
     if len(same_zone) < len(placed):
         reporter.warn(f"{len(placed) - len(same_zone)} part(s) lie in another UTM zone than EPSG:{epsg} and are left out of the one map")
@@ -348,7 +348,12 @@ def _write_combined_map(placed: list, frameset: FrameSet, report: dict[str, Any]
         layers.append((image, found.map_from_mosaic))
     if len(layers) < 2:
         return
-    written = write_combined_cog(layers, epsg, staged.path_for(cog_path(output)))
+    try:
+        written = write_combined_cog(layers, epsg, staged.path_for(cog_path(output)))
+    except UdhError as exc:  # the one map is an extra: the parts and their own georeferences still stand
+        staged.forget(cog_path(output))
+        reporter.warn(f"no combined map: {exc}")
+        return
     on_gps_alone = sum(len(part.frames) for part, _ in same_zone[1:])
     report["map"] = {**written, "file": cog_path(output).name, "crs": f"EPSG:{epsg}", "parts": len(same_zone),
                      "frames": sum(len(part.frames) for part, _ in same_zone), "frames_on_gps_alone": on_gps_alone}
@@ -376,7 +381,12 @@ def _write_georeference(part: Part, found, staged: StagedFiles, entry: dict[str,
     if mosaic is None:
         reporter.warn(f"{part.file.name}: its image could not be read back for the GeoTIFF; written without one")
         return
-    written = write_cog(mosaic, found.map_from_mosaic, found.epsg, staged.path_for(cog_path(part.file)))
+    try:
+        written = write_cog(mosaic, found.map_from_mosaic, found.epsg, staged.path_for(cog_path(part.file)))
+    except UdhError as exc:  # the GeoTIFF is an extra: the mosaic and its world file still stand
+        staged.forget(cog_path(part.file))
+        reporter.warn(f"{part.file.name}: no north-up GeoTIFF: {exc}")
+        return
     entry["geotiff"] = {**written, "file": cog_path(part.file).name}
 
 

@@ -56,8 +56,8 @@ class DeepEstimator(Estimator):
             so each serves the motion it was trained for. ``None`` takes the shipped ``<name>-flight`` network
             when there is one and ``model`` is not given; ``""`` turns it off.
         headings: 1 runs the network on B as given; 2 also on B turned half a turn, keeping the better-scoring
-            answer. Why: a survey's strips alternate direction, and the network is trained for turns of up
-            to 100 degrees; half a turn keeps the frame's shape (a quarter turn of a 4:3 frame would not).
+            answer. Why: a survey's strips alternate direction, and the flight network is trained for turns of
+            up to 30 degrees; half a turn keeps the frame's shape (a quarter turn of a 4:3 frame would not).
         tiles: refine the answer on 128x128 tiles at finer levels up to full resolution with the last
             network of the cascade (:mod:`udh_cli.estimators.tiles`): the network alone is then sub-pixel
             at any frame size. None: on when the cascade has a refinement stage.
@@ -219,9 +219,8 @@ class DeepEstimator(Estimator):
         precision = self.loaded_precision()
         out = []
         for (a, b), h, confidence, was_searched, refined in zip(pairs, small_h, scores, searched, tiled):
-            valid = geometry.is_valid_homography(h, s, s)
-            full = geometry.rescale_homography(h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0])) if valid else None
-            failure = None if valid else "the network's 4-point output gives a degenerate homography"
+            full = self._full_resolution(h, a, b)
+            failure = None if full is not None else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
                        "precision": precision, "provider": self.network.provider, "stage_ms": stage_ms}
             if full is not None and refined is not None:
@@ -232,15 +231,20 @@ class DeepEstimator(Estimator):
             out.append(self._checked(full, confidence, per_pair_ms, failure, details, a.shape, stage=stage))
         return out
 
+    def _full_resolution(self, small_h: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+        """A ``b_from_a`` of the S x S images rescaled exactly to ``a``'s and ``b``'s pixels; None when degenerate."""
+        s = self.network.input_size
+        if not geometry.is_valid_homography(small_h, s, s):
+            return None
+        return geometry.rescale_homography(small_h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0]))
+
     def _tiles(self, grey: tuple[np.ndarray, np.ndarray], pair: tuple[np.ndarray, np.ndarray], small_h: np.ndarray):
         """The tile stage (:func:`refine_with_tiles`) from a whole-frame answer of the S x S images; None when
         that answer is degenerate."""
-        s = self.network.input_size
-        (a, b), (gray_a, gray_b) = pair, grey
-        if not geometry.is_valid_homography(small_h, s, s):
+        full = self._full_resolution(small_h, *pair)
+        if full is None:
             return None
-        full = geometry.rescale_homography(small_h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0]))
-        return refine_with_tiles(self.stages[-1][0], gray_a, gray_b, full, coarse_network=self.network if len(self.stages) > 1 else None)
+        return refine_with_tiles(self.stages[-1][0], *grey, full, coarse_network=self.network if len(self.stages) > 1 else None)
 
     def _predict_headings(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
         """The cascade of every coarse network (:attr:`first_stages`), from B as given and (``headings`` 2)

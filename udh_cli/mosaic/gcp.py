@@ -75,11 +75,11 @@ def read_gcp_file(path: str | Path) -> GcpFile:
         name = fields[6] if len(fields) > 6 else f"line{number}"
         observations.append(Observation(x, y, z, px, py, fields[5], name, number))
     if geographic:  # longitude, latitude degrees: to the UTM zone of their centre
-        from udh_cli.mosaic.georef import _transformer, utm_epsg
+        from udh_cli.mosaic.georef import utm_transformer, utm_epsg
 
         lon, lat = np.median([o.x for o in observations]), np.median([o.y for o in observations])
         epsg = utm_epsg(float(lat), float(lon))
-        eastings, northings = _transformer(epsg).transform([o.x for o in observations], [o.y for o in observations])
+        eastings, northings = utm_transformer(epsg).transform([o.x for o in observations], [o.y for o in observations])
         observations = [Observation(e, n, o.z, o.px, o.py, o.image, o.name, o.line) for o, e, n in zip(observations, eastings, northings)]
     return GcpFile(epsg, observations)
 

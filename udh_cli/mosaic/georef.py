@@ -63,7 +63,8 @@ def utm_epsg(latitude: float, longitude: float) -> int:
     return (32600 if latitude >= 0 else 32700) + zone
 
 
-def _transformer(epsg: int):
+def utm_transformer(epsg: int):
+    """pyproj's WGS 84 longitude/latitude -> ``epsg`` transformer (``always_xy``); a clear error without pyproj."""
     try:
         from pyproj import Transformer
     except ImportError:
@@ -102,7 +103,7 @@ def georeference_part(frames: Sequence[tuple[int, tuple[int, int], np.ndarray, f
         return None
     latitudes, longitudes = np.array([f[3] for f in frames]), np.array([f[4] for f in frames])
     epsg = utm_epsg(float(np.median(latitudes)), float(np.median(longitudes)))
-    eastings, northings = _transformer(epsg).transform(longitudes, latitudes)
+    eastings, northings = utm_transformer(epsg).transform(longitudes, latitudes)
     map_points = np.column_stack([eastings, northings])
     centres = np.array([geometry.transform_points(h, np.array([[(w - 1) / 2, (hgt - 1) / 2]]))[0] for _, (w, hgt), h, _, _ in frames])
     used = np.ones(len(frames), bool)

@@ -47,7 +47,6 @@ def read_metrics(out: Path) -> list[dict]:
 
 
 @pytest.mark.slow
-@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["supervised", "unsupervised"])
 def test_a_few_hundred_steps_lower_loss_and_corner_error(pool, mode):
     """The whole differentiable path (network, Tensor DLT, spatial transformer, losses) learns: 300 Adam
@@ -327,6 +326,66 @@ def test_flight_motion_training_runs_and_records_its_motion(pool, tmp_path):
     assert load_checkpoint(out / "checkpoint.pt")["config"]["max_heading"] == 20.0
     with pytest.raises(UdhError, match="flight motion out of range"):
         Trainer(tiny_config(pool, tmp_path / "bad", motion="flight", max_heading=200.0), progress=False)
+
+
+def make_flight(folder: Path, frames: int = 6, shift: int = 12) -> Path:
+    """A flight folder the test makes itself: overlapping 320x240 crops of one large image, each ``shift``
+    px right of the last, with a manifest (the marker of a flight) and the true homographies as references."""
+    folder.mkdir()
+    (folder / "images").mkdir()
+    world = textured_image(320 + shift * frames, 240, seed=7)
+    rows = ["img1,img2,H_sift_ransac_1to2"]
+    for i in range(frames):
+        cv2.imwrite(str(folder / "images" / f"f{i:02d}.png"), world[:, i * shift : i * shift + 320])
+        if i:
+            rows.append(f"f{i - 1:02d}.png,f{i:02d}.png,1 0 {-shift} 0 1 0 0 0 1")
+    (folder / "manifest.csv").write_text("file\n")
+    (folder / "consecutive_pairs_sift_reference.csv").write_text("\n".join(rows) + "\n")
+    return folder
+
+
+def test_pools_and_flights_together_mix_real_pairs_into_flight_motion_batches(pool, tmp_path):
+    """Real pairs join synthetic flight-motion pairs on the same 3P canvas, and the photometric loss of a real
+    pair is lowest at its true motion: the loss can learn from it without labels."""
+    from udh_cli.flight_motion import MotionConfig
+    from udh_cli.synthetic import PairConfig
+    from udh_cli.train.data import MixedData, open_data
+
+    flight = make_flight(tmp_path / "flight")
+    config = PairConfig(patch_size=32, rho=4.0, illumination=False, motion=MotionConfig())
+    data = open_data([pool, flight], "auto", config, real_fraction=0.25)
+    assert isinstance(data, MixedData)
+    batch = data.batch(np.random.default_rng(0), 8, unsupervised=True)
+    assert batch.patches.shape == (8, 2, 32, 32) and batch.context_a.shape == (8, 2, 96, 96) and batch.offsets is None
+    np.testing.assert_array_equal(batch.origin, 32.0)  # A's frame in the middle of the canvas, for both kinds
+    real_mask = batch.context_a[6:, 1]
+    assert real_mask[:, 32:64, 32:64].min() == 1.0 and real_mask.sum() == 2 * 32 * 32  # no pixel outside A's frame is valid
+    assert data.real_validation(8).patches.shape[0] == 1  # the 5th of 5 consecutive pairs is held out
+
+    # The one real training-style pair, unaugmented: B shows A's content moved 12/320 of the frame left.
+    a, b = data.flight.train_pairs[0]
+    truth = np.array([[-12 * 32 / 320, 0.0]] * 4, np.float32)
+    context = np.zeros((1, 2, 96, 96), np.float32)
+    context[0, 0, 32:64, 32:64], context[0, 1, 32:64, 32:64] = a, 1.0
+    args = (torch.from_numpy(context), torch.tensor([[32.0, 32.0]]), torch.from_numpy(b[None]))
+    at_truth = float(losses.photometric_loss(torch.from_numpy(truth[None]), *args))
+    at_identity = float(losses.photometric_loss(torch.zeros(1, 4, 2), *args))
+    assert at_truth < 0.5 * at_identity
+
+    with pytest.raises(UdhError, match="--motion flight"):
+        open_data([pool, flight], "auto", PairConfig(patch_size=32), real_fraction=0.5)
+    with pytest.raises(UdhError, match="--real-fraction"):
+        Trainer(tiny_config(pool, tmp_path / "bad", real_fraction=1.5), progress=False)
+
+
+def test_a_real_pair_on_a_return_leg_is_turned_by_the_networks_own_heading_choice():
+    """A strip's return leg: B is A's view turned half a turn. The shipped network's heading search picks the
+    half turn for it, and not for the same pair unturned."""
+    from udh_cli.train.data import half_turn_choices
+
+    world = cv2.resize(textured_image(400, 300, seed=3), (128 + 16, 128), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+    a, b = world[:, :128], world[:, 8:136]
+    assert half_turn_choices([(a, b), (a, np.ascontiguousarray(b[::-1, ::-1]))]) == [False, True]
 
 
 def test_export_refuses_its_own_checkpoint_and_a_non_onnx_name(tmp_path):

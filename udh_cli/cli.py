@@ -20,6 +20,7 @@ from udh_cli.errors import UdhError
 from udh_cli.api import ESTIMATE_WORK_SIZE
 from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS
 from udh_cli.flight_motion import MotionConfig as _MotionDefaults
+from udh_cli.train.data import DEFAULT_REAL_FRACTION
 
 app = typer.Typer(
     name="udh",
@@ -149,7 +150,8 @@ def train(
     teacher_weight: Annotated[float, typer.Option(help="Weight of the mean |offset - teacher's offset| (px) beside the photometric loss.")] = 0.01,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.", metavar="")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the run in --out (without it, a folder holding a run is refused).", metavar="")] = False,
-    data_kind: Annotated[str, typer.Option(help="auto, pool or flight.")] = "auto",
+    data_kind: Annotated[str, typer.Option(help="auto (pools and flights given together are mixed), pool or flight.")] = "auto",
+    real_fraction: Annotated[float, typer.Option(help="With pools and flights together: the share of each batch from the flights' real pairs.")] = DEFAULT_REAL_FRACTION,
     small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = 0.3,
     illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.", metavar="")] = True,
     occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = 0.0,
@@ -167,7 +169,7 @@ def train(
     from udh_cli.train.loop import TrainConfig, init_arch, train as run_training
 
     config = TrainConfig(
-        mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, arch=arch or init_arch(init), rho=rho, small_motion_fraction=small_motion,
+        mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, real_fraction=real_fraction, arch=arch or init_arch(init), rho=rho, small_motion_fraction=small_motion,
         illumination=illumination, occluders=occluders, motion=motion, max_heading=max_heading, max_scale=max_scale,
         max_shift=max_shift, min_overlap=min_overlap, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
         checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),

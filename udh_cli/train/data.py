@@ -1,6 +1,6 @@
-"""Training data: synthetic pairs from image pools, and consecutive real frames from flights.
+"""Training data: synthetic pairs from image pools, consecutive real frames from flights, or both mixed.
 
-Both produce the same batch layout (numpy, float32), which :func:`to_tensors` turns into torch:
+All produce the same batch layout (numpy, float32), which :func:`to_tensors` turns into torch:
 ``patches (N, 2, P, P)`` in [0, 1] (what the network sees, augmented), ``offsets (N, 4, 2)`` (the truth,
 synthetic only), ``context_a (N, 2, H, W)`` (clean A frame + validity mask), ``origin (N, 2)`` and
 ``clean_b (N, P, P)`` (what the photometric loss compares against).
@@ -23,6 +23,7 @@ from udh_cli.images import read_image, to_gray_u8
 from udh_cli.synthetic import PairConfig, illuminate, list_images, load_sources, make_pairs, split_holdout
 
 FLIGHT_MARKERS = ("manifest.csv", "consecutive_pairs_sift_reference.csv")
+DEFAULT_REAL_FRACTION = 0.5  # share of a mixed batch from real flight pairs
 
 
 def is_flight_folder(folder: Path) -> bool:
@@ -80,14 +81,21 @@ class FlightData:
     reference homography (the folder's SIFT reference CSV, else SIFT computed here) measures progress.
     Training pairs are augmented with the same flip/rotation for both frames, a random A/B swap, and
     independent illumination on what the network sees.
+
+    ``canvas``: the side of ``context_a`` (default P). A larger canvas puts A's frame at ``(c - P) / 2``
+    with a zero mask around it, the layout of synthetic flight-motion pairs, so that both kinds share a
+    batch. ``orient``: turn B half a turn where the shipped network's own heading choice says so
+    (:func:`half_turn_choices`): a strip's return leg is otherwise a pair no network trained for turns of
+    tens of degrees can learn from.
     """
 
     kind = "flight"
     has_labels = False
 
-    def __init__(self, folders: list[Path], config: PairConfig):
+    def __init__(self, folders: list[Path], config: PairConfig, canvas: int | None = None, orient: bool = False):
         self.config = config
         p = config.patch_size
+        self.canvas = p if canvas is None else canvas
         self.train_pairs: list[tuple[np.ndarray, np.ndarray]] = []
         self.val_pairs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         for folder in folders:
@@ -114,12 +122,21 @@ class FlightData:
                 self.train_pairs.append((small_a, small_b))
         if len(self.train_pairs) < 1:
             raise UdhError(f"found no usable consecutive frame pairs in {', '.join(map(str, folders))}; a flight needs at least 2 readable frames")
-        self.description = f"{len(self.train_pairs)} consecutive real pairs ({len(self.val_pairs)} held out)"
+        turned = 0
+        if orient:
+            for i, turn in enumerate(half_turn_choices(self.train_pairs)):
+                if turn:
+                    a, b = self.train_pairs[i]
+                    self.train_pairs[i] = (a, np.ascontiguousarray(b[::-1, ::-1]))
+                    turned += 1
+        self.description = f"{len(self.train_pairs)} consecutive real pairs ({len(self.val_pairs)} held out" + \
+            (f", {turned} turned half a turn)" if orient else ")")
 
     def batch(self, rng: np.random.Generator, size: int, unsupervised: bool) -> Batch:
-        p = self.config.patch_size
+        p, c = self.config.patch_size, self.canvas
+        at = (c - p) // 2
         patches = np.empty((size, 2, p, p), np.float32)
-        context = np.empty((size, 2, p, p), np.float32)
+        context = np.zeros((size, 2, c, c), np.float32)
         clean_b = np.empty((size, p, p), np.float32)
         for i in range(size):
             a, b = self.train_pairs[rng.integers(len(self.train_pairs))]
@@ -129,10 +146,10 @@ class FlightData:
             a, b = (np.rot90(x, turns) for x in (a, b))
             if flip:
                 a, b = a[:, ::-1], b[:, ::-1]
-            context[i, 0], context[i, 1], clean_b[i] = a, 1.0, b
+            context[i, 0, at:at + p, at:at + p], context[i, 1, at:at + p, at:at + p], clean_b[i] = a, 1.0, b
             seen_a, seen_b = (a, b) if not self.config.illumination else (illuminate(a, rng), illuminate(b, rng))
             patches[i, 0], patches[i, 1] = seen_a, seen_b
-        return Batch(patches, None, context, np.zeros((size, 2), np.float32), clean_b)
+        return Batch(patches, None, context, np.full((size, 2), float(at), np.float32), clean_b)
 
     def validation(self, size: int, seed: int = 12345) -> Batch | None:
         if not self.val_pairs:
@@ -141,6 +158,60 @@ class FlightData:
         patches = np.stack([np.stack([a, b]) for a, b, _ in chosen]).astype(np.float32)
         offsets = np.stack([o for _, _, o in chosen]).astype(np.float32)
         return Batch(patches, offsets, patches[:, :1], np.zeros((len(chosen), 2), np.float32), patches[:, 1])
+
+
+class MixedData:
+    """Synthetic flight-motion pairs from image pools and real consecutive pairs from flights in every batch.
+
+    Why: the pools teach motion with labels to validate on; the real pairs carry what no generator draws
+    (a fixed-wing's low-texture fields, false colour, a camera's hot spot and the real motion between
+    frames), and the photometric loss needs no labels for them: the paper's own advantage over supervised
+    training. ``real_fraction`` of each batch is real. Validation is the pools' labelled set; the flights'
+    held-out pairs (scored against SIFT references) are :meth:`real_validation`.
+    """
+
+    kind = "mixed"
+    has_labels = False
+
+    def __init__(self, pools: list[Path], flights: list[Path], config: PairConfig, real_fraction: float):
+        if config.motion is None:
+            raise UdhError("mixing image pools and flights needs --motion flight: real consecutive frames are whole frames")
+        from udh_cli.flight_motion import CONTEXT_FACTOR
+
+        self.pool = PoolData(pools, config)
+        self.flight = FlightData(flights, config, canvas=CONTEXT_FACTOR * config.patch_size, orient=True)
+        self.real_fraction = real_fraction
+        self.description = f"{self.pool.description} and {self.flight.description}, {real_fraction:.0%} of each batch real"
+
+    def batch(self, rng: np.random.Generator, size: int, unsupervised: bool) -> Batch:
+        real = int(round(size * self.real_fraction))
+        parts = [data.batch(rng, n, unsupervised) for data, n in ((self.pool, size - real), (self.flight, real)) if n]
+        if len(parts) == 1:
+            return parts[0]
+        return Batch(*(np.concatenate([getattr(part, name) for part in parts]) if name != "offsets" else None
+                       for name in ("patches", "offsets", "context_a", "origin", "clean_b")))
+
+    def validation(self, size: int, seed: int = 12345) -> Batch:
+        return self.pool.validation(size, seed)
+
+    def real_validation(self, size: int) -> Batch | None:
+        return self.flight.validation(size)
+
+
+def half_turn_choices(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[bool]:
+    """For each (A, B) pair of P x P grey frames in [0, 1]: whether the shipped unsupervised network's
+    heading search (B as given or turned half a turn, the better photometric score) answers with B turned.
+    The network's own choice, not a label: no SIFT is involved."""
+    from udh_cli.estimators import create_estimator
+
+    estimator = create_estimator("unsupervised", tiles=False, refine_rounds=0, threads=1)
+    found = estimator.estimate_many([(a, b) for a, b in pairs])
+    turned = []
+    for estimate in found:
+        h = estimate.homography
+        # The answer's rotation: a turn of more than a quarter means the half-turned view won.
+        turned.append(bool(np.isfinite(h).all() and abs(np.degrees(np.arctan2(h[1, 0] - h[0, 1], h[0, 0] + h[1, 1]))) > 90.0))
+    return turned
 
 
 def flight_frames(folder: Path) -> list[Path]:
@@ -173,17 +244,19 @@ def _sift_reference(gray_a: np.ndarray, gray_b: np.ndarray) -> np.ndarray | None
     return estimate.homography if estimate.ok and estimate.confidence > 0.2 else None
 
 
-def open_data(folders: list[Path], kind: str, config: PairConfig) -> PoolData | FlightData:
-    """Open training folders as a pool of single images or as flights (``kind``: auto, pool, flight)."""
+def open_data(folders: list[Path], kind: str, config: PairConfig, real_fraction: float = 0.5) -> PoolData | FlightData | MixedData:
+    """Open training folders as a pool of single images, as flights, or (auto, with both kinds among the
+    folders) as both mixed with ``real_fraction`` of each batch from the flights (``kind``: auto, pool,
+    flight)."""
     folders = [Path(f) for f in folders]
     for folder in folders:
         if not folder.is_dir():
             raise UdhError(f"{folder}: no such data folder")
     if kind == "auto":
-        flags = {is_flight_folder(f) for f in folders}
-        if len(flags) > 1:
-            raise UdhError("--data mixes flight folders and image pools; train on one kind at a time (or set --data-kind)")
-        kind = "flight" if flags == {True} else "pool"
+        flights = [f for f in folders if is_flight_folder(f)]
+        if flights and len(flights) < len(folders):
+            return MixedData([f for f in folders if f not in flights], flights, config, real_fraction)
+        kind = "flight" if flights else "pool"
     if kind == "pool":
         return PoolData(folders, config)
     if kind == "flight":

@@ -20,7 +20,7 @@ from udh_cli.train import losses
 from udh_cli.flight_motion import MotionConfig
 from udh_cli.train.archs import DEFAULT_ARCH, create_model, widen_from
 from udh_cli.train.checkpoint import load_checkpoint, save_checkpoint
-from udh_cli.train.data import Batch, open_data
+from udh_cli.train.data import DEFAULT_REAL_FRACTION, Batch, open_data
 
 PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learning rates
 MOTIONS = ("paper", "flight")
@@ -35,8 +35,10 @@ class TrainConfig:
 
     Attributes:
         mode: "unsupervised" (photometric L1, no labels) or "supervised" (L2 on the 4-point labels).
-        data: folders of images (synthetic pairs) or of flights (consecutive real frames).
-        data_kind: "auto" (flight folders are recognised by their manifest), "pool" or "flight".
+        data: folders of images (synthetic pairs) or of flights (consecutive real frames), or both.
+        data_kind: "auto" (flight folders are recognised by their manifest; pools and flights together
+            are mixed), "pool" or "flight".
+        real_fraction: with pools and flights together, the share of each batch drawn from the flights.
         arch: architecture name (see :data:`udh_cli.train.archs.ARCHS`).
         patch_size: network input side, pixels.
         rho: largest corner perturbation of synthetic pairs, pixels.
@@ -66,6 +68,7 @@ class TrainConfig:
     mode: str = "unsupervised"
     data: list[str] = field(default_factory=list)
     data_kind: str = "auto"
+    real_fraction: float = DEFAULT_REAL_FRACTION
     arch: str = DEFAULT_ARCH
     patch_size: int = 128
     rho: float = 32.0
@@ -192,7 +195,7 @@ class Trainer:
             raise UdhError("no --data given; name one or more folders of images or flights")
         pair_config = PairConfig(config.patch_size, config.rho, config.small_motion_fraction, config.illumination, config.occluders,
                                  motion_config(config))
-        self.data = open_data([Path(d) for d in config.data], config.data_kind, pair_config)
+        self.data = open_data([Path(d) for d in config.data], config.data_kind, pair_config, config.real_fraction)
         if config.mode == "supervised" and not self.data.has_labels:
             raise UdhError("supervised training needs synthetic pairs from image pools; flights have no labels (use --mode unsupervised)")
         torch.manual_seed(config.seed)
@@ -225,6 +228,7 @@ class Trainer:
         if self.world > 1:
             self.model = torch.nn.parallel.DistributedDataParallel(self.model)
         self.validation = self.data.validation(config.val_pairs)
+        self.real_validation = self.data.real_validation(config.val_pairs) if hasattr(self.data, "real_validation") else None
         if not resume and self.rank == 0 and overwrite:  # every setting, the data and --init checked: replace the old run
             _check_fresh_out(self.out, overwrite)
 
@@ -320,18 +324,22 @@ class Trainer:
 
     @torch.no_grad()
     def evaluate(self) -> dict[str, float]:
-        """Corner error on the fixed held-out set (MACE against the labels or the SIFT references)."""
-        if self.validation is None:
-            return {}
-        model = self._bare_model()
-        model.eval()
-        tensors = _to_tensors(self.validation, self.device)
-        predicted = torch.cat([model(_standardise(chunk, self.normalization)) for chunk in tensors["patches"].split(128)])
-        model.train()
-        errors = losses.corner_error(predicted, tensors["offsets"]).cpu().numpy()
-        identity = losses.corner_error(torch.zeros_like(tensors["offsets"]), tensors["offsets"]).cpu().numpy()
-        return {"val_mace_mean": float(errors.mean()), "val_mace_median": float(np.median(errors)),
-                "val_mace_p95": float(np.percentile(errors, 95)), "val_identity_median": float(np.median(identity))}
+        """Corner error on the fixed held-out set (MACE against the labels or the SIFT references); with
+        mixed data also on the flights' held-out pairs, as ``val_real_*``."""
+        found: dict[str, float] = {}
+        for prefix, batch in (("val", self.validation), ("val_real", self.real_validation)):
+            if batch is None:
+                continue
+            model = self._bare_model()
+            model.eval()
+            tensors = _to_tensors(batch, self.device)
+            predicted = torch.cat([model(_standardise(chunk, self.normalization)) for chunk in tensors["patches"].split(128)])
+            model.train()
+            errors = losses.corner_error(predicted, tensors["offsets"]).cpu().numpy()
+            identity = losses.corner_error(torch.zeros_like(tensors["offsets"]), tensors["offsets"]).cpu().numpy()
+            found.update({f"{prefix}_mace_mean": float(errors.mean()), f"{prefix}_mace_median": float(np.median(errors)),
+                          f"{prefix}_mace_p95": float(np.percentile(errors, 95)), f"{prefix}_identity_median": float(np.median(identity))})
+        return found
 
     def _log(self, record: dict[str, Any]) -> None:
         if self.rank != 0:
@@ -466,6 +474,8 @@ def _check_config(config: TrainConfig, out: Path) -> None:
         raise UdhError(f"--rho {config.rho}: must be positive and finite")
     if config.lr is not None and not (config.lr > 0 and math.isfinite(config.lr)):
         raise UdhError(f"--lr {config.lr}: the learning rate must be positive and finite (the paper's: 1e-4 unsupervised, 5e-4 supervised)")
+    if not 0.0 <= config.real_fraction <= 1.0:
+        raise UdhError(f"--real-fraction {config.real_fraction}: give a share of each batch from 0 to 1")
     if not 0.0 <= config.small_motion_fraction <= 1.0:
         raise UdhError(f"--small-motion {config.small_motion_fraction}: give a share of pairs from 0 to 1")
     if not 0.0 <= float(config.occluders) <= 1.0:

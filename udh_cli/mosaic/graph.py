@@ -11,7 +11,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.mosaic.pairwise import PairResult
 
-_KIND_PRIORITY = {"consecutive": 0, "bridge": 1, "overlap": 2}  # chain along the sequence first
+_KIND_PRIORITY = {"consecutive": 0, "bridge": 1, "gps": 2, "overlap": 3}  # chain along the sequence first
 
 
 def connected_parts(n_frames: int, pairs: Sequence[PairResult]) -> list[list[int]]:
@@ -41,7 +41,7 @@ def reference_frame(part: Sequence[int]) -> int:
 def chain_to_reference(part: Sequence[int], reference: int, pairs: Sequence[PairResult]) -> tuple[dict[int, np.ndarray], set[int]]:
     """``ref_from_frame`` (3, 3) for every frame of ``part``, by breadth-first chaining from ``reference``.
 
-    Only consecutive and bridge pairs are followed (consecutive first), so this is plain sequential chaining,
+    Only consecutive, bridge and GPS pairs are followed (consecutive first), so this is plain sequential chaining,
     the drift of which the loop-closure pairs then measure. Returns the homographies and the ids
     (``id(pair)``) of the pairs used as tree edges; every other ``ok`` pair in the part closes a loop.
     """

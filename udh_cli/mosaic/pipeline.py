@@ -29,6 +29,7 @@ from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, o
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, read_gcp_file
 from udh_cli.mosaic.geotiff import cog_path, has_rasterio, write_cog, write_combined_cog
+from udh_cli.mosaic.gps_pairs import bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale
 from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, corner_disagreement_px, estimate_pairs
@@ -58,6 +59,8 @@ class MosaicConfig:
         overlap_min: non-consecutive frames whose chained footprints overlap by this share of the smaller
             frame are estimated too (loop closure).
         overlap_per_frame: at most this many loop-closure partners per frame (bounds the work).
+        gps_pairs: when the frames carry GPS and the run splits, at most this many pairs between each two
+            parts that GPS puts close together are estimated (:mod:`.gps_pairs`); 0: off.
         max_disagreement: a loop-closure estimate is rejected when it moves the corners more than this
             share of the frame diagonal away from the chained prediction (a wrong match, not drift).
         huber_px: the global solve counts residuals beyond this (reference pixels) linearly.
@@ -85,6 +88,7 @@ class MosaicConfig:
     min_verified: float = Acceptance.min_verified
     overlap_min: float = 0.3
     overlap_per_frame: int = 3
+    gps_pairs: int = 3
     max_disagreement: float = 0.1
     huber_px: float = 2.0
     outlier_px: float = 5.0
@@ -164,8 +168,8 @@ def check_config(config: MosaicConfig) -> None:
         raise UdhError(f"--min-verified {config.min_verified}: give a value in [0, 1]")
     if not config.max_frame_scale > 1.0:
         raise UdhError(f"--max-frame-scale {config.max_frame_scale}: give a factor above 1 (frames drawn that many times larger or smaller than the reference are reported)")
-    if config.every < 1 or config.overlap_per_frame < 0:
-        raise UdhError("--every must be at least 1 and --overlap-pairs at least 0")
+    if config.every < 1 or config.overlap_per_frame < 0 or config.gps_pairs < 0:
+        raise UdhError("--every must be at least 1, and --overlap-pairs and --gps-pairs at least 0")
 
 
 MOSAIC_SEARCH = 2  # the learned methods' large-motion search, on for mosaics unless the user sets it
@@ -252,6 +256,10 @@ def run_mosaic(
     try:
         pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter, cache)
         parts = _chain_parts(frameset, pairs)
+        bridged = _bridge_by_gps(frameset, parts, pairs, estimator, fallback, config, reporter, cache)
+        pairs += bridged
+        if any(p.ok for p in bridged):
+            parts = _chain_parts(frameset, pairs)
         pairs += _close_loops(frameset, parts, pairs, estimator, fallback, config, reporter, cache)
     except KeyboardInterrupt:
         if cache.entries and cache.keep:
@@ -453,6 +461,44 @@ def _estimate_sequence(frameset: FrameSet, estimator, fallback, config: MosaicCo
     if bridges:
         pairs += estimate_pairs([PairRequest(a, b, "bridge") for a, b in bridges], *args, "bridging gaps", config.batch_size, cache)
     return pairs
+
+
+def _bridge_by_gps(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], estimator, fallback, config: MosaicConfig,
+                   reporter: Reporter, cache: PairCache) -> list[PairResult]:
+    """Pairs between parts (lone frames included) that GPS puts close together on the ground; an estimate that
+    disagrees with GPS about the frames' distance is rejected (:mod:`.gps_pairs`)."""
+    frames = frameset.frames
+    if config.gps_pairs < 1 or len(parts) < 2:
+        return []
+    fixes = {f.index: (f.metadata.latitude, f.metadata.longitude) for f in frames if f.metadata is not None and f.metadata.has_gps}
+    if len(fixes) < 2:
+        return []
+    try:
+        positions = ground_positions(fixes)
+    except UdhError:  # no pyproj: the georeferencing step says how to install it
+        return []
+    sizes = [f.size for f in frames]
+    scale = measure_ground_scale(positions, [(p.a, p.b, p.b_from_a) for p in pairs if p.ok], sizes)
+    if scale is None:
+        reporter.warn("the frames carry GPS, but too few pairs worked to measure the ground scale; the parts are not bridged by GPS")
+        return []
+    known = {(min(p.a, p.b), max(p.a, p.b)) for p in pairs}
+    candidates = bridge_candidates(positions, [part.frames for part in parts], known, scale.reach_m, config.gps_pairs)
+    if not candidates:
+        return []
+    results = estimate_pairs([PairRequest(a, b, "gps") for a, b, _ in candidates], frames, estimator, fallback, acceptance(config),
+                             reporter, "GPS bridges between parts", config.batch_size, cache)
+    limit = gps_limit_m(scale)
+    for result in results:
+        if not result.ok:
+            continue
+        off = gps_disagreement_m(result.b_from_a, result.a, result.b, positions, sizes, scale)
+        if off > limit:
+            result.status, result.b_from_a = "rejected", None
+            result.reason = f"puts the frames {off:.0f} m further apart or closer than their GPS does (limit {limit:.0f} m)"
+    reporter.info(f"GPS: {sum(r.ok for r in results)} of {len(results)} pairs between parts joined them "
+                  f"(ground scale {scale.metres_per_pixel * 100:.1f} cm per pixel from {scale.pairs_used} pairs, reach {scale.reach_m:.0f} m)")
+    return results
 
 
 def _chain_parts(frameset: FrameSet, pairs: list[PairResult]) -> list[Part]:
@@ -678,6 +724,7 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, esti
             "pairs_ok": sum(p.ok for p in pairs),
             "pairs_failed": sum(p.status == "failed" for p in pairs),
             "pairs_rejected": sum(p.status == "rejected" for p in pairs),
+            "gps_pairs_joined": sum(p.ok and p.kind == "gps" for p in pairs),
         },
         "warnings": reporter.warnings,
         "timings_s": dict(reporter.timings_s),

@@ -296,6 +296,8 @@ def mosaic(
     no_gain: Annotated[bool, typer.Option("--no-gain", help="Skip gain (exposure) compensation.", metavar="")] = False,
     overlap_per_frame: Annotated[int, typer.Option("--overlap-pairs", help="Loop-closure pairs per frame at most (0: plain chaining).")] = _MOSAIC.overlap_per_frame,
     gps_pairs: Annotated[int, typer.Option("--gps-pairs", min=0, help="With GPS in the frames: pairs tried between each two parts that GPS puts close together (0: off).")] = _MOSAIC.gps_pairs,
+    workers: Annotated[int, typer.Option("--workers", min=1, help="Local processes estimating pairs at once (e.g. one per core; 1: in this process).")] = _MOSAIC.workers,
+    scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Estimate pairs on a Dask cluster: the scheduler's address, e.g. tcp://host:8786.")] = _MOSAIC.scheduler,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Simulator ground truth (default: SOURCE/ground_truth.json when present) to report the corner error.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars; warnings and the summary only.", metavar="")] = False,
     resume: Annotated[bool, typer.Option("--resume", help="Keep every pair estimate in NAME.pairs.json as it is made, and reuse an earlier (interrupted) run's where frames, methods and settings match. Without it no cache file is written.", metavar="")] = False,
@@ -308,7 +310,7 @@ def mosaic(
 
     config = _MosaicConfig(
         method=method.value, fallback=fallback, method_options=_key_values(method_option or []), work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
-        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs,
+        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, workers=workers, scheduler=scheduler,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
     report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume, cache_dir=cache_dir, gcp=gcp,

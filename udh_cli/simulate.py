@@ -311,7 +311,8 @@ def _jpeg_with_gps(image: np.ndarray, quality: int, latitude: float, longitude: 
 
 def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed: int = 0, ground_preview: bool = False,
                  gps: GpsConfig | None = None) -> Path:
-    """Simulate a flight and write ``frame_NNN.jpg`` plus ``ground_truth.json`` into ``folder``.
+    """Simulate a flight and write ``frame_NNN.jpg`` (more digits past 1,000 frames) plus ``ground_truth.json``
+    into ``folder``.
 
     The ground truth holds every frame's ``ground_from_frame`` and every consecutive pair's ``b_from_a``
     (pixels of frame a to pixels of frame b); with ``gps``, the frames carry EXIF GPS of their centres
@@ -326,8 +327,9 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
     records = []
     noise = np.random.default_rng([seed, 17])
     width, height = config.frame_size
+    digits = max(3, len(str(len(frames) - 1)))  # names sort in flight order however many frames there are
     for index, frame in enumerate(frames):
-        name = f"frame_{index:03d}.jpg"
+        name = f"frame_{index:0{digits}d}.jpg"
         record = {"file": name, "ground_from_frame": frame.ground_from_frame.tolist(), "pose": frame.pose}
         if gps is None:
             ok, data = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, config.jpeg_quality])

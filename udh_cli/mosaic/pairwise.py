@@ -18,6 +18,7 @@ from udh_cli.estimators.verify import verification_score
 
 if TYPE_CHECKING:
     from udh_cli.mosaic.pair_cache import PairCache
+    from udh_cli.mosaic.workers import DaskRunner, LocalRunner, PoolRunner
 
 
 
@@ -195,16 +196,24 @@ def estimate_pairs(
     stage: str,
     batch_size: int = 16,
     cache: "PairCache | None" = None,
+    runner: "LocalRunner | PoolRunner | DaskRunner | None" = None,
 ) -> list[PairResult]:
     """Estimate every request; a failed or doubtful (see :class:`Acceptance`) pair is retried with
     ``fallback``. Batches of ``batch_size`` pairs go to ``estimate_many`` so learned methods batch them.
 
+    ``runner`` (:mod:`.workers`) runs the batches: in this process (the default), in a process pool or on a
+    Dask cluster, several at once; results are taken in batch order, so they are the same either way.
+
     With a ``cache`` (:class:`~udh_cli.mosaic.pair_cache.PairCache`), a request whose key the cache holds is
-    taken from it, and every finished batch is added to it and saved, so an interrupt loses at most one
-    batch. Batches are cut from ``requests`` the same way with or without cached pairs, so a resumed run
-    hands the estimator the same batches as an uninterrupted one.
+    taken from it, and every finished batch is added to it and saved, so an interrupt loses at most the
+    batches in flight. Batches are cut from ``requests`` the same way with or without cached pairs, so a
+    resumed run hands the estimator the same batches as an uninterrupted one.
     """
+    from udh_cli.mosaic.workers import LocalRunner, in_order
+
+    runner = runner or LocalRunner(estimator, fallback, acceptance)
     results = [PairResult(r.a, r.b, r.kind, prior=r.prior) for r in requests]
+    batches = []
     with reporter.stage(stage, len(requests)) as advance:
         for start in range(0, len(requests), batch_size):
             batch = []
@@ -215,9 +224,25 @@ def estimate_pairs(
                 else:
                     results[i] = cached
                     advance(1)
-            if not batch:
-                continue
-            _estimate_batch(batch, requests, results, frames, estimator, fallback, acceptance, advance)
+            if batch:
+                batches.append(batch)
+        inputs = {}
+
+        def first_attempt(batch: list[int]):
+            def submit():
+                for i in batch:
+                    inputs[i] = _work_inputs(requests[i], frames)
+                return runner.submit(0, [inputs[i][:2] for i in batch])
+            return submit
+
+        for index, done in in_order([first_attempt(b) for b in batches], window=runner.window):
+            batch = batches[index]
+            pending = _apply(batch, done.result(), requests, results, frames, inputs)
+            if pending and fallback is not None:
+                _apply(pending, runner.submit(1, [inputs[i][:2] for i in pending]).result(), requests, results, frames, inputs)
+            advance(len(batch))
+            for i in batch:
+                inputs.pop(i, None)
             if cache is not None:
                 for i in batch:
                     cache.add(requests[i], results[i])
@@ -225,41 +250,25 @@ def estimate_pairs(
     return results
 
 
-def _estimate_batch(
-    batch: list[int],
-    requests: Sequence[PairRequest],
-    results: list[PairResult],
-    frames: Sequence[Frame],
-    estimator: Estimator,
-    fallback: Estimator | None,
-    acceptance: Acceptance,
-    advance,
-) -> None:
-    """Finish the pairs ``batch`` (indices into ``requests``) in place: ``estimator``, then ``fallback``."""
-    pending = batch
-    for attempt, method in enumerate((estimator, fallback)):
-        if method is None or not pending:
-            continue
-        still_pending = []
-        inputs = [_work_inputs(requests[i], frames) for i in pending]
-        estimates = _estimate_many_safely(method, [(a, b) for a, b, _ in inputs])
-        for i, (image_a, image_b, undo), estimate in zip(pending, inputs, estimates):
-            result = results[i]
-            result.estimates.append(estimate)
-            verified, doubt = acceptance.judge(estimate, image_a, image_b, method.verifies_itself)
-            result.verified = verified
-            if doubt is None:
-                result.b_from_a = _full_resolution(estimate, requests[i], frames, undo)
-                result.status, result.reason, result.method = "ok", None, estimate.method
-            else:
-                result.reason = f"{estimate.method}: {doubt}"
-                still_pending.append(i)
-            if attempt == 0 and result.ok or attempt == 1 or fallback is None:
-                advance(1)
-        pending = still_pending
+def _apply(pending: list[int], judged, requests: Sequence[PairRequest], results: list[PairResult], frames: Sequence[Frame],
+           inputs: dict) -> list[int]:
+    """Record one attempt's ``judged`` answers (:func:`.workers.judge_batch`) for the requests ``pending``;
+    returns those still doubted."""
+    still_pending = []
+    for i, (estimate, verified, doubt) in zip(pending, judged):
+        result = results[i]
+        result.estimates.append(estimate)
+        result.verified = verified
+        if doubt is None:
+            result.b_from_a = _full_resolution(estimate, requests[i], frames, inputs[i][2])
+            result.status, result.reason, result.method = "ok", None, estimate.method
+        else:
+            result.reason = f"{estimate.method}: {doubt}"
+            still_pending.append(i)
+    return still_pending
 
 
-def _estimate_many_safely(method: Estimator, pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
+def estimate_many_safely(method: Estimator, pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
     """``estimate_many``, but an estimator that raises (a bug, a runtime error) fails only its own pairs.
 
     Estimators report failures as estimates and never raise by contract; this keeps one broken pair from

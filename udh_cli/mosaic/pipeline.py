@@ -29,6 +29,7 @@ from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, o
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, read_gcp_file
 from udh_cli.mosaic.geotiff import cog_path, has_rasterio, write_cog, write_combined_cog
+from udh_cli.mosaic.workers import EstimatorSpec, open_runner
 from udh_cli.mosaic.gps_pairs import bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale
 from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
@@ -75,6 +76,8 @@ class MosaicConfig:
         max_size: longest side of the mosaic in pixels; larger canvases are downscaled. ``None``: full size.
         max_canvas_bytes: refuse a canvas that would need more memory than this to blend.
         batch_size: pairs per ``estimate_many`` call.
+        workers: local processes estimating pairs at once (:mod:`.workers`; 1: in this process).
+        scheduler: a Dask scheduler's address (``tcp://host:8786``): pairs are estimated on its workers.
         preview: also write a small JPEG preview beside the mosaic.
     """
 
@@ -89,6 +92,8 @@ class MosaicConfig:
     overlap_min: float = 0.3
     overlap_per_frame: int = 3
     gps_pairs: int = 3
+    workers: int = 1
+    scheduler: str | None = None
     max_disagreement: float = 0.1
     huber_px: float = 2.0
     outlier_px: float = 5.0
@@ -168,6 +173,8 @@ def check_config(config: MosaicConfig) -> None:
         raise UdhError(f"--min-verified {config.min_verified}: give a value in [0, 1]")
     if not config.max_frame_scale > 1.0:
         raise UdhError(f"--max-frame-scale {config.max_frame_scale}: give a factor above 1 (frames drawn that many times larger or smaller than the reference are reported)")
+    if config.workers < 1:
+        raise UdhError(f"--workers {config.workers}: give at least 1 (pairs estimated in this process)")
     if config.every < 1 or config.overlap_per_frame < 0 or config.gps_pairs < 0:
         raise UdhError("--every must be at least 1, and --overlap-pairs and --gps-pairs at least 0")
 
@@ -239,6 +246,9 @@ def run_mosaic(
         raise UdhError(f"--gcp-image-width {gcp_image_width}: give the width in pixels of the images the GCP file refers to")
     started = time.perf_counter()
     truth = _load_truth(source, ground_truth)
+    # Workers build the estimators from their names; estimators handed over as instances run here.
+    spec = None if estimator is not None or fallback is not None else \
+        EstimatorSpec(config.method, mosaic_method_options(config.method, config.method_options), config.fallback, acceptance(config))
     estimator = estimator or create_estimator(config.method, **mosaic_method_options(config.method, config.method_options))
     fallback = fallback or (create_estimator(config.fallback) if config.fallback else None)
 
@@ -253,20 +263,23 @@ def run_mosaic(
             reporter.warn(f"{gcp}: {len(missing)} image(s) it names are not among the frames, their observations are skipped: {', '.join(missing[:5])}")
     cache = PairCache.open(pair_cache_file, frames, estimator, fallback, acceptance(config), resume, reporter,
                            keep=resume or cache_dir is not None)
+    runner = open_runner(estimator, fallback, acceptance(config), spec, config.workers, config.scheduler)
     try:
-        pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter, cache)
+        pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter, cache, runner)
         parts = _chain_parts(frameset, pairs)
-        bridged = _bridge_by_gps(frameset, parts, pairs, estimator, fallback, config, reporter, cache)
+        bridged = _bridge_by_gps(frameset, parts, pairs, estimator, fallback, config, reporter, cache, runner)
         pairs += bridged
         if any(p.ok for p in bridged):
             parts = _chain_parts(frameset, pairs)
-        pairs += _close_loops(frameset, parts, pairs, estimator, fallback, config, reporter, cache)
+        pairs += _close_loops(frameset, parts, pairs, estimator, fallback, config, reporter, cache, runner)
     except KeyboardInterrupt:
         if cache.entries and cache.keep:
             reporter.warn(f"interrupted: the finished pair estimates are kept in {cache.path}; add --resume to the same command to go on from them")
         elif cache.entries:
             reporter.warn("interrupted: run with --resume to keep the pair estimates, so that a rerun goes on from them")
         raise
+    finally:
+        runner.close()
     cache.save(prune=True)
     if resume:
         reporter.info(f"{cache.hits} of {len(pairs)} pair estimates taken from {cache.path}")
@@ -449,22 +462,22 @@ def _load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:
     return load_ground_truth(auto) if source.is_dir() and auto.is_file() else None
 
 
-def _estimate_sequence(frameset: FrameSet, estimator, fallback, config: MosaicConfig, reporter: Reporter, cache: PairCache) -> list[PairResult]:
+def _estimate_sequence(frameset: FrameSet, estimator, fallback, config: MosaicConfig, reporter: Reporter, cache: PairCache, runner) -> list[PairResult]:
     """Consecutive pairs, then a bridge over each broken link (i-1 -> i+1 and i -> i+2)."""
     frames = frameset.frames
     args = (frames, estimator, fallback, acceptance(config), reporter)
-    pairs = estimate_pairs([PairRequest(i, i + 1, "consecutive") for i in range(len(frames) - 1)], *args, "consecutive pairs", config.batch_size, cache)
+    pairs = estimate_pairs([PairRequest(i, i + 1, "consecutive") for i in range(len(frames) - 1)], *args, "consecutive pairs", config.batch_size, cache, runner)
     broken = [p for p in pairs if not p.ok]
     for pair in broken:
         reporter.warn(f"pair {frames[pair.a].name} -> {frames[pair.b].name} failed ({pair.reason}); trying to bridge it")
     bridges = sorted({(a, b) for p in broken for a, b in ((p.a - 1, p.b), (p.a, p.b + 1)) if a >= 0 and b < len(frames)})
     if bridges:
-        pairs += estimate_pairs([PairRequest(a, b, "bridge") for a, b in bridges], *args, "bridging gaps", config.batch_size, cache)
+        pairs += estimate_pairs([PairRequest(a, b, "bridge") for a, b in bridges], *args, "bridging gaps", config.batch_size, cache, runner)
     return pairs
 
 
 def _bridge_by_gps(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], estimator, fallback, config: MosaicConfig,
-                   reporter: Reporter, cache: PairCache) -> list[PairResult]:
+                   reporter: Reporter, cache: PairCache, runner) -> list[PairResult]:
     """Pairs between parts (lone frames included) that GPS puts close together on the ground; an estimate that
     disagrees with GPS about the frames' distance is rejected (:mod:`.gps_pairs`)."""
     frames = frameset.frames
@@ -487,7 +500,7 @@ def _bridge_by_gps(frameset: FrameSet, parts: list[Part], pairs: list[PairResult
     if not candidates:
         return []
     results = estimate_pairs([PairRequest(a, b, "gps") for a, b, _ in candidates], frames, estimator, fallback, acceptance(config),
-                             reporter, "GPS bridges between parts", config.batch_size, cache)
+                             reporter, "GPS bridges between parts", config.batch_size, cache, runner)
     limit = gps_limit_m(scale)
     for result in results:
         if not result.ok:
@@ -512,7 +525,8 @@ def _chain_parts(frameset: FrameSet, pairs: list[PairResult]) -> list[Part]:
     return parts
 
 
-def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], estimator, fallback, config: MosaicConfig, reporter: Reporter, cache: PairCache) -> list[PairResult]:
+def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], estimator, fallback, config: MosaicConfig, reporter: Reporter, cache: PairCache,
+                 runner) -> list[PairResult]:
     """Estimate non-consecutive overlapping pairs, pre-warped by the chain; reject those that contradict it."""
     frames = frameset.frames
     sizes = [f.size for f in frames]
@@ -526,7 +540,7 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
             requests.append(PairRequest(a, b, "overlap", prior / prior[2, 2]))
     if not requests:
         return []
-    results = estimate_pairs(requests, frames, estimator, fallback, acceptance(config), reporter, "loop-closure pairs", config.batch_size, cache)
+    results = estimate_pairs(requests, frames, estimator, fallback, acceptance(config), reporter, "loop-closure pairs", config.batch_size, cache, runner)
     for result in results:
         if not result.ok:
             continue

@@ -1,0 +1,78 @@
+"""Pairs estimated in a process pool or on a Dask cluster give the same mosaic as in this process."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from udh_cli.errors import UdhError
+from udh_cli.mosaic import MosaicConfig, run_mosaic
+from udh_cli.mosaic.workers import in_order
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    from mosaic_flights import SMALL, make_flight
+
+    folder = tmp_path_factory.mktemp("flight")
+    make_flight(folder, SMALL, seed=4)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def local(flight, tmp_path_factory):
+    return run_mosaic(flight, tmp_path_factory.mktemp("local") / "m.png", MosaicConfig(method="auto", batch_size=4))
+
+
+def assert_same_pairs(report: dict, reference: dict) -> None:
+    assert len(report["pairs"]) == len(reference["pairs"]) >= 10
+    for pair, expected in zip(report["pairs"], reference["pairs"], strict=True):
+        assert (pair["a"], pair["b"], pair["kind"], pair["status"]) == (expected["a"], expected["b"], expected["kind"], expected["status"])
+        if expected["b_from_a"] is not None:
+            np.testing.assert_allclose(pair["b_from_a"], expected["b_from_a"], rtol=0, atol=1e-9)
+    for frame, expected in zip(report["frames"], reference["frames"], strict=True):
+        np.testing.assert_allclose(frame["mosaic_from_frame"], expected["mosaic_from_frame"], rtol=0, atol=1e-9)
+
+
+def test_a_pool_of_two_processes_gives_the_same_homographies(flight, local, tmp_path):
+    report = run_mosaic(flight, tmp_path / "m.png", MosaicConfig(method="auto", batch_size=4, workers=2))
+    assert_same_pairs(report, local)
+    assert report["summary"]["placed"] == report["summary"]["frames"]
+
+
+@pytest.mark.slow
+def test_a_dask_cluster_of_two_workers_gives_the_same_homographies(flight, local, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        report = run_mosaic(flight, tmp_path / "m.png", MosaicConfig(method="auto", batch_size=4, scheduler=cluster.scheduler_address))
+    assert_same_pairs(report, local)
+
+
+def test_an_unreachable_scheduler_and_no_workers_are_clear_errors(flight, tmp_path):
+    pytest.importorskip("distributed")
+    with pytest.raises(UdhError, match="cannot reach the Dask scheduler"):
+        run_mosaic(flight, tmp_path / "m.png", MosaicConfig(method="sift", scheduler="tcp://127.0.0.1:9"))
+    with pytest.raises(UdhError, match="--workers 0"):
+        run_mosaic(flight, tmp_path / "m.png", MosaicConfig(workers=0))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_jobs_come_back_in_order_with_at_most_a_window_in_flight():
+    from concurrent.futures import Future
+
+    in_flight, most = [0], [0]
+
+    def job(value):
+        def start():
+            in_flight[0] += 1
+            most[0] = max(most[0], in_flight[0])
+            done: Future = Future()
+            done.set_result(value)
+            return done
+        return start
+
+    seen = []
+    for index, future in in_order([job(v) for v in range(7)], window=3):
+        seen.append((index, future.result()))
+        in_flight[0] -= 1
+    assert seen == [(i, i) for i in range(7)] and most[0] == 3

@@ -378,6 +378,33 @@ def test_pools_and_flights_together_mix_real_pairs_into_flight_motion_batches(po
         Trainer(tiny_config(pool, tmp_path / "bad", real_fraction=1.5), progress=False)
 
 
+def test_pool_images_at_a_larger_side_give_pairs_from_windows_at_that_scale(pool, tmp_path):
+    """--source-side 640: the 320x240 pool images are kept at 640x480 and pairs come from 320x240 windows,
+    each a quarter of the image: the scene at twice the paper's scale."""
+    from udh_cli.synthetic import PairConfig
+    from udh_cli.train.data import PoolData
+
+    data = PoolData([pool], PairConfig(patch_size=32, rho=6.0, illumination=False), source_side=640)
+    assert {im.shape for im in data.train + data.held_out} == {(480, 640)}
+    batch = data.batch(np.random.default_rng(0), 16, unsupervised=True)
+    assert batch.context_a.shape == (16, 2, 240, 320) and np.abs(batch.offsets).max() <= 6.0
+    assert data.validation(8).patches.shape == (8, 2, 32, 32)
+    # The same scenes seen twice as large: the patches' texture is smoother, pixel for pixel.
+    paper = PoolData([pool], PairConfig(patch_size=32, rho=6.0, illumination=False)).batch(np.random.default_rng(0), 64, unsupervised=False)
+    larger = data.batch(np.random.default_rng(0), 64, unsupervised=False)
+
+    def roughness(patches):
+        return float(np.abs(np.diff(patches, axis=-1)).mean())
+
+    assert roughness(larger.patches) < 0.7 * roughness(paper.patches)
+    with pytest.raises(UdhError, match="--source-side"):
+        Trainer(tiny_config(pool, tmp_path / "bad", source_side=100), progress=False)
+    from udh_cli.flight_motion import MotionConfig
+
+    with pytest.raises(UdhError, match="--motion flight uses whole frames"):
+        PoolData([pool], PairConfig(patch_size=32, motion=MotionConfig()), source_side=640)
+
+
 def test_a_real_pair_on_a_return_leg_is_turned_by_the_networks_own_heading_choice():
     """A strip's return leg: B is A's view turned half a turn. The shipped network's heading search picks the
     half turn for it, and not for the same pair unturned."""

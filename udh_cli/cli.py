@@ -152,6 +152,7 @@ def train(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the run in --out (without it, a folder holding a run is refused).", metavar="")] = False,
     data_kind: Annotated[str, typer.Option(help="auto (pools and flights given together are mixed), pool or flight.")] = "auto",
     real_fraction: Annotated[float, typer.Option(help="With pools and flights together: the share of each batch from the flights' real pairs.")] = DEFAULT_REAL_FRACTION,
+    source_side: Annotated[int, typer.Option(help="Pool images at this longer side, pairs from 320x240 windows of them (the tile stage's scale); 0: the paper's 320x240.")] = 0,
     small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = 0.3,
     illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.", metavar="")] = True,
     occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = 0.0,
@@ -169,7 +170,7 @@ def train(
     from udh_cli.train.loop import TrainConfig, init_arch, train as run_training
 
     config = TrainConfig(
-        mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, real_fraction=real_fraction, arch=arch or init_arch(init), rho=rho, small_motion_fraction=small_motion,
+        mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, real_fraction=real_fraction, source_side=source_side, arch=arch or init_arch(init), rho=rho, small_motion_fraction=small_motion,
         illumination=illumination, occluders=occluders, motion=motion, max_heading=max_heading, max_scale=max_scale,
         max_shift=max_shift, min_overlap=min_overlap, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
         checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),

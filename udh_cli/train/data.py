@@ -20,7 +20,7 @@ from udh_cli.errors import UdhError
 from udh_cli.homography_files import homography_from_values, parse_numbers
 from udh_cli.flight_motion import make_motion_pairs, source_size
 from udh_cli.images import read_image, to_gray_u8
-from udh_cli.synthetic import PairConfig, illuminate, list_images, load_sources, make_pairs, split_holdout
+from udh_cli.synthetic import SOURCE_SIZE, PairConfig, illuminate, list_images, load_sources, make_pairs, split_holdout
 
 FLIGHT_MARKERS = ("manifest.csv", "consecutive_pairs_sift_reference.csv")
 DEFAULT_REAL_FRACTION = 0.5  # share of a mixed batch from real flight pairs
@@ -41,24 +41,50 @@ class Batch:
 
 
 class PoolData:
-    """Synthetic pairs (DeTone procedure) from folders of single images; every 10th image is held out."""
+    """Synthetic pairs (DeTone procedure) from folders of single images; every 10th image is held out.
+
+    ``source_side``: 0 resizes every image to 320x240, the paper's procedure. A larger side resizes each
+    image so that its longer side is that many pixels and draws every pair from a random 320x240 window of
+    it: the patches then show the scene at the scale of a tile of a frame that size. Why: the tile stage runs
+    the refinement network on 128 px tiles of frames 480-1600 px wide, whose texture the 320x240 procedure
+    never shows it (a 1600 px frame squashed to 320 px is five times coarser).
+    """
 
     kind = "pool"
     has_labels = True
 
-    def __init__(self, folders: list[Path], config: PairConfig):
+    def __init__(self, folders: list[Path], config: PairConfig, source_side: int = 0):
         paths = list_images(folders)
         train_paths, held_out = split_holdout(paths)
         if len(train_paths) < 2 or not held_out:
             raise UdhError(f"found {len(paths)} images in {', '.join(map(str, folders))}; need at least 3 to train and hold one out")
         self.config = config
+        self.source_side = source_side
         size_for = source_size if config.motion is not None else None
+        if source_side:
+            if config.motion is not None:
+                raise UdhError("--source-side is for the paper's motion (patches of larger frames); --motion flight uses whole frames")
+            width, height = SOURCE_SIZE
+            size_for = lambda w, h: _longer_side(w, h, source_side, (width, height))  # noqa: E731
         self.train = load_sources(train_paths, min_count=2, size_for=size_for)
         self.held_out = load_sources(held_out, min_count=1, size_for=size_for)
-        self.description = f"{len(self.train)} pool images ({len(self.held_out)} held out)"
+        self.description = f"{len(self.train)} pool images ({len(self.held_out)} held out)" + (f" at {source_side} px" if source_side else "")
+
+    def _windows(self, sources: list[np.ndarray], count: int, rng: np.random.Generator) -> list[np.ndarray]:
+        """``count`` random 320x240 windows of randomly chosen ``sources``."""
+        width, height = SOURCE_SIZE
+        out = []
+        for index in rng.integers(0, len(sources), count):
+            image = sources[index]
+            x0 = int(rng.integers(0, image.shape[1] - width + 1))
+            y0 = int(rng.integers(0, image.shape[0] - height + 1))
+            out.append(image[y0 : y0 + height, x0 : x0 + width])
+        return out
 
     def _pairs(self, sources: list[np.ndarray], size: int, config: PairConfig, rng: np.random.Generator, with_context: bool):
         if config.motion is None:
+            if self.source_side:
+                sources = self._windows(sources, size, rng)
             return make_pairs(sources, size, config, rng, with_context=with_context)
         return make_motion_pairs(sources, size, config.motion, rng, config.patch_size, config.small_motion_fraction,
                                  config.illumination, config.occluders, with_context=with_context)
@@ -214,6 +240,12 @@ def half_turn_choices(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[bool]:
     return turned
 
 
+def _longer_side(width: int, height: int, side: int, least: tuple[int, int]) -> tuple[int, int]:
+    """(width, height) with the longer side ``side``, the aspect kept, and never smaller than ``least``."""
+    scale = max(side / max(width, height), least[0] / width, least[1] / height)
+    return max(least[0], int(round(width * scale))), max(least[1], int(round(height * scale)))
+
+
 def flight_frames(folder: Path) -> list[Path]:
     """The frames of a flight in order: its ``images/`` subfolder when there is one (the shared-data layout,
     whose top level also holds previews that are not frames), else the images directly in ``folder``."""
@@ -244,7 +276,8 @@ def _sift_reference(gray_a: np.ndarray, gray_b: np.ndarray) -> np.ndarray | None
     return estimate.homography if estimate.ok and estimate.confidence > 0.2 else None
 
 
-def open_data(folders: list[Path], kind: str, config: PairConfig, real_fraction: float = 0.5) -> PoolData | FlightData | MixedData:
+def open_data(folders: list[Path], kind: str, config: PairConfig, real_fraction: float = DEFAULT_REAL_FRACTION,
+              source_side: int = 0) -> PoolData | FlightData | MixedData:
     """Open training folders as a pool of single images, as flights, or (auto, with both kinds among the
     folders) as both mixed with ``real_fraction`` of each batch from the flights (``kind``: auto, pool,
     flight)."""
@@ -258,7 +291,7 @@ def open_data(folders: list[Path], kind: str, config: PairConfig, real_fraction:
             return MixedData([f for f in folders if f not in flights], flights, config, real_fraction)
         kind = "flight" if flights else "pool"
     if kind == "pool":
-        return PoolData(folders, config)
+        return PoolData(folders, config, source_side)
     if kind == "flight":
         return FlightData(folders, config)
     raise UdhError(f"unknown --data-kind '{kind}'; choose auto, pool or flight")

@@ -39,6 +39,8 @@ class TrainConfig:
         data_kind: "auto" (flight folders are recognised by their manifest; pools and flights together
             are mixed), "pool" or "flight".
         real_fraction: with pools and flights together, the share of each batch drawn from the flights.
+        source_side: pool images are resized to 320x240 (0, the paper's), or to this longer side with
+            pairs drawn from 320x240 windows of them (the scale of the tile stage's tiles).
         arch: architecture name (see :data:`udh_cli.train.archs.ARCHS`).
         patch_size: network input side, pixels.
         rho: largest corner perturbation of synthetic pairs, pixels.
@@ -69,6 +71,7 @@ class TrainConfig:
     data: list[str] = field(default_factory=list)
     data_kind: str = "auto"
     real_fraction: float = DEFAULT_REAL_FRACTION
+    source_side: int = 0
     arch: str = DEFAULT_ARCH
     patch_size: int = 128
     rho: float = 32.0
@@ -195,7 +198,7 @@ class Trainer:
             raise UdhError("no --data given; name one or more folders of images or flights")
         pair_config = PairConfig(config.patch_size, config.rho, config.small_motion_fraction, config.illumination, config.occluders,
                                  motion_config(config))
-        self.data = open_data([Path(d) for d in config.data], config.data_kind, pair_config, config.real_fraction)
+        self.data = open_data([Path(d) for d in config.data], config.data_kind, pair_config, config.real_fraction, config.source_side)
         if config.mode == "supervised" and not self.data.has_labels:
             raise UdhError("supervised training needs synthetic pairs from image pools; flights have no labels (use --mode unsupervised)")
         torch.manual_seed(config.seed)
@@ -474,6 +477,8 @@ def _check_config(config: TrainConfig, out: Path) -> None:
         raise UdhError(f"--rho {config.rho}: must be positive and finite")
     if config.lr is not None and not (config.lr > 0 and math.isfinite(config.lr)):
         raise UdhError(f"--lr {config.lr}: the learning rate must be positive and finite (the paper's: 1e-4 unsupervised, 5e-4 supervised)")
+    if config.source_side and not 320 <= config.source_side <= 8000:
+        raise UdhError(f"--source-side {config.source_side}: give 0 (the paper's 320x240) or a side from 320 to 8000 px")
     if not 0.0 <= config.real_fraction <= 1.0:
         raise UdhError(f"--real-fraction {config.real_fraction}: give a share of each batch from 0 to 1")
     if not 0.0 <= config.small_motion_fraction <= 1.0:

@@ -64,3 +64,32 @@ def test_a_flight_split_at_its_turn_is_made_whole_by_gps_pairs(tmp_path):
     assert solved["frames"] == 10 and solved["max_corner_px"] < 3.0  # and join them where they belong
     off = run_mosaic(folder, tmp_path / "split.png", MosaicConfig(overlap_per_frame=1, gps_pairs=0), estimator=turn, fallback=turn)
     assert off["summary"]["parts"] == 2 and off["summary"]["gps_pairs_joined"] == 0
+
+
+def test_a_gps_pair_that_places_a_frame_far_from_its_gps_is_rejected(tmp_path):
+    """The same split flight, but every pair across the strips answers 150 px (15 m) off the truth, and sift's
+    verification is off so that the mosaic's own check would let it through: GPS places the other strip's
+    frame that far from its fix (0.3 m noise, sub-metre residual) and rejects every such pair."""
+    from mosaic_flights import FailOn, work_fingerprints
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+    from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
+
+    class ShiftedAcross(FailOn):
+        def _estimate(self, image_a, image_b):
+            homography, confidence, details = super()._estimate(image_a, image_b)
+            a, b = self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))
+            if a is not None and b is not None and (a < 5) != (b < 5):
+                homography = geometry.translation(150.0, 0.0) @ homography
+            return homography, confidence, details
+
+    from mosaic_flights import fingerprint
+
+    folder = tmp_path / "flight"
+    write_flight(folder, FlightConfig(frame_size=(320, 240), strips=2, frames_per_strip=5, focal_px=300.0), seed=5,
+                 gps=GpsConfig(46.85, -92.0, metres_per_pixel=0.1, noise_m=0.3))
+    prints = work_fingerprints(sorted(folder.glob("frame_*.jpg")))
+    liar = ShiftedAcross(prints, lambda a, b: a is not None and b is not None and (a < 5) != (b < 5) and abs(a - b) <= 2)
+    report = run_mosaic(folder, tmp_path / "m.png", MosaicConfig(overlap_per_frame=1, min_verified=0.0), estimator=liar, fallback=liar)
+    across = [p for p in report["pairs"] if p["kind"] == "gps"]
+    assert across and all(p["status"] == "rejected" and "from its GPS position" in p["reason"] for p in across)
+    assert report["summary"]["parts"] == 2 and report["summary"]["gps_pairs_joined"] == 0

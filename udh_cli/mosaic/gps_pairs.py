@@ -4,8 +4,11 @@ each estimate against them.
 When consecutive pairs fail (a turn, a low-texture field), a run splits into parts. Frames whose GPS
 positions lie close together overlap on the ground whatever their order in the sequence: the return leg of
 a strip, or the frame after a gap. Those pairs are worth estimating, and an estimate that joins two parts
-must agree with GPS: the distance its homography puts between the two frames' centres, in metres (at the
-flight's ground scale measured on the pairs that did work), is compared with the GPS distance.
+must agree with GPS. Where one of the parts is placed on the map by its frames' GPS (a similarity fitted to
+its chained frame centres), the estimate places the other frame's centre through that part, and the place
+must be near that frame's GPS position. Between two lone frames only the distance can be checked: the
+distance the homography puts between the centres, in metres at the flight's ground scale measured on the
+pairs that did work, against the GPS distance.
 
 All positions are WGS 84 / UTM metres (pyproj), so distances are in metres on the ground.
 """
@@ -23,6 +26,7 @@ MIN_SCALE_PAIRS = 3  # ground scale from fewer working pairs than this is not tr
 REACH_STEPS = 2.0  # candidate frames lie within this many median GPS steps of each other
 GPS_TOLERANCE = 0.5  # an estimate may disagree with GPS by this share of the reach, plus the GPS noise floor
 GPS_NOISE_M = 5.0  # consumer GPS fixes scatter by a few metres
+PLACEMENT_TOLERANCE = 3.0  # an estimate may place a frame this many times the part's GPS residual away (and 2x the noise)
 
 
 @dataclass(frozen=True)
@@ -114,3 +118,32 @@ def gps_disagreement_m(b_from_a: np.ndarray, a: int, b: int, positions: dict[int
 def gps_limit_m(scale: GroundScale) -> float:
     """The largest :func:`gps_disagreement_m` an estimate joining two parts may have."""
     return GPS_TOLERANCE * scale.reach_m + GPS_NOISE_M
+
+
+def part_map(positions: dict[int, np.ndarray], ref_from_frame: dict[int, np.ndarray], sizes: Sequence[tuple[int, int]]) -> tuple[np.ndarray, float] | None:
+    """A part placed on the map by its frames' GPS: ``(map_from_ref, residual RMS m)``, a similarity fitted to
+    the chained frame centres (reference pixels) and their positions; None with fewer than 3 frames with GPS."""
+    from udh_cli.mosaic.georef import fit_similarity
+
+    frames = [i for i in ref_from_frame if i in positions and np.isfinite(ref_from_frame[i]).all()]
+    if len(frames) < 3:
+        return None
+    centres = np.array([_centre_in(ref_from_frame[i], sizes[i]) for i in frames])
+    points = np.stack([positions[i] for i in frames])
+    fit = fit_similarity(centres, points)
+    residual = np.linalg.norm(geometry.transform_points(fit, centres) - points, axis=1)
+    return fit, float(np.sqrt(np.mean(residual**2)))
+
+
+def placement_error_m(frame_from_other: np.ndarray, frame: int, other: int, ref_from_frame: np.ndarray, placed: tuple[np.ndarray, float],
+                      positions: dict[int, np.ndarray], sizes: Sequence[tuple[int, int]]) -> tuple[float, float]:
+    """Where an estimate puts ``other``'s centre on the map, through ``frame``'s part (``ref_from_frame`` of
+    ``frame``, the part's ``placed`` = :func:`part_map`): ``(metres from other's GPS position, the limit)``."""
+    map_from_ref, residual_m = placed
+    centre = _centre_in(map_from_ref @ ref_from_frame @ frame_from_other, sizes[other])
+    limit = max(2 * GPS_NOISE_M, PLACEMENT_TOLERANCE * residual_m)
+    return float(np.linalg.norm(centre - positions[other])), limit
+
+
+def _centre_in(h: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    return geometry.transform_points(h, np.array([[(size[0] - 1) / 2, (size[1] - 1) / 2]]))[0]

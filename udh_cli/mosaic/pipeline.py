@@ -30,7 +30,8 @@ from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, o
 from udh_cli.mosaic.gcp import fit_gcps, read_gcp_file
 from udh_cli.mosaic.geotiff import cog_path, has_rasterio, write_cog, write_combined_cog
 from udh_cli.mosaic.workers import EstimatorSpec, open_runner
-from udh_cli.mosaic.gps_pairs import bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale
+from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
+                                      placement_error_m)
 from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, corner_disagreement_px, estimate_pairs
@@ -501,14 +502,24 @@ def _bridge_by_gps(frameset: FrameSet, parts: list[Part], pairs: list[PairResult
         return []
     results = estimate_pairs([PairRequest(a, b, "gps") for a, b, _ in candidates], frames, estimator, fallback, acceptance(config),
                              reporter, "GPS bridges between parts", config.batch_size, cache, runner)
-    limit = gps_limit_m(scale)
+    part_of = {i: part for part in parts for i in part.frames}
+    placed = {id(part): part_map(positions, part.chained, sizes) for part in parts if len(part.frames) >= 3}
     for result in results:
         if not result.ok:
             continue
-        off = gps_disagreement_m(result.b_from_a, result.a, result.b, positions, sizes, scale)
+        # Through whichever part GPS places on the map (the larger first): where the estimate puts the other frame.
+        checks = sorted([(result.a, result.b, geometry.invert(result.b_from_a)), (result.b, result.a, result.b_from_a)],
+                        key=lambda c: -len(part_of[c[0]].frames))
+        through = next(((f, o, h) for f, o, h in checks if placed.get(id(part_of[f])) is not None), None)
+        if through is not None:
+            frame, other, frame_from_other = through
+            off, limit = placement_error_m(frame_from_other, frame, other, part_of[frame].chained[frame], placed[id(part_of[frame])], positions, sizes)
+            what = f"places {frames[other].name} {off:.0f} m from its GPS position (limit {limit:.0f} m)"
+        else:
+            off, limit = gps_disagreement_m(result.b_from_a, result.a, result.b, positions, sizes, scale), gps_limit_m(scale)
+            what = f"puts the frames {off:.0f} m further apart or closer than their GPS does (limit {limit:.0f} m)"
         if off > limit:
-            result.status, result.b_from_a = "rejected", None
-            result.reason = f"puts the frames {off:.0f} m further apart or closer than their GPS does (limit {limit:.0f} m)"
+            result.status, result.b_from_a, result.reason = "rejected", None, what
     reporter.info(f"GPS: {sum(r.ok for r in results)} of {len(results)} pairs between parts joined them "
                   f"(ground scale {scale.metres_per_pixel * 100:.1f} cm per pixel from {scale.pairs_used} pairs, reach {scale.reach_m:.0f} m)")
     return results

@@ -55,7 +55,7 @@ def test_a_flight_split_at_its_turn_is_made_whole_by_gps_pairs(tmp_path):
                  gps=GpsConfig(46.85, -92.0, metres_per_pixel=0.1, noise_m=0.3))
     prints = work_fingerprints(sorted(folder.glob("frame_*.jpg")))
     turn = FailOn(prints, lambda a, b: a is not None and b is not None and (a < 5) != (b < 5) and abs(a - b) <= 2)
-    report = run_mosaic(folder, tmp_path / "whole.png", MosaicConfig(overlap_per_frame=1), estimator=turn, fallback=turn)
+    report = run_mosaic(folder, tmp_path / "whole.png", MosaicConfig(overlap_per_frame=1, gps_pairs=3), estimator=turn, fallback=turn)
     assert report["summary"]["parts"] == 1 and report["summary"]["placed"] == 10
     assert report["summary"]["gps_pairs_joined"] >= 1
     joined = [p for p in report["pairs"] if p["kind"] == "gps" and p["status"] == "ok"]
@@ -89,7 +89,7 @@ def test_a_gps_pair_that_places_a_frame_far_from_its_gps_is_rejected(tmp_path):
                  gps=GpsConfig(46.85, -92.0, metres_per_pixel=0.1, noise_m=0.3))
     prints = work_fingerprints(sorted(folder.glob("frame_*.jpg")))
     liar = ShiftedAcross(prints, lambda a, b: a is not None and b is not None and (a < 5) != (b < 5) and abs(a - b) <= 2)
-    report = run_mosaic(folder, tmp_path / "m.png", MosaicConfig(overlap_per_frame=1, min_verified=0.0), estimator=liar, fallback=liar)
+    report = run_mosaic(folder, tmp_path / "m.png", MosaicConfig(overlap_per_frame=1, min_verified=0.0, gps_pairs=3), estimator=liar, fallback=liar)
     across = [p for p in report["pairs"] if p["kind"] == "gps"]
     assert across and all(p["status"] == "rejected" and "from its GPS position" in p["reason"] for p in across)
     assert report["summary"]["parts"] == 2 and report["summary"]["gps_pairs_joined"] == 0

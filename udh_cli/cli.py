@@ -296,7 +296,7 @@ def mosaic(
     max_frame_scale: Annotated[float, typer.Option("--max-frame-scale", help="Report (leave out) frames the solve draws more than this many times larger or smaller than the reference frame.")] = _MOSAIC.max_frame_scale,
     no_gain: Annotated[bool, typer.Option("--no-gain", help="Skip gain (exposure) compensation.", metavar="")] = False,
     overlap_per_frame: Annotated[int, typer.Option("--overlap-pairs", help="Loop-closure pairs per frame at most (0: plain chaining).")] = _MOSAIC.overlap_per_frame,
-    gps_pairs: Annotated[int, typer.Option("--gps-pairs", min=0, help="With GPS in the frames: pairs tried between each two parts that GPS puts close together (0: off).")] = _MOSAIC.gps_pairs,
+    gps_pairs: Annotated[int, typer.Option("--gps-pairs", min=0, help="With GPS in the frames: pairs tried between each two parts that GPS puts close together, e.g. 3 (0: off; short surveys split at a turn).")] = _MOSAIC.gps_pairs,
     workers: Annotated[int, typer.Option("--workers", min=1, help="Local processes estimating pairs at once (e.g. one per core; 1: in this process).")] = _MOSAIC.workers,
     scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Estimate pairs on a Dask cluster: the scheduler's address, e.g. tcp://host:8786.")] = _MOSAIC.scheduler,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Simulator ground truth (default: SOURCE/ground_truth.json when present) to report the corner error.")] = None,

@@ -16,9 +16,10 @@ from udh_cli.mosaic.frames import Frame
 from udh_cli.mosaic.report import Reporter
 from udh_cli.estimators.verify import verification_score
 
+from udh_cli.mosaic.workers import DaskRunner, LocalRunner, PoolRunner, in_order
+
 if TYPE_CHECKING:
     from udh_cli.mosaic.pair_cache import PairCache
-    from udh_cli.mosaic.workers import DaskRunner, LocalRunner, PoolRunner
 
 
 
@@ -196,7 +197,7 @@ def estimate_pairs(
     stage: str,
     batch_size: int = 16,
     cache: "PairCache | None" = None,
-    runner: "LocalRunner | PoolRunner | DaskRunner | None" = None,
+    runner: LocalRunner | PoolRunner | DaskRunner | None = None,
 ) -> list[PairResult]:
     """Estimate every request; a failed or doubtful (see :class:`Acceptance`) pair is retried with
     ``fallback``. Batches of ``batch_size`` pairs go to ``estimate_many`` so learned methods batch them.
@@ -209,8 +210,6 @@ def estimate_pairs(
     batches in flight. Batches are cut from ``requests`` the same way with or without cached pairs, so a
     resumed run hands the estimator the same batches as an uninterrupted one.
     """
-    from udh_cli.mosaic.workers import LocalRunner, in_order
-
     runner = runner or LocalRunner(estimator, fallback, acceptance)
     results = [PairResult(r.a, r.b, r.kind, prior=r.prior) for r in requests]
     batches = []
@@ -266,28 +265,6 @@ def _apply(pending: list[int], judged, requests: Sequence[PairRequest], results:
             result.reason = f"{estimate.method}: {doubt}"
             still_pending.append(i)
     return still_pending
-
-
-def estimate_many_safely(method: Estimator, pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
-    """``estimate_many``, but an estimator that raises (a bug, a runtime error) fails only its own pairs.
-
-    Estimators report failures as estimates and never raise by contract; this keeps one broken pair from
-    stopping a run of hundreds.
-    """
-    try:
-        return method.estimate_many(pairs)
-    except UdhError:
-        raise  # a problem the user must fix (a missing model...): stop with its message
-    except Exception:  # noqa: BLE001 - retry one by one so that only the offending pairs fail
-        out = []
-        for a, b in pairs:
-            try:
-                out.append(method.estimate(a, b))
-            except UdhError:
-                raise
-            except Exception as exc:  # noqa: BLE001
-                out.append(Estimate(method.name, None, 0.0, 0.0, f"the estimator raised {type(exc).__name__}: {exc}"))
-        return out
 
 
 def corner_disagreement_px(b_from_a: np.ndarray, other_b_from_a: np.ndarray, size_a: tuple[int, int]) -> float:

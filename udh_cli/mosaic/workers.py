@@ -45,14 +45,34 @@ class EstimatorSpec:
 
 def judge_batch(method: Estimator, acceptance, pairs: Sequence[ImagePair]) -> list[Judged]:
     """Estimate ``pairs`` (working-size images) with ``method`` and judge each answer (:class:`Acceptance`)."""
-    from udh_cli.mosaic.pairwise import estimate_many_safely
-
     estimates = estimate_many_safely(method, list(pairs))
     out = []
     for (image_a, image_b), estimate in zip(pairs, estimates):
         verified, doubt = acceptance.judge(estimate, image_a, image_b, method.verifies_itself)
         out.append((estimate, verified, doubt))
     return out
+
+
+def estimate_many_safely(method: Estimator, pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
+    """``estimate_many``, but an estimator that raises (a bug, a runtime error) fails only its own pairs.
+
+    Estimators report failures as estimates and never raise by contract; this keeps one broken pair from
+    stopping a run of hundreds.
+    """
+    try:
+        return method.estimate_many(pairs)
+    except UdhError:
+        raise  # a problem the user must fix (a missing model...): stop with its message
+    except Exception:  # noqa: BLE001 - retry one by one so that only the offending pairs fail
+        out = []
+        for a, b in pairs:
+            try:
+                out.append(method.estimate(a, b))
+            except UdhError:
+                raise
+            except Exception as exc:  # noqa: BLE001
+                out.append(Estimate(method.name, None, 0.0, 0.0, f"the estimator raised {type(exc).__name__}: {exc}"))
+        return out
 
 
 _WORKER_ESTIMATORS: dict[str, tuple[Estimator, Estimator | None]] = {}

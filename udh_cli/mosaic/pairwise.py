@@ -10,7 +10,6 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
-from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.mosaic.frames import Frame
 from udh_cli.mosaic.report import Reporter

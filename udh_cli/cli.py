@@ -19,8 +19,9 @@ from udh_cli import __version__, geometry
 from udh_cli.errors import UdhError
 from udh_cli.api import ESTIMATE_WORK_SIZE
 from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS
-from udh_cli.flight_motion import MotionConfig as _MotionDefaults
-from udh_cli.train.data import DEFAULT_REAL_FRACTION
+from udh_cli.train.config import TrainConfig as _TrainConfig
+
+_TRAIN = _TrainConfig()  # the command line's defaults are the library's
 
 app = typer.Typer(
     name="udh",
@@ -139,30 +140,30 @@ def _print_estimate(payload: dict) -> None:
 def train(
     data: Annotated[Optional[list[Path]], typer.Option("--data", "-d", help="Folder of images (synthetic pairs) or of a flight (consecutive frames). Repeat for more.")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Run folder: checkpoint.pt, best.pt, metrics.jsonl, config.json.")] = Path("runs/udh"),
-    mode: Annotated[str, typer.Option(help="unsupervised (photometric L1, no labels) or supervised (L2 on synthetic labels).")] = "unsupervised",
+    mode: Annotated[str, typer.Option(help="unsupervised (photometric L1, no labels) or supervised (L2 on synthetic labels).")] = _TRAIN.mode,
     arch: Annotated[Optional[str], typer.Option(help="Network: corr (CPU-friendly; the default, or --init's own), corr-global (corr with global matches, for flight motion), corr-lite (faster, slimmer), corr-fine (full-resolution refinement) or vgg-paper (the paper's 34 M network).")] = None,
-    rho: Annotated[float, typer.Option(help="Largest corner perturbation of synthetic pairs, px (paper: 16/32/45 for 85/75/65 % overlap).")] = 32.0,
+    rho: Annotated[float, typer.Option(help="Largest corner perturbation of synthetic pairs, px (paper: 16/32/45 for 85/75/65 % overlap).")] = _TRAIN.rho,
     steps: Annotated[Optional[int], typer.Option(help="Total optimiser steps (default 20000; with --resume, the run's own).")] = None,
-    batch: Annotated[int, typer.Option(help="Pairs per step (per process under torchrun).")] = 32,
+    batch: Annotated[int, typer.Option(help="Pairs per step (per process under torchrun).")] = _TRAIN.batch,
     lr: Annotated[Optional[float], typer.Option(help="Adam learning rate (default: the paper's, 1e-4 unsupervised, 5e-4 supervised).")] = None,
     init: Annotated[Optional[str], typer.Option(help="Fine-tune from a checkpoint file or a shipped model (unsupervised, supervised).")] = None,
     teacher: Annotated[Optional[str], typer.Option(help="Distil from this checkpoint or shipped model (unsupervised mode): its answers join the loss, no labels.")] = None,
-    teacher_weight: Annotated[float, typer.Option(help="Weight of the mean |offset - teacher's offset| (px) beside the photometric loss.")] = 0.01,
+    teacher_weight: Annotated[float, typer.Option(help="Weight of the mean |offset - teacher's offset| (px) beside the photometric loss.")] = _TRAIN.teacher_weight,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.", metavar="")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the run in --out (without it, a folder holding a run is refused).", metavar="")] = False,
-    data_kind: Annotated[str, typer.Option(help="auto (pools and flights given together are mixed), pool or flight.")] = "auto",
-    real_fraction: Annotated[float, typer.Option(help="With pools and flights together: the share of each batch from the flights' real pairs.")] = DEFAULT_REAL_FRACTION,
-    source_side: Annotated[int, typer.Option(help="Pool images at this longer side, pairs from 320x240 windows of them (the tile stage's scale); 0: the paper's 320x240.")] = 0,
-    small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = 0.3,
-    illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.", metavar="")] = True,
-    occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = 0.0,
-    motion: Annotated[str, typer.Option(help="paper (corner perturbation by --rho) or flight (whole frames with real flight motion; --rho is then the perspective jitter).")] = "paper",
-    max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = _MotionDefaults.max_heading,
-    max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = _MotionDefaults.scale_range[1],
-    max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = _MotionDefaults.max_shift,
-    min_overlap: Annotated[float, typer.Option(help="Flight motion: least share of B that A's view covers.")] = _MotionDefaults.min_overlap,
-    eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = 250,
-    seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = 0,
+    data_kind: Annotated[str, typer.Option(help="auto (pools and flights given together are mixed), pool or flight.")] = _TRAIN.data_kind,
+    real_fraction: Annotated[float, typer.Option(help="With pools and flights together: the share of each batch from the flights' real pairs.")] = _TRAIN.real_fraction,
+    source_side: Annotated[int, typer.Option(help="Pool images at this longer side, pairs from 320x240 windows of them (the tile stage's scale); 0: the paper's 320x240.")] = _TRAIN.source_side,
+    small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = _TRAIN.small_motion_fraction,
+    illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.", metavar="")] = _TRAIN.illumination,
+    occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = _TRAIN.occluders,
+    motion: Annotated[str, typer.Option(help="paper (corner perturbation by --rho) or flight (whole frames with real flight motion; --rho is then the perspective jitter).")] = _TRAIN.motion,
+    max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = _TRAIN.max_heading,
+    max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = _TRAIN.max_scale,
+    max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = _TRAIN.max_shift,
+    min_overlap: Annotated[float, typer.Option(help="Flight motion: least share of B that A's view covers.")] = _TRAIN.min_overlap,
+    eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = _TRAIN.eval_every,
+    seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = _TRAIN.seed,
     threads: Annotated[Optional[int], typer.Option(help="torch CPU threads (default: torch's choice).")] = None,
 ) -> None:
     """Train the unsupervised or supervised network (needs the [bold]train[/bold] extra: torch)."""

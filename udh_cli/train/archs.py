@@ -15,6 +15,8 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from udh_cli.train.config import DEFAULT_ARCH  # noqa: F401 - the default, named with the run settings
+
 OFFSET_SCALE = 32.0  # the heads predict offsets / 32 px, so initial outputs sit in a sensible range
 GLOBAL_CHANNELS = 3  # corr-global's extra volume channels: displacement x, y and the best match's weight
 
@@ -185,7 +187,6 @@ ARCHS: dict[str, Callable[..., nn.Module]] = {
     "corr-fine": partial(CorrelationNet, fine=True, radius=3, encoder_widths=(16, 32, 32, 32), regressor_widths=(64, 128, 128, 128)),
     "vgg-paper": PaperVGG,
 }
-DEFAULT_ARCH = "corr"
 
 
 def widen_from(model: nn.Module, state: dict[str, torch.Tensor]) -> list[str]:

@@ -7,7 +7,7 @@ import math
 import os
 import signal
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -18,88 +18,13 @@ from udh_cli.errors import UdhError
 from udh_cli.synthetic import PairConfig
 from udh_cli.train import losses
 from udh_cli.flight_motion import MotionConfig
-from udh_cli.train.archs import DEFAULT_ARCH, create_model, widen_from
+from udh_cli.train.archs import create_model, widen_from
+from udh_cli.train.config import DEFAULT_ARCH, DEFAULT_STEPS, MOTIONS, PAPER_LR, TrainConfig  # noqa: F401 - re-exported
 from udh_cli.train.checkpoint import load_checkpoint, save_checkpoint
-from udh_cli.train.data import DEFAULT_REAL_FRACTION, Batch, open_data
+from udh_cli.train.data import Batch, open_data
 
-PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learning rates
-MOTIONS = ("paper", "flight")
 # (from, to) architectures where --init widens the first regressor layer (new channels start at zero).
 WIDENINGS = {("corr", "corr-global")}
-DEFAULT_STEPS = 20000
-
-
-@dataclass
-class TrainConfig:
-    """Everything that defines a run; stored in every checkpoint and in ``config.json``.
-
-    Attributes:
-        mode: "unsupervised" (photometric L1, no labels) or "supervised" (L2 on the 4-point labels).
-        data: folders of images (synthetic pairs) or of flights (consecutive real frames), or both.
-        data_kind: "auto" (flight folders are recognised by their manifest; pools and flights together
-            are mixed), "pool" or "flight".
-        real_fraction: with pools and flights together, the share of each batch drawn from the flights.
-        source_side: pool images are resized to 320x240 (0, the paper's), or to this longer side with
-            pairs drawn from 320x240 windows of them (the scale of the tile stage's tiles).
-        arch: architecture name (see :data:`udh_cli.train.archs.ARCHS`).
-        patch_size: network input side, pixels.
-        rho: largest corner perturbation of synthetic pairs, pixels.
-        small_motion_fraction: share of synthetic pairs with a smaller, random rho.
-        illumination: random brightness/contrast/gamma on the inputs; occluders: the share of pairs
-            (0 to 1) with textured blobs pasted on the inputs. Both are input augmentations: the losses
-            see the clean images.
-        motion: "paper" (corner perturbation by ``rho``, the paper's) or "flight" (whole frames with real
-            flight motion, :mod:`udh_cli.flight_motion`; ``rho`` is then the perspective jitter).
-        max_heading: flight motion's largest turn, degrees; max_scale: its largest scale change (a factor,
-            both ways); max_shift: its largest translation, as a fraction of the frame; min_overlap: the least
-            share of B that A's view covers.
-        steps: total optimiser steps (None: :data:`DEFAULT_STEPS`, or on resume the run's own total);
-            batch: pairs per step and per process.
-        lr: Adam learning rate (None: the paper's, 1e-4 unsupervised, 5e-4 supervised).
-        betas, eps: Adam's, as in the paper.
-        lr_final_fraction: the learning rate decays along a cosine to this fraction of ``lr``.
-        seed: seeds data generation and initialisation.
-        eval_every, checkpoint_every: in steps. val_pairs: size of the fixed validation set.
-        init: a checkpoint (or a shipped model name) to fine-tune from.
-        teacher: a checkpoint (or shipped model name) to distil from, unsupervised mode only: the loss adds
-            ``teacher_weight`` times the mean absolute difference, in pixels, between this network's offsets and
-            the teacher's on the same inputs. No labels are used; the teacher's own answers are the target.
-        out: run folder (checkpoint.pt, best.pt, metrics.jsonl, config.json).
-    """
-
-    mode: str = "unsupervised"
-    data: list[str] = field(default_factory=list)
-    data_kind: str = "auto"
-    real_fraction: float = DEFAULT_REAL_FRACTION
-    source_side: int = 0
-    arch: str = DEFAULT_ARCH
-    patch_size: int = 128
-    rho: float = 32.0
-    small_motion_fraction: float = 0.3
-    illumination: bool = True
-    occluders: float = 0.0
-    motion: str = "paper"
-    max_heading: float = MotionConfig.max_heading
-    max_scale: float = MotionConfig.scale_range[1]
-    max_shift: float = MotionConfig.max_shift
-    min_overlap: float = MotionConfig.min_overlap
-    steps: int | None = None
-    batch: int = 32
-    lr: float | None = None
-    betas: tuple[float, float] = (0.9, 0.999)
-    eps: float = 1e-8
-    lr_final_fraction: float = 0.05
-    seed: int = 0
-    eval_every: int = 250
-    checkpoint_every: int = 250
-    val_pairs: int = 256
-    init: str | None = None
-    teacher: str | None = None
-    teacher_weight: float = 0.01
-    out: str = "runs/udh"
-
-    def learning_rate(self) -> float:
-        return PAPER_LR[self.mode] if self.lr is None else self.lr
 
 
 def _distributed() -> tuple[int, int]:

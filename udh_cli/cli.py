@@ -275,8 +275,10 @@ def simulate(
 
 from udh_cli.mosaic.composite import BLENDS as _BLENDS  # noqa: E402 - the --blend choices live there
 from udh_cli.mosaic.pipeline import MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
+from udh_cli.mosaic.follow import FollowConfig as _FollowConfig  # noqa: E402
 
 _MOSAIC = _MosaicConfig()
+_FOLLOW = _FollowConfig()
 Blend = _choices("Blend", _BLENDS)
 
 
@@ -306,17 +308,24 @@ def mosaic(
     gcp: Annotated[Optional[Path], typer.Option("--gcp", help="Ground-control points (OpenDroneMap's gcp_list.txt format) that place the mosaic on the map; each is checked by leaving it out.")] = None,
     gcp_image_width: Annotated[Optional[int], typer.Option("--gcp-image-width", help="Width in pixels of the images the --gcp file's pixels refer to, when not the frames' own (originals before downscaling).")] = None,
     cache_dir: Annotated[Optional[Path], typer.Option("--cache-dir", help="Write the pair cache (NAME.pairs.json) in this folder instead of beside the mosaic; it is read only with --resume.")] = None,
+    follow: Annotated[bool, typer.Option("--follow", help="Live: keep watching SOURCE (a folder) as frames arrive, refresh the mosaic every --refresh-every frames, finish when a DONE file appears or no frame comes for --idle-timeout.", metavar="")] = False,
+    refresh_every: Annotated[int, typer.Option("--refresh-every", min=1, help="Live: rewrite the mosaic after this many new frames.")] = _FOLLOW.refresh_every,
+    idle_timeout: Annotated[float, typer.Option("--idle-timeout", min=0.1, help="Live: seconds without a new frame that end the flight.")] = _FOLLOW.idle_timeout_s,
 ) -> None:
     """Stitch a folder of UAV frames (or a video) into one mosaic, drift-free, with any estimator."""
-    from udh_cli.mosaic import Reporter, run_mosaic
+    from udh_cli.mosaic import FollowConfig, Reporter, run_live, run_mosaic
 
     config = _MosaicConfig(
         method=method.value, fallback=fallback, method_options=_key_values(method_option or []), work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
         blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, workers=workers, scheduler=scheduler,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
-    report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume, cache_dir=cache_dir, gcp=gcp,
-                        gcp_image_width=gcp_image_width)
+    if follow:
+        live = FollowConfig(refresh_every=refresh_every, idle_timeout_s=idle_timeout)
+        report = run_live(source, output, config, live, reporter, cache_dir=cache_dir, ground_truth=gt, gcp=gcp, gcp_image_width=gcp_image_width)
+    else:
+        report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume, cache_dir=cache_dir, gcp=gcp,
+                            gcp_image_width=gcp_image_width)
     _print_mosaic(report)
 
 

@@ -3,10 +3,11 @@
 Stages, one module each: :mod:`.frames` (input), :mod:`.pairwise` (batched estimation with fallback),
 :mod:`.graph` (parts, chaining, overlap candidates), :mod:`.solve` (global least squares),
 :mod:`.gains` (exposure), :mod:`.composite` (canvas and blending), :mod:`.truth` (simulator ground truth);
-:mod:`.pipeline` wires them.
+:mod:`.pipeline` wires them; :mod:`.follow` runs them live on a folder being written.
 """
 
-from udh_cli.mosaic.pipeline import DEFAULT_METHOD, MosaicConfig, run_mosaic
+from udh_cli.mosaic.follow import FollowConfig
+from udh_cli.mosaic.pipeline import DEFAULT_METHOD, MosaicConfig, run_live, run_mosaic
 from udh_cli.mosaic.report import Reporter
 
-__all__ = ["DEFAULT_METHOD", "MosaicConfig", "Reporter", "run_mosaic"]
+__all__ = ["DEFAULT_METHOD", "FollowConfig", "MosaicConfig", "Reporter", "run_live", "run_mosaic"]

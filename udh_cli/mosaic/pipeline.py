@@ -29,6 +29,7 @@ from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, o
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, read_gcp_file
 from udh_cli.mosaic.geotiff import cog_path, has_rasterio, write_cog, write_combined_cog
+from udh_cli.mosaic.follow import FollowConfig, follow_mosaic
 from udh_cli.mosaic.workers import EstimatorSpec, open_runner
 from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
                                       placement_error_m)
@@ -309,6 +310,23 @@ def run_mosaic(
     _remove_stale_parts(output, parts, reporter, report)
     report["sidecar"] = str(sidecar_path(output))
     return report
+
+
+def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = MosaicConfig(), follow: FollowConfig = FollowConfig(),
+             reporter: Reporter | None = None, cache_dir: str | Path | None = None, **options: Any) -> dict[str, Any]:
+    """Live mode (:mod:`.follow`): mosaic ``folder`` while frames are still being written into it, refreshing
+    ``output`` every ``follow.refresh_every`` frames, until the flight ends; returns the final sidecar.
+
+    The pair cache is always on (``NAME.pairs.json``, kept afterwards), so each refresh estimates only what
+    is new. ``options`` go to every :func:`run_mosaic` call (``ground_truth``, ``gcp``, ...)."""
+    reporter = reporter or Reporter(quiet=True)
+    output = Path(output)
+    check_output(output)
+    check_config(config)
+    if not Path(folder).is_dir():
+        raise UdhError(f"--follow {folder}: not a folder; live mode watches a folder that frames are written into")
+    return follow_mosaic(folder, output, lambda source: run_mosaic(source, output, config, reporter, resume=True, cache_dir=cache_dir, **options),
+                         follow, reporter, exclude=lambda: {p.resolve() for p in _own_files(output)})
 
 
 # ------------------------------------------------------------------------------------------ steps

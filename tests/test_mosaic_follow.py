@@ -1,0 +1,77 @@
+"""Live mode: a folder being written frame by frame, half-written frames included, becomes the same mosaic."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from udh_cli.errors import UdhError
+from udh_cli.mosaic import FollowConfig, MosaicConfig, run_live, run_mosaic
+from udh_cli.mosaic.follow import _Watch, poll_complete_frames
+
+
+def test_a_frame_joins_only_once_it_stopped_changing(tmp_path):
+    frame = tmp_path / "f1.jpg"
+    frame.write_bytes(b"\xff\xd8 half")
+    watch = _Watch()
+    now = time.time() + 10  # old enough to have settled
+    assert poll_complete_frames(tmp_path, watch, 1.0, set(), now) == []  # first sight: not yet known to be still
+    with frame.open("ab") as handle:  # the writer goes on
+        handle.write(b" more")
+    assert poll_complete_frames(tmp_path, watch, 1.0, set(), now) == []  # it changed since the last look
+    assert poll_complete_frames(tmp_path, watch, 1.0, set(), now) == [frame]  # unchanged over two looks
+    assert poll_complete_frames(tmp_path, watch, 1.0, set(), now) == []  # and only once
+    (tmp_path / "notes.txt").write_text("x")
+    (tmp_path / "f2.png").write_bytes(b"png")
+    poll_complete_frames(tmp_path, watch, 1.0, {(tmp_path / "f2.png").resolve()}, now)
+    assert poll_complete_frames(tmp_path, watch, 1.0, {(tmp_path / "f2.png").resolve()}, now) == []  # excluded: an output
+
+
+def test_a_flight_written_while_it_is_followed_gives_the_mosaic_of_the_whole_folder(tmp_path):
+    from mosaic_flights import SMALL, make_flight
+
+    source = tmp_path / "source"
+    source.mkdir()
+    make_flight(source, SMALL, seed=4)
+    frames = sorted(source.glob("frame_*.jpg"))
+    live = tmp_path / "live"
+    live.mkdir()
+
+    def fly():
+        for path in frames:  # each frame written in two halves, 0.15 s apart, as a slow copy would
+            data = path.read_bytes()
+            target = live / path.name
+            target.write_bytes(data[: len(data) // 2])
+            time.sleep(0.15)
+            with target.open("ab") as handle:
+                handle.write(data[len(data) // 2 :])
+            time.sleep(0.1)
+        (live / "DONE").write_text("")
+
+    (tmp_path / "out").mkdir()
+    writer = threading.Thread(target=fly)
+    writer.start()
+    config = MosaicConfig(method="sift")
+    follow = FollowConfig(refresh_every=2, poll_s=0.05, settle_s=0.2, idle_timeout_s=30.0)
+    report = run_live(live, tmp_path / "out" / "live.png", config, follow)
+    writer.join()
+    assert report["live"]["ended_by"] == "sentinel" and report["live"]["frames"] == len(frames)
+    assert report["live"]["refreshes"] >= 2  # the mosaic was rewritten while the flight went on
+    assert report["summary"]["placed"] == len(frames) and report["summary"]["parts"] == 1
+    assert report["summary"]["pairs_from_cache"] > 0  # the final run reused the refreshes' pairs
+    whole = run_mosaic(source, tmp_path / "whole.png", config)
+    for frame, expected in zip(report["frames"], whole["frames"], strict=True):
+        np.testing.assert_allclose(frame["mosaic_from_frame"], expected["mosaic_from_frame"], atol=1e-6)
+    assert not any(p.name.startswith(".udh-follow") for p in (tmp_path / "out").iterdir())  # the staging folder is gone
+
+
+def test_a_flight_that_never_starts_ends_with_a_clear_error(tmp_path):
+    (tmp_path / "out").mkdir()
+    with pytest.raises(UdhError, match="ended with 0 complete frame"):
+        run_live(tmp_path, tmp_path / "out" / "m.png", MosaicConfig(method="sift"), FollowConfig(poll_s=0.02, idle_timeout_s=0.2))
+    with pytest.raises(UdhError, match="not a folder"):
+        run_live(tmp_path / "nothing", tmp_path / "out" / "m.png", MosaicConfig(method="sift"))

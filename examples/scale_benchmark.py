@@ -2,8 +2,8 @@
 
     python examples/scale_benchmark.py [--frames 100,500,2000] [--method auto] [--frame-size 320x240] [--keep DIR]
 
-For each size the simulator (`udh simulate`) writes a survey with ground truth into a temporary folder (or
-``--keep DIR``), and `udh mosaic` runs on it in a fresh process, so that each size's peak memory is its own.
+For each size the simulator writes a survey with ground truth into a temporary folder (or ``--keep DIR``) in
+one process, and `udh mosaic` runs on it in another, so that each size's peak memory is the mosaic's own.
 Prints a Markdown table: frames placed, parts, wall time and time per frame, the pairs' share of it, peak
 memory (the process's maximum resident set), and the solved frames' corner error against the truth, in
 reference-frame pixels.
@@ -28,16 +28,22 @@ def survey_shape(frames: int) -> tuple[int, int]:
     return strips, max(2, round(frames / strips))
 
 
-def run_one(frames: int, method: str, frame_size: tuple[int, int], folder: Path) -> dict:
-    """Simulate and mosaic one survey in this process; the figures of one table row."""
-    from udh_cli.mosaic import MosaicConfig, run_mosaic
+def simulate(frames: int, frame_size: tuple[int, int], folder: Path) -> Path:
+    """Write a survey of about ``frames`` frames with its ground truth; returns its folder."""
     from udh_cli.simulate import FlightConfig, write_flight
 
     strips, per_strip = survey_shape(frames)
     flight = folder / f"survey-{frames}"
     write_flight(flight, FlightConfig(frame_size=frame_size, strips=strips, frames_per_strip=per_strip), seed=frames)
+    return flight
+
+
+def mosaic(flight: Path, method: str, workers: int) -> dict:
+    """Mosaic one simulated survey in this process; the figures of one table row."""
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+
     started = time.perf_counter()
-    report = run_mosaic(flight, folder / f"survey-{frames}.png", MosaicConfig(method=method))
+    report = run_mosaic(flight, flight.parent / f"{flight.name}.png", MosaicConfig(method=method, workers=workers))
     elapsed = time.perf_counter() - started
     timings = report["timings_s"]
     pair_s = sum(v for k, v in timings.items() if "pairs" in k or "bridg" in k)
@@ -48,26 +54,39 @@ def run_one(frames: int, method: str, frame_size: tuple[int, int], folder: Path)
             "error_mean_px": solved.get("mean_corner_px"), "error_max_px": solved.get("max_corner_px")}
 
 
+def _child(arguments: list[str]) -> str:
+    """Run this script with ``arguments`` in a fresh process; its last line of output (its stderr on failure)."""
+    done = subprocess.run([sys.executable, __file__, *arguments], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(arguments)} failed:\n{done.stderr.strip()}")
+    return done.stdout.strip().splitlines()[-1]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", default="100,500,2000", help="survey sizes, comma-separated")
     parser.add_argument("--method", default="auto")
     parser.add_argument("--frame-size", default="320x240")
     parser.add_argument("--keep", type=Path, help="write the surveys and mosaics here instead of a temporary folder")
-    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: one size, in a fresh process
+    parser.add_argument("--workers", type=int, default=1, help="local processes estimating pairs (udh mosaic --workers)")
+    parser.add_argument("--simulate", type=int, help=argparse.SUPPRESS)  # internal: write one survey, in a fresh process
+    parser.add_argument("--mosaic", type=Path, help=argparse.SUPPRESS)  # internal: mosaic one survey, in a fresh process
     args = parser.parse_args()
     frame_size = tuple(int(v) for v in args.frame_size.lower().split("x"))
-    if args.one is not None:
-        print(json.dumps(run_one(args.one, args.method, frame_size, args.keep)))
+    if args.simulate is not None:
+        print(simulate(args.simulate, frame_size, args.keep))
         return
-    print(f"| frames | placed | parts | wall time (s) | per frame (ms) | pairs (s) | solve (s) | peak memory (MB) | corner error vs truth, mean / max (px) |")
+    if args.mosaic is not None:
+        print(json.dumps(mosaic(args.mosaic, args.method, args.workers)))
+        return
+    print("| frames | placed | parts | wall time (s) | per frame (ms) | pairs (s) | solve (s) | peak memory (MB) | corner error vs truth, mean / max (px) |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     with tempfile.TemporaryDirectory() as temporary:
         folder = args.keep or Path(temporary)
         folder.mkdir(parents=True, exist_ok=True)
         for frames in (int(v) for v in args.frames.split(",")):
-            command = [sys.executable, __file__, "--one", str(frames), "--method", args.method, "--frame-size", args.frame_size, "--keep", str(folder)]
-            row = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
+            flight = _child(["--simulate", str(frames), "--frame-size", args.frame_size, "--keep", str(folder)])
+            row = json.loads(_child(["--mosaic", flight, "--method", args.method, "--workers", str(args.workers)]))
             error = "n/a" if row["error_mean_px"] is None else f"{row['error_mean_px']:.2f} / {row['error_max_px']:.2f}"
             print(f"| {row['frames']} | {row['placed']} | {row['parts']} | {row['time_s']:.1f} | {1e3 * row['time_s'] / row['frames']:.0f} | "
                   f"{row['pairs_s']:.1f} | {row['solve_s']:.2f} | {row['peak_mb']:.0f} | {error} |", flush=True)

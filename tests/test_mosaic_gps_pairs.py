@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
@@ -67,10 +65,10 @@ def test_a_flight_split_at_its_turn_is_made_whole_by_gps_pairs(tmp_path):
 
 
 def test_a_gps_pair_that_places_a_frame_far_from_its_gps_is_rejected(tmp_path):
-    """The same split flight, but every pair across the strips answers 150 px (15 m) off the truth, and sift's
-    verification is off so that the mosaic's own check would let it through: GPS places the other strip's
+    """The same split flight, but every pair across the strips answers 150 px (15 m) off the truth, and the
+    mosaic's alignment check (--min-verified) is off so that it would let them through: GPS places the other strip's
     frame that far from its fix (0.3 m noise, sub-metre residual) and rejects every such pair."""
-    from mosaic_flights import FailOn, work_fingerprints
+    from mosaic_flights import FailOn, fingerprint, work_fingerprints
     from udh_cli.mosaic import MosaicConfig, run_mosaic
     from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
 
@@ -81,8 +79,6 @@ def test_a_gps_pair_that_places_a_frame_far_from_its_gps_is_rejected(tmp_path):
             if a is not None and b is not None and (a < 5) != (b < 5):
                 homography = geometry.translation(150.0, 0.0) @ homography
             return homography, confidence, details
-
-    from mosaic_flights import fingerprint
 
     folder = tmp_path / "flight"
     write_flight(folder, FlightConfig(frame_size=(320, 240), strips=2, frames_per_strip=5, focal_px=300.0), seed=5,

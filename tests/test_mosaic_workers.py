@@ -48,16 +48,29 @@ def test_a_dask_cluster_of_two_workers_gives_the_same_homographies(flight, local
     assert_same_pairs(report, local)
 
 
-def test_an_unreachable_scheduler_and_no_workers_are_clear_errors(flight, tmp_path):
+def test_a_pool_runs_the_fallback_inside_the_same_job_and_matches_this_process(flight, tmp_path):
+    """ORB with a strict confidence floor leaves pairs doubted; SIFT answers them in the worker, as here."""
+    config = MosaicConfig(method="orb", fallback="sift", min_confidence=0.6, batch_size=4, overlap_per_frame=1)
+    here = run_mosaic(flight, tmp_path / "here.png", config)
+    pooled = run_mosaic(flight, tmp_path / "pool.png", MosaicConfig(**{**config.__dict__, "workers": 2}))
+    assert sum(len(p["estimates"]) == 2 for p in here["pairs"]) >= 1  # the fallback ran
+    assert_same_pairs(pooled, here)
+
+
+def test_an_unreachable_or_malformed_scheduler_and_no_workers_are_clear_errors(flight, tmp_path):
     pytest.importorskip("distributed")
-    with pytest.raises(UdhError, match="cannot reach the Dask scheduler"):
-        run_mosaic(flight, tmp_path / "m.png", MosaicConfig(method="sift", scheduler="tcp://127.0.0.1:9"))
+    from udh_cli.mosaic.workers import DaskRunner, EstimatorSpec
+
+    for address in ("tcp://127.0.0.1:9", "http://:abc"):
+        with pytest.raises(UdhError, match="cannot reach the Dask scheduler"):
+            DaskRunner(EstimatorSpec("sift"), address, timeout_s=1.0)
     with pytest.raises(UdhError, match="--workers 0"):
         run_mosaic(flight, tmp_path / "m.png", MosaicConfig(workers=0))
     assert list(tmp_path.iterdir()) == []
 
 
-def test_jobs_come_back_in_order_with_at_most_a_window_in_flight():
+def test_jobs_come_back_in_submission_order_even_when_a_later_one_finishes_first():
+    import threading
     from concurrent.futures import Future
 
     in_flight, most = [0], [0]
@@ -67,12 +80,14 @@ def test_jobs_come_back_in_order_with_at_most_a_window_in_flight():
             in_flight[0] += 1
             most[0] = max(most[0], in_flight[0])
             done: Future = Future()
-            done.set_result(value)
+            # Later jobs finish sooner: job 0 takes longest.
+            threading.Timer(0.01 * (7 - value), done.set_result, args=(value,)).start()
             return done
         return start
 
     seen = []
     for index, future in in_order([job(v) for v in range(7)], window=3):
-        seen.append((index, future.result()))
+        value = future.result()
+        seen.append((index, value))
         in_flight[0] -= 1
     assert seen == [(i, i) for i in range(7)] and most[0] == 3

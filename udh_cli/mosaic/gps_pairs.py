@@ -23,7 +23,8 @@ import numpy as np
 from udh_cli import geometry
 
 MIN_SCALE_PAIRS = 3  # ground scale from fewer working pairs than this is not trusted
-REACH_STEPS = 2.0  # candidate frames lie within this many median GPS steps of each other
+REACH_STEPS = 2.0  # candidate frames lie within this many median GPS steps of each other,
+FOOTPRINT_SHARE = 0.75  # or within this share of a frame's shorter side on the ground
 GPS_TOLERANCE = 0.5  # an estimate may disagree with GPS by this share of the reach, plus the GPS noise floor
 GPS_NOISE_M = 5.0  # consumer GPS fixes scatter by a few metres
 PLACEMENT_TOLERANCE = 3.0  # an estimate may place a frame this many times the part's GPS residual away (and 2x the noise)
@@ -35,7 +36,8 @@ class GroundScale:
 
     Attributes:
         metres_per_pixel: median ground size of a full-resolution pixel, from pairs that worked.
-        reach_m: frames closer than this on the ground are candidates (``REACH_STEPS`` median GPS steps).
+        reach_m: frames closer than this on the ground are candidates (``REACH_STEPS`` median GPS steps, or
+            ``FOOTPRINT_SHARE`` of a frame's shorter side on the ground, whichever is more).
         pairs_used: how many working pairs measured the scale.
     """
 
@@ -82,7 +84,11 @@ def measure_ground_scale(positions: dict[int, np.ndarray], working: Sequence[tup
             ratios.append(metres / pixels)
     if len(ratios) < MIN_SCALE_PAIRS or not steps:
         return None
-    return GroundScale(float(np.median(ratios)), REACH_STEPS * max(float(np.median(steps)), GPS_NOISE_M), len(ratios))
+    metres_per_pixel = float(np.median(ratios))
+    # Frames overlap on the ground out to about their own footprint, whatever the forward step (a hover's steps
+    # are metres, and the next strip lies two or more steps away): the reach is the larger of the two.
+    footprint_m = FOOTPRINT_SHARE * metres_per_pixel * float(np.median([min(sizes[i]) for i in positions if i < len(sizes)]))
+    return GroundScale(metres_per_pixel, max(REACH_STEPS * float(np.median(steps)), footprint_m, GPS_NOISE_M), len(ratios))
 
 
 def bridge_candidates(positions: dict[int, np.ndarray], parts: Sequence[Sequence[int]], known: set[tuple[int, int]],
@@ -90,21 +96,25 @@ def bridge_candidates(positions: dict[int, np.ndarray], parts: Sequence[Sequence
     """Frame pairs of different parts (a lone frame is a part) within ``reach_m`` of each other on the ground:
     ``(a, b, metres)`` with ``a < b``, nearest first, at most ``per_gap`` for each pair of parts, none of them
     in ``known``."""
+    from scipy.spatial import cKDTree
+
     part_of = {frame: k for k, part in enumerate(parts) for frame in part}
     indices = np.array(sorted(i for i in positions if i in part_of))
     if len(indices) < 2 or per_gap < 1:
         return []
     points = np.stack([positions[i] for i in indices])
     labels = np.array([part_of[i] for i in indices])
-    distances = np.linalg.norm(points[:, None] - points[None], axis=2)
-    rows, cols = np.nonzero((distances <= reach_m) & (labels[:, None] < labels[None]))  # each pair of parts once
+    # A k-d tree finds the close pairs without an N x N distance matrix (thousands of frames).
+    close = cKDTree(points).query_pairs(reach_m, output_type="ndarray")
+    close = close[labels[close[:, 0]] != labels[close[:, 1]]]
+    distances = np.linalg.norm(points[close[:, 0]] - points[close[:, 1]], axis=1)
     found: dict[tuple[int, int], list[tuple[int, int, float]]] = {}
-    for r, c in sorted(zip(rows, cols), key=lambda rc: distances[rc]):
+    for (r, c), metres in sorted(zip(close.tolist(), distances.tolist()), key=lambda item: (item[1], item[0])):
         a, b = sorted((int(indices[r]), int(indices[c])))
-        gap = (int(labels[r]), int(labels[c]))
+        gap = tuple(sorted((int(labels[r]), int(labels[c]))))
         if (a, b) in known or len(found.setdefault(gap, [])) >= per_gap:
             continue
-        found[gap].append((a, b, float(distances[r, c])))
+        found[gap].append((a, b, float(metres)))
     return sorted((c for chosen in found.values() for c in chosen), key=lambda c: c[2])
 
 

@@ -201,8 +201,10 @@ def estimate_pairs(
     """Estimate every request; a failed or doubtful (see :class:`Acceptance`) pair is retried with
     ``fallback``. Batches of ``batch_size`` pairs go to ``estimate_many`` so learned methods batch them.
 
-    ``runner`` (:mod:`.workers`) runs the batches: in this process (the default), in a process pool or on a
-    Dask cluster, several at once; results are taken in batch order, so they are the same either way.
+    ``runner`` (:mod:`.workers`) runs the batches: in this process (the default, with ``estimator`` and
+    ``fallback``), in a process pool or on a Dask cluster, several at once, each with the estimators it builds
+    from their names (``estimator`` and ``fallback`` are then not used); results are taken in batch order, so
+    they are the same either way.
 
     With a ``cache`` (:class:`~udh_cli.mosaic.pair_cache.PairCache`), a request whose key the cache holds is
     taken from it, and every finished batch is added to it and saved, so an interrupt loses at most the
@@ -226,21 +228,19 @@ def estimate_pairs(
                 batches.append(batch)
         inputs = {}
 
-        def first_attempt(batch: list[int]):
+        def job(batch: list[int]):
             def submit():
                 for i in batch:
                     inputs[i] = _work_inputs(requests[i], frames)
-                return runner.submit(0, [inputs[i][:2] for i in batch])
+                return runner.submit([inputs[i][:2] for i in batch])
             return submit
 
-        for index, done in in_order([first_attempt(b) for b in batches], window=runner.window):
+        for index, future in in_order([job(b) for b in batches], window=runner.window):
             batch = batches[index]
-            pending = _apply(batch, done.result(), requests, results, frames, inputs)
-            if pending and fallback is not None:
-                _apply(pending, runner.submit(1, [inputs[i][:2] for i in pending]).result(), requests, results, frames, inputs)
+            for i, attempts in zip(batch, runner.result(future)):
+                _apply(i, attempts, requests, results, frames, inputs[i][2])
+                del inputs[i]
             advance(len(batch))
-            for i in batch:
-                inputs.pop(i, None)
             if cache is not None:
                 for i in batch:
                     cache.add(requests[i], results[i])
@@ -248,22 +248,18 @@ def estimate_pairs(
     return results
 
 
-def _apply(pending: list[int], judged, requests: Sequence[PairRequest], results: list[PairResult], frames: Sequence[Frame],
-           inputs: dict) -> list[int]:
-    """Record one attempt's ``judged`` answers (:func:`.workers.judge_batch`) for the requests ``pending``;
-    returns those still doubted."""
-    still_pending = []
-    for i, (estimate, verified, doubt) in zip(pending, judged):
-        result = results[i]
+def _apply(i: int, attempts, requests: Sequence[PairRequest], results: list[PairResult], frames: Sequence[Frame], undo) -> None:
+    """Record request ``i``'s judged attempts (:func:`.workers.judge_with_fallback`: the first method's, then
+    the fallback's when the first was doubted); ``undo`` maps the estimate back to full resolution."""
+    result = results[i]
+    for estimate, verified, doubt in attempts:
         result.estimates.append(estimate)
         result.verified = verified
         if doubt is None:
-            result.b_from_a = _full_resolution(estimate, requests[i], frames, inputs[i][2])
+            result.b_from_a = _full_resolution(estimate, requests[i], frames, undo)
             result.status, result.reason, result.method = "ok", None, estimate.method
         else:
             result.reason = f"{estimate.method}: {doubt}"
-            still_pending.append(i)
-    return still_pending
 
 
 def corner_disagreement_px(b_from_a: np.ndarray, other_b_from_a: np.ndarray, size_a: tuple[int, int]) -> float:

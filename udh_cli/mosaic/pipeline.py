@@ -63,24 +63,9 @@ class MosaicConfig:
             frame are estimated too (loop closure).
         overlap_per_frame: at most this many loop-closure partners per frame (bounds the work).
         gps_pairs: when the frames carry GPS and the run splits, at most this many pairs between each two
-            parts that GPS puts close together are estimated (:mod:`.gps_pairs`); 0: off. Off by default
-            because on seneca (167 fixed-wing frames) the 130 bridges that GPS confirmed joined 12 parts into
-            one whose chained homographies degenerated for 118 frames: one plane homography per frame cannot
-            span a long flight until GPS constrains the global solve. It serves short surveys split at a turn.
-        max_disagreement: a loop-closure estimate is rejected when it moves the corners more than this
-            share of the frame diagonal away from the chained prediction (a wrong match, not drift).
-        huber_px: the global solve counts residuals beyond this (reference pixels) linearly.
-        outlier_px: after the solve, pairs whose residual exceeds this and 3x the median are strained; the
-            loop-closure pair whose removal relieves them most is rejected (see ``solve_with_rejection``).
-        blend: ``"feather"``, ``"multiband"`` or ``"none"``.
-        gain_compensation: equalise exposure between frames.
-        max_frame_scale: after the solve, a frame drawn more than this many times larger or smaller (in
-            side length) than the reference frame is taken out of its part and reported. Why: drone frames
-            of one flight are about the same scale; a frame at 3x has drifted on wrong pair estimates, and
-            such frames blew seneca's canvas up to 14063x20704 px with the unsupervised method.
-        max_size: longest side of the mosaic in pixels; larger canvases are downscaled. ``None``: full size.
-        max_canvas_bytes: refuse a canvas that would need more memory than this to blend.
-        batch_size: pairs per ``estimate_many`` call.
+            parts that GPS puts close together are estimated (:mod:`.gps_pairs`); 0: off. Off by default:
+            joining a long flight's parts can chain homographies further than one plane per frame holds
+            (measured in docs/mosaic.md).
         workers: local processes estimating pairs at once (:mod:`.workers`; 1: in this process).
         scheduler: a Dask scheduler's address (``tcp://host:8786``): pairs are estimated on its workers.
         preview: also write a small JPEG preview beside the mosaic.
@@ -268,7 +253,8 @@ def run_mosaic(
             reporter.warn(f"{gcp}: {len(missing)} image(s) it names are not among the frames, their observations are skipped: {', '.join(missing[:5])}")
     cache = PairCache.open(pair_cache_file, frames, estimator, fallback, acceptance(config), resume, reporter,
                            keep=resume or cache_dir is not None)
-    runner = open_runner(estimator, fallback, acceptance(config), spec, config.workers, config.scheduler)
+    runner = open_runner(estimator, fallback, acceptance(config), spec, config.workers, config.scheduler, warn=reporter.warn)
+    aborted = True
     try:
         pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter, cache, runner)
         parts = _chain_parts(frameset, pairs)
@@ -277,6 +263,7 @@ def run_mosaic(
         if any(p.ok for p in bridged):
             parts = _chain_parts(frameset, pairs)
         pairs += _close_loops(frameset, parts, pairs, estimator, fallback, config, reporter, cache, runner)
+        aborted = False
     except KeyboardInterrupt:
         if cache.entries and cache.keep:
             reporter.warn(f"interrupted: the finished pair estimates are kept in {cache.path}; add --resume to the same command to go on from them")
@@ -284,7 +271,7 @@ def run_mosaic(
             reporter.warn("interrupted: run with --resume to keep the pair estimates, so that a rerun goes on from them")
         raise
     finally:
-        runner.close()
+        runner.close(abort=aborted)
     cache.save(prune=True)
     if resume:
         reporter.info(f"{cache.hits} of {len(pairs)} pair estimates taken from {cache.path}")
@@ -596,7 +583,8 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
             inside = [p for p in pairs if p.ok and p.a in members and p.b in members]
             points = [pair_points(p, sizes[p.a], sizes[p.b]) for p in inside]
             part.solved, dropped = solve_with_rejection(
-                part.reference, part.chained, sizes, points, [p.kind == "overlap" for p in inside], config.huber_px, config.outlier_px
+                part.reference, part.chained, sizes, points, [p.kind == "overlap" or (p.kind == "gps" and id(p) not in part.tree) for p in inside],
+                config.huber_px, config.outlier_px
             )
             for i, residual in dropped.items():  # loop pairs the other pairs contradict
                 inside[i].consistency_px = {"before": pair_rms_px(part.chained, points[i]), "after": residual, "loop": True}

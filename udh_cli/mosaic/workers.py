@@ -14,6 +14,8 @@ no gain here.
 from __future__ import annotations
 
 import os
+import signal
+import threading
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -26,6 +28,8 @@ from udh_cli.estimators import Estimate, Estimator
 
 ImagePair = tuple[np.ndarray, np.ndarray]
 Judged = tuple[Estimate, "float | None", "str | None"]  # the estimate, its verification score, why it is doubted
+# Per pair: the first method's judged answer, then the fallback's when the first was doubted.
+Attempts = list[Judged]
 
 
 @dataclass(frozen=True)
@@ -38,9 +42,11 @@ class EstimatorSpec:
     options: dict[str, Any] = field(default_factory=dict)
     fallback: str | None = None
     acceptance: Any = None
+    fallback_options: dict[str, Any] = field(default_factory=dict)
 
-    def key(self) -> str:
-        return repr((self.method, sorted(self.options.items()), self.fallback, self.acceptance))
+    def estimators_key(self) -> str:
+        """What the estimators depend on (not the acceptance test, which is applied to their answers)."""
+        return repr((self.method, sorted(self.options.items()), self.fallback, sorted(self.fallback_options.items())))
 
 
 def judge_batch(method: Estimator, acceptance, pairs: Sequence[ImagePair]) -> list[Judged]:
@@ -50,6 +56,18 @@ def judge_batch(method: Estimator, acceptance, pairs: Sequence[ImagePair]) -> li
     for (image_a, image_b), estimate in zip(pairs, estimates):
         verified, doubt = acceptance.judge(estimate, image_a, image_b, method.verifies_itself)
         out.append((estimate, verified, doubt))
+    return out
+
+
+def judge_with_fallback(method: Estimator, fallback: Estimator | None, acceptance, pairs: Sequence[ImagePair]) -> list[Attempts]:
+    """One job: ``method`` on every pair, then ``fallback`` on the pairs it left doubted. Both in the same job,
+    so that a doubted batch never waits in the queue behind other batches for its second opinion."""
+    first = judge_batch(method, acceptance, pairs)
+    out = [[judged] for judged in first]
+    doubted = [i for i, (_, _, doubt) in enumerate(first) if doubt is not None]
+    if fallback is not None and doubted:
+        for i, judged in zip(doubted, judge_batch(fallback, acceptance, [pairs[i] for i in doubted])):
+            out[i].append(judged)
     return out
 
 
@@ -75,45 +93,59 @@ def estimate_many_safely(method: Estimator, pairs: list[tuple[np.ndarray, np.nda
         return out
 
 
+# The estimators a worker process has built, newest last; a long-lived Dask worker serving runs with other
+# settings keeps only the last few, and the lock keeps two of its threads from building the same one twice.
 _WORKER_ESTIMATORS: dict[str, tuple[Estimator, Estimator | None]] = {}
+_WORKER_LOCK = threading.Lock()
+_KEPT_SPECS = 2
 
 
 def _worker_estimators(spec: EstimatorSpec) -> tuple[Estimator, Estimator | None]:
     """The spec's estimators, built once per worker process."""
     from udh_cli.estimators import create_estimator
 
-    key = spec.key()
-    if key not in _WORKER_ESTIMATORS:
-        import cv2
+    key = spec.estimators_key()
+    with _WORKER_LOCK:
+        if key not in _WORKER_ESTIMATORS:
+            import cv2
 
-        cv2.setNumThreads(1)  # one worker per core: OpenCV's own threads would fight the other workers
-        method = create_estimator(spec.method, **spec.options)
-        fallback = create_estimator(spec.fallback) if spec.fallback else None
-        _WORKER_ESTIMATORS[key] = (method, fallback)
-    return _WORKER_ESTIMATORS[key]
+            cv2.setNumThreads(1)  # one worker per core: OpenCV's own threads would fight the other workers
+            method = create_estimator(spec.method, **spec.options)
+            fallback = create_estimator(spec.fallback, **spec.fallback_options) if spec.fallback else None
+            _WORKER_ESTIMATORS[key] = (method, fallback)
+            while len(_WORKER_ESTIMATORS) > _KEPT_SPECS:
+                _WORKER_ESTIMATORS.pop(next(iter(_WORKER_ESTIMATORS)))
+        return _WORKER_ESTIMATORS[key]
 
 
-def judge_on_worker(spec: EstimatorSpec, attempt: int, pairs: Sequence[ImagePair]) -> list[Judged]:
-    """A worker's job: ``attempt`` 0 runs the first method, 1 the fallback."""
+def judge_on_worker(spec: EstimatorSpec, pairs: Sequence[ImagePair]) -> list[Attempts]:
+    """A worker's job: :func:`judge_with_fallback` with the spec's estimators."""
     method, fallback = _worker_estimators(spec)
-    return judge_batch(method if attempt == 0 else fallback, spec.acceptance, pairs)
+    return judge_with_fallback(method, fallback, spec.acceptance, list(pairs))
+
+
+def _ignore_interrupts() -> None:
+    """Pool workers leave Ctrl-C to the parent, which stops them; otherwise each prints its own traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 class LocalRunner:
-    """Runs every job at once, in this process, with the given estimator instances."""
+    """Runs each job in this process as soon as it is submitted, with the given estimator instances."""
 
-    window = 1  # a job runs when submitted: one at a time, so an interrupt loses only the batch it stopped
+    window = 1  # one job at a time, so an interrupt loses only the batch it stopped
 
     def __init__(self, estimator: Estimator, fallback: Estimator | None, acceptance):
-        self.methods = (estimator, fallback)
-        self.acceptance = acceptance
+        self.estimator, self.fallback, self.acceptance = estimator, fallback, acceptance
 
-    def submit(self, attempt: int, pairs: Sequence[ImagePair]) -> Future:
+    def submit(self, pairs: Sequence[ImagePair]) -> Future:
         done: Future = Future()
-        done.set_result(judge_batch(self.methods[attempt], self.acceptance, pairs))
+        done.set_result(judge_with_fallback(self.estimator, self.fallback, self.acceptance, pairs))
         return done
 
-    def close(self) -> None:
+    def result(self, future: Future) -> list[Attempts]:
+        return future.result()
+
+    def close(self, abort: bool = False) -> None:
         pass
 
 
@@ -126,67 +158,98 @@ class PoolRunner:
         self.spec = _single_threaded(spec)
         self.window = 2 * workers  # a batch queued behind each running one keeps every worker busy
         # spawn, not fork: a forked onnxruntime or OpenCV thread pool can hang its child.
-        self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+        self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_ignore_interrupts)
 
-    def submit(self, attempt: int, pairs: Sequence[ImagePair]) -> Future:
-        return self.pool.submit(judge_on_worker, self.spec, attempt, list(pairs))
+    def submit(self, pairs: Sequence[ImagePair]) -> Future:
+        return self.pool.submit(judge_on_worker, self.spec, list(pairs))
 
-    def close(self) -> None:
-        self.pool.shutdown(cancel_futures=True)
+    def result(self, future: Future) -> list[Attempts]:
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            return future.result()
+        except BrokenProcessPool:
+            raise UdhError("a worker process died (out of memory?); run again with fewer --workers or a smaller --work-size, "
+                           "and --resume to keep the pairs already estimated") from None
+
+    def close(self, abort: bool = False) -> None:
+        # On an interrupt the batches still running are abandoned: their pairs are estimated again on --resume.
+        self.pool.shutdown(wait=not abort, cancel_futures=True)
 
 
 class DaskRunner:
     """Runs jobs on a Dask cluster (``dask.distributed``): ``scheduler`` is its address, e.g. ``tcp://host:8786``."""
 
-    def __init__(self, spec: EstimatorSpec, scheduler: str):
+    def __init__(self, spec: EstimatorSpec, scheduler: str, timeout_s: float = 10.0):
         try:
             from distributed import Client
         except ImportError:
             raise UdhError("--scheduler needs Dask: pip install 'dask[distributed]' (from the udh checkout: pip install '.[cluster]')") from None
         try:
-            self.client = Client(scheduler, timeout=10)
-        except (OSError, TimeoutError) as exc:
+            self.client = Client(scheduler, timeout=timeout_s)
+        except (OSError, TimeoutError, ValueError) as exc:
             raise UdhError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc}); start one with `dask scheduler` "
                            f"and workers with `dask worker {scheduler}`") from None
+        self.scheduler = scheduler
         self.spec = _single_threaded(spec)
         self.window = 2 * max(1, sum(self.client.nthreads().values()))
 
-    def submit(self, attempt: int, pairs: Sequence[ImagePair]) -> Future:
-        return self.client.submit(judge_on_worker, self.spec, attempt, list(pairs), pure=False)
+    def submit(self, pairs: Sequence[ImagePair]) -> Future:
+        # The images go straight to a worker, not into the task graph through the scheduler.
+        images = self.client.scatter(list(pairs), direct=True)
+        return self.client.submit(judge_on_worker, self.spec, images, pure=False)
 
-    def close(self) -> None:
+    def result(self, future: Future) -> list[Attempts]:
+        try:
+            return future.result()
+        except UdhError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a lost worker or connection: one line, and how to go on
+            raise UdhError(f"--scheduler {self.scheduler}: the cluster failed a batch ({type(exc).__name__}: {exc}); "
+                           f"check the workers, and run again with --resume to keep the pairs already estimated") from None
+
+    def close(self, abort: bool = False) -> None:
         self.client.close()
 
 
 def _single_threaded(spec: EstimatorSpec) -> EstimatorSpec:
-    """The spec with one onnxruntime thread where the method takes ``threads``: a worker per core, not threads."""
+    """The spec with one onnxruntime thread for each method that takes ``threads``: a worker per core, not threads."""
+    from dataclasses import replace
+
     from udh_cli.estimators.registry import estimator_options
 
-    if "threads" in estimator_options(spec.method) and spec.options.get("threads") is None:
-        return EstimatorSpec(spec.method, {**spec.options, "threads": 1}, spec.fallback, spec.acceptance)
-    return spec
+    def one_thread(name: str | None, options: dict[str, Any]) -> dict[str, Any]:
+        if name and "threads" in estimator_options(name) and options.get("threads") is None:
+            return {**options, "threads": 1}
+        return options
+
+    return replace(spec, options=one_thread(spec.method, spec.options), fallback_options=one_thread(spec.fallback, spec.fallback_options))
 
 
 def open_runner(estimator: Estimator, fallback: Estimator | None, acceptance, spec: EstimatorSpec | None, workers: int,
-                scheduler: str | None) -> LocalRunner | PoolRunner | DaskRunner:
+                scheduler: str | None, warn: Callable[[str], None] = lambda message: None) -> LocalRunner | PoolRunner | DaskRunner:
     """The runner for a mosaic: Dask with a ``scheduler``, a process pool with ``workers`` > 1, else local.
     Without a ``spec`` (estimators given as instances, not by name) only the local runner can run them."""
-    if spec is None or (workers <= 1 and scheduler is None):
-        return LocalRunner(estimator, fallback, acceptance)
-    if scheduler is not None:
+    if spec is None and (workers > 1 or scheduler is not None):
+        warn("the estimators were given as objects, not by name: pairs are estimated in this process (no --workers, no --scheduler)")
+    if scheduler is not None and spec is not None:
+        if workers > 1:
+            warn(f"--workers {workers} is ignored with --scheduler: the cluster's workers estimate the pairs")
         return DaskRunner(spec, scheduler)
-    return PoolRunner(spec, min(workers, os.cpu_count() or 1))
+    workers = min(workers, os.cpu_count() or 1)
+    if spec is None or workers <= 1:
+        return LocalRunner(estimator, fallback, acceptance)
+    return PoolRunner(spec, workers)
 
 
 def in_order(jobs: Sequence[Callable[[], Future]], window: int):
-    """Start ``jobs`` keeping up to ``window`` in flight, and yield ``(index, future)`` in submission order,
-    each once it is done."""
+    """Start ``jobs`` keeping up to ``window`` in flight, and yield ``(index, future)`` in submission order; the
+    caller waits for each (``runner.result``) before the next job starts."""
+    window = max(1, window)
     started: deque[tuple[int, Future]] = deque()
     next_job = 0
     while next_job < len(jobs) or started:
         while next_job < len(jobs) and len(started) < window:
             started.append((next_job, jobs[next_job]()))
             next_job += 1
-        index, future = started.popleft()
-        future.result()
-        yield index, future
+        yield started.popleft()

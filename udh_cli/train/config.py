@@ -6,13 +6,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from udh_cli.flight_motion import MotionConfig
-from udh_cli.train.data import DEFAULT_REAL_FRACTION
 
 DEFAULT_ARCH = "corr"  # the CPU-friendly network of udh_cli.train.archs
 PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learning rates
 MOTIONS = ("paper", "flight")
 DEFAULT_STEPS = 20000
-
+DEFAULT_REAL_FRACTION = 0.5  # share of a mixed batch from real flight pairs
 
 
 @dataclass

@@ -20,10 +20,10 @@ from udh_cli.errors import UdhError
 from udh_cli.homography_files import homography_from_values, parse_numbers
 from udh_cli.flight_motion import make_motion_pairs, source_size
 from udh_cli.images import read_image, to_gray_u8
+from udh_cli.train.config import DEFAULT_REAL_FRACTION
 from udh_cli.synthetic import SOURCE_SIZE, PairConfig, illuminate, list_images, load_sources, make_pairs, split_holdout
 
 FLIGHT_MARKERS = ("manifest.csv", "consecutive_pairs_sift_reference.csv")
-DEFAULT_REAL_FRACTION = 0.5  # share of a mixed batch from real flight pairs
 
 
 def is_flight_folder(folder: Path) -> bool:
@@ -199,12 +199,12 @@ class MixedData:
     kind = "mixed"
     has_labels = False
 
-    def __init__(self, pools: list[Path], flights: list[Path], config: PairConfig, real_fraction: float):
+    def __init__(self, pools: list[Path], flights: list[Path], config: PairConfig, real_fraction: float, source_side: int = 0):
         if config.motion is None:
             raise UdhError("mixing image pools and flights needs --motion flight: real consecutive frames are whole frames")
         from udh_cli.flight_motion import CONTEXT_FACTOR
 
-        self.pool = PoolData(pools, config)
+        self.pool = PoolData(pools, config, source_side)
         self.flight = FlightData(flights, config, canvas=CONTEXT_FACTOR * config.patch_size, orient=True)
         self.real_fraction = real_fraction
         self.description = f"{self.pool.description} and {self.flight.description}, {real_fraction:.0%} of each batch real"
@@ -236,7 +236,7 @@ def half_turn_choices(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[bool]:
     for estimate in found:
         h = estimate.homography
         # The answer's rotation: a turn of more than a quarter means the half-turned view won.
-        turned.append(bool(np.isfinite(h).all() and abs(np.degrees(np.arctan2(h[1, 0] - h[0, 1], h[0, 0] + h[1, 1]))) > 90.0))
+        turned.append(h is not None and abs(np.degrees(np.arctan2(h[1, 0] - h[0, 1], h[0, 0] + h[1, 1]))) > 90.0)  # a failure: as given
     return turned
 
 
@@ -288,7 +288,7 @@ def open_data(folders: list[Path], kind: str, config: PairConfig, real_fraction:
     if kind == "auto":
         flights = [f for f in folders if is_flight_folder(f)]
         if flights and len(flights) < len(folders):
-            return MixedData([f for f in folders if f not in flights], flights, config, real_fraction)
+            return MixedData([f for f in folders if f not in flights], flights, config, real_fraction, source_side)
         kind = "flight" if flights else "pool"
     if kind == "pool":
         return PoolData(folders, config, source_side)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from pathlib import Path
@@ -63,6 +64,9 @@ def test_a_flight_written_while_it_is_followed_gives_the_mosaic_of_the_whole_fol
     assert report["live"]["refreshes"] >= 2  # the mosaic was rewritten while the flight went on
     assert report["summary"]["placed"] == len(frames) and report["summary"]["parts"] == 1
     assert report["summary"]["pairs_from_cache"] > 0  # the final run reused the refreshes' pairs
+    written = json.loads((tmp_path / "out" / "live.json").read_text())
+    assert written["live"] == report["live"]  # the sidecar on disk says how the live run went
+    assert report["timings_s"]["total"] >= sum(v for k, v in report["timings_s"].items() if k != "total") - 1e-6  # the last run's own
     whole = run_mosaic(source, tmp_path / "whole.png", config)
     for frame, expected in zip(report["frames"], whole["frames"], strict=True):
         np.testing.assert_allclose(frame["mosaic_from_frame"], expected["mosaic_from_frame"], atol=1e-6)

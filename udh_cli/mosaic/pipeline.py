@@ -312,8 +312,19 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     check_config(config)
     if not Path(folder).is_dir():
         raise UdhError(f"--follow {folder}: not a folder; live mode watches a folder that frames are written into")
-    return follow_mosaic(folder, output, lambda source: run_mosaic(source, output, config, reporter, resume=True, cache_dir=cache_dir, **options),
-                         follow, reporter, exclude=lambda: {p.resolve() for p in _own_files(output)})
+    cache_file = cache_path(output) if cache_dir is None else Path(cache_dir) / cache_path(output).name
+
+    def run(source: Path) -> dict[str, Any]:
+        reporter.timings_s.clear()  # each run's stage times are its own, as its total is
+        # The cache is kept from the first refresh on, and read once there is one.
+        return run_mosaic(source, output, config, reporter, resume=cache_file.is_file(), cache_dir=cache_file.parent, **options)
+
+    report = follow_mosaic(folder, output, run, follow, reporter, exclude=lambda: {p.resolve() for p in _own_files(output)})
+    sidecar = Path(report["sidecar"])
+    written = json.loads(sidecar.read_text())
+    written["live"] = report["live"]
+    atomic_write_bytes(sidecar, (json.dumps(written, indent=1) + "\n").encode())
+    return report
 
 
 # ------------------------------------------------------------------------------------------ steps

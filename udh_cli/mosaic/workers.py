@@ -1,7 +1,7 @@
 """Where the mosaic's pair estimates run: in this process, in a pool of local processes, or on a Dask cluster.
 
-A job is one batch of working-size image pairs for one method (the first method or the fallback); it comes
-back as the estimates and the acceptance verdicts, matrices and scores only. Workers build each estimator
+A job is one batch of working-size image pairs: the first method on all of them, then the fallback on those
+it left doubted; it comes back as the estimates and the acceptance verdicts, matrices and scores only. Workers build each estimator
 once, from its registry name and options, and keep it for every later batch: the networks load once per
 worker, not once per pair.
 

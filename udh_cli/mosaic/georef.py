@@ -72,6 +72,13 @@ def utm_transformer(epsg: int):
     return Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True)
 
 
+def to_utm(latitudes: np.ndarray, longitudes: np.ndarray) -> tuple[int, np.ndarray]:
+    """WGS 84 degrees -> ``(epsg, (N, 2) easting and northing metres)`` in the UTM zone of the median position."""
+    epsg = utm_epsg(float(np.median(latitudes)), float(np.median(longitudes)))
+    eastings, northings = utm_transformer(epsg).transform(longitudes, latitudes)
+    return epsg, np.column_stack([eastings, northings])
+
+
 def fit_similarity(mosaic_points: np.ndarray, map_points: np.ndarray) -> np.ndarray:
     """Least-squares similarity from mosaic pixels (N, 2; y down) to map metres (N, 2; y up): (3, 3) affine.
 
@@ -102,9 +109,7 @@ def georeference_part(frames: Sequence[tuple[int, tuple[int, int], np.ndarray, f
     if len(frames) < max(2, min_frames):
         return None
     latitudes, longitudes = np.array([f[3] for f in frames]), np.array([f[4] for f in frames])
-    epsg = utm_epsg(float(np.median(latitudes)), float(np.median(longitudes)))
-    eastings, northings = utm_transformer(epsg).transform(longitudes, latitudes)
-    map_points = np.column_stack([eastings, northings])
+    epsg, map_points = to_utm(latitudes, longitudes)
     centres = np.array([geometry.transform_points(h, np.array([[(w - 1) / 2, (hgt - 1) / 2]]))[0] for _, (w, hgt), h, _, _ in frames])
     used = np.ones(len(frames), bool)
     least = max(2, min_frames)

@@ -21,6 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from udh_cli import geometry
+from udh_cli.mosaic.georef import fit_similarity, to_utm
 
 MIN_SCALE_PAIRS = 3  # ground scale from fewer working pairs than this is not trusted
 REACH_STEPS = 2.0  # candidate frames lie within this many median GPS steps of each other,
@@ -48,23 +49,16 @@ class GroundScale:
 
 def ground_positions(latitudes_longitudes: dict[int, tuple[float, float]]) -> dict[int, np.ndarray]:
     """Frame index -> (easting, northing) metres in the UTM zone of the median position (pyproj)."""
-    from udh_cli.mosaic.georef import utm_epsg, utm_transformer
-
     if not latitudes_longitudes:
         return {}
     indices = sorted(latitudes_longitudes)
-    latitudes = np.array([latitudes_longitudes[i][0] for i in indices])
-    longitudes = np.array([latitudes_longitudes[i][1] for i in indices])
-    epsg = utm_epsg(float(np.median(latitudes)), float(np.median(longitudes)))
-    eastings, northings = utm_transformer(epsg).transform(longitudes, latitudes)
-    return {i: np.array([e, n]) for i, e, n in zip(indices, eastings, northings)}
+    _, points = to_utm(np.array([latitudes_longitudes[i][0] for i in indices]), np.array([latitudes_longitudes[i][1] for i in indices]))
+    return dict(zip(indices, points))
 
 
 def centre_distance_px(b_from_a: np.ndarray, size_a: tuple[int, int], size_b: tuple[int, int]) -> float:
     """How far A's centre lands from B's centre in B's pixels under ``b_from_a``: the frames' offset."""
-    centre_a = np.array([[(size_a[0] - 1) / 2, (size_a[1] - 1) / 2]])
-    landed = geometry.transform_points(b_from_a, centre_a)[0]
-    return float(np.hypot(landed[0] - (size_b[0] - 1) / 2, landed[1] - (size_b[1] - 1) / 2))
+    return float(np.linalg.norm(_centre_in(b_from_a, size_a) - _centre_in(np.eye(3), size_b)))
 
 
 def measure_ground_scale(positions: dict[int, np.ndarray], working: Sequence[tuple[int, int, np.ndarray]],
@@ -133,8 +127,6 @@ def gps_limit_m(scale: GroundScale) -> float:
 def part_map(positions: dict[int, np.ndarray], ref_from_frame: dict[int, np.ndarray], sizes: Sequence[tuple[int, int]]) -> tuple[np.ndarray, float] | None:
     """A part placed on the map by its frames' GPS: ``(map_from_ref, residual RMS m)``, a similarity fitted to
     the chained frame centres (reference pixels) and their positions; None with fewer than 3 frames with GPS."""
-    from udh_cli.mosaic.georef import fit_similarity
-
     frames = [i for i in ref_from_frame if i in positions and np.isfinite(ref_from_frame[i]).all()]
     if len(frames) < 3:
         return None
@@ -156,4 +148,5 @@ def placement_error_m(frame_from_other: np.ndarray, frame: int, other: int, ref_
 
 
 def _centre_in(h: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Where ``h`` puts the centre of a frame of ``size`` (width, height)."""
     return geometry.transform_points(h, np.array([[(size[0] - 1) / 2, (size[1] - 1) / 2]]))[0]

@@ -237,9 +237,10 @@ def run_mosaic(
     started = time.perf_counter()
     truth = _load_truth(source, ground_truth)
     # Workers build the estimators from their names; estimators handed over as instances run here.
+    method_options = mosaic_method_options(config.method, config.method_options)
     spec = None if estimator is not None or fallback is not None else \
-        EstimatorSpec(config.method, mosaic_method_options(config.method, config.method_options), config.fallback, acceptance(config))
-    estimator = estimator or create_estimator(config.method, **mosaic_method_options(config.method, config.method_options))
+        EstimatorSpec(config.method, method_options, config.fallback, acceptance(config))
+    estimator = estimator or create_estimator(config.method, **method_options)
     fallback = fallback or (create_estimator(config.fallback) if config.fallback else None)
 
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter)
@@ -310,8 +311,6 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     output = Path(output)
     check_output(output)
     check_config(config)
-    if not Path(folder).is_dir():
-        raise UdhError(f"--follow {folder}: not a folder; live mode watches a folder that frames are written into")
     cache_file = cache_path(output) if cache_dir is None else Path(cache_dir) / cache_path(output).name
 
     def run(source: Path) -> dict[str, Any]:

@@ -15,7 +15,6 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from udh_cli.train.config import DEFAULT_ARCH  # noqa: F401 - the default, named with the run settings
 
 OFFSET_SCALE = 32.0  # the heads predict offsets / 32 px, so initial outputs sit in a sensible range
 GLOBAL_CHANNELS = 3  # corr-global's extra volume channels: displacement x, y and the best match's weight

@@ -19,7 +19,7 @@ from udh_cli.synthetic import PairConfig
 from udh_cli.train import losses
 from udh_cli.flight_motion import MotionConfig
 from udh_cli.train.archs import create_model, widen_from
-from udh_cli.train.config import DEFAULT_ARCH, DEFAULT_STEPS, MOTIONS, PAPER_LR, TrainConfig  # noqa: F401 - re-exported
+from udh_cli.train.config import DEFAULT_ARCH, DEFAULT_STEPS, MOTIONS, PAPER_LR, TrainConfig
 from udh_cli.train.checkpoint import load_checkpoint, save_checkpoint
 from udh_cli.train.data import Batch, open_data
 

@@ -100,6 +100,30 @@ def test_unsupervised_loss_is_zero_at_the_truth_and_grows_away_from_it(pool):
     assert off_truth > 3 * at_truth
 
 
+def test_contrast_loss_ignores_a_hot_spot_that_the_intensity_loss_follows(pool):
+    """A bright blob fixed in B's frame (a lens hot spot) raises the intensity L1 at the truth by far more
+    than the contrast L1, and in contrast space the truth still beats a 3-px error by more than 2x."""
+    from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs
+
+    sources = load_sources(list_images(pool)[:3])
+    pairs = make_pairs(sources, 4, PairConfig(patch_size=64, rho=10, illumination=False), np.random.default_rng(1))
+    context, origin = torch.from_numpy(pairs.context_a), torch.from_numpy(pairs.origin)
+    clean_b, truth = torch.from_numpy(pairs.clean_b), torch.from_numpy(pairs.offsets)
+    yy, xx = torch.meshgrid(torch.arange(64.0), torch.arange(64.0), indexing="ij")
+    hot_b = (clean_b + 0.3 * torch.exp(-((xx - 32) ** 2 + (yy - 32) ** 2) / (2 * 16.0 ** 2))).clamp(0, 1)
+
+    def loss(offsets, b, space):
+        return losses.photometric_loss(offsets, context, origin, b, space=space).item()
+
+    intensity_rise = loss(truth, hot_b, "intensity") - loss(truth, clean_b, "intensity")
+    contrast_rise = loss(truth, hot_b, "contrast") - loss(truth, clean_b, "contrast")
+    intensity_scale, contrast_scale = loss(truth + 3.0, clean_b, "intensity"), loss(truth + 3.0, clean_b, "contrast")
+    assert intensity_rise / intensity_scale > 5 * contrast_rise / contrast_scale
+    assert loss(truth + 3.0, hot_b, "contrast") > 2 * loss(truth, hot_b, "contrast")
+    with pytest.raises(ValueError, match="photometric space"):
+        loss(truth, clean_b, "gradient")
+
+
 def _interrupt_and_resume(pool: Path, tmp_path: Path, sig: int, slow_first_save: bool) -> None:
     """Train 60 steps straight; train the same run in a subprocess, send ``sig`` once its first checkpoint
     exists, resume it in this process: the weights, the Adam state and the log must equal the straight run's."""

@@ -157,6 +157,7 @@ def train(
     small_motion: Annotated[float, typer.Option(help="Share of synthetic pairs with a random smaller rho.")] = _TRAIN.small_motion_fraction,
     illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.", metavar="")] = _TRAIN.illumination,
     occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = _TRAIN.occluders,
+    photometric: Annotated[str, typer.Option(help="What the unsupervised L1 compares: intensity (the paper's) or contrast (local contrast, blind to vignetting, hot spots and exposure).")] = _TRAIN.photometric,
     motion: Annotated[str, typer.Option(help="paper (corner perturbation by --rho) or flight (whole frames with real flight motion; --rho is then the perspective jitter).")] = _TRAIN.motion,
     max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = _TRAIN.max_heading,
     max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = _TRAIN.max_scale,
@@ -172,7 +173,7 @@ def train(
 
     config = TrainConfig(
         mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, real_fraction=real_fraction, source_side=source_side, arch=arch or init_arch(init), rho=rho, small_motion_fraction=small_motion,
-        illumination=illumination, occluders=occluders, motion=motion, max_heading=max_heading, max_scale=max_scale,
+        illumination=illumination, occluders=occluders, photometric=photometric, motion=motion, max_heading=max_heading, max_scale=max_scale,
         max_shift=max_shift, min_overlap=min_overlap, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
         checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),
     )

@@ -10,6 +10,7 @@ from udh_cli.flight_motion import MotionConfig
 DEFAULT_ARCH = "corr"  # the CPU-friendly network of udh_cli.train.archs
 PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learning rates
 MOTIONS = ("paper", "flight")
+PHOTOMETRIC_SPACES = ("intensity", "contrast")  # what the unsupervised loss compares (train.losses)
 DEFAULT_STEPS = 20000
 DEFAULT_REAL_FRACTION = 0.5  # share of a mixed batch from real flight pairs
 
@@ -33,6 +34,8 @@ class TrainConfig:
         illumination: random brightness/contrast/gamma on the inputs; occluders: the share of pairs
             (0 to 1) with textured blobs pasted on the inputs. Both are input augmentations: the losses
             see the clean images.
+        photometric: what the unsupervised L1 compares: "intensity" (grey values, the paper's) or
+            "contrast" (local contrast, blind to vignetting, hot spots and exposure).
         motion: "paper" (corner perturbation by ``rho``, the paper's) or "flight" (whole frames with real
             flight motion, :mod:`udh_cli.flight_motion`; ``rho`` is then the perspective jitter).
         max_heading: flight motion's largest turn, degrees; max_scale: its largest scale change (a factor,
@@ -63,6 +66,7 @@ class TrainConfig:
     small_motion_fraction: float = 0.3
     illumination: bool = True
     occluders: float = 0.0
+    photometric: str = "intensity"
     motion: str = "paper"
     max_heading: float = MotionConfig.max_heading
     max_scale: float = MotionConfig.scale_range[1]

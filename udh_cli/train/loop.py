@@ -19,7 +19,7 @@ from udh_cli.synthetic import PairConfig
 from udh_cli.train import losses
 from udh_cli.flight_motion import MotionConfig
 from udh_cli.train.archs import create_model, widen_from
-from udh_cli.train.config import DEFAULT_ARCH, DEFAULT_STEPS, MOTIONS, PAPER_LR, TrainConfig
+from udh_cli.train.config import DEFAULT_ARCH, DEFAULT_STEPS, MOTIONS, PAPER_LR, PHOTOMETRIC_SPACES, TrainConfig
 from udh_cli.train.checkpoint import load_checkpoint, save_checkpoint
 from udh_cli.train.data import Batch, open_data
 
@@ -242,7 +242,8 @@ class Trainer:
     def _loss(self, tensors: dict[str, torch.Tensor], offsets: torch.Tensor) -> torch.Tensor:
         if self.config.mode == "supervised":
             return losses.supervised_loss(offsets, tensors["offsets"])
-        loss = losses.photometric_loss(offsets, tensors["context_a"], tensors["origin"], tensors["clean_b"])
+        loss = losses.photometric_loss(offsets, tensors["context_a"], tensors["origin"], tensors["clean_b"],
+                                       space=self.config.photometric)
         if self.teacher is not None:
             teacher, normalization = self.teacher
             with torch.no_grad():
@@ -412,6 +413,8 @@ def _check_config(config: TrainConfig, out: Path) -> None:
         raise UdhError(f"--occluders {config.occluders}: give a share of pairs from 0 to 1")
     if config.motion not in MOTIONS:
         raise UdhError(f"--motion {config.motion}: choose one of {', '.join(MOTIONS)}")
+    if config.photometric not in PHOTOMETRIC_SPACES:
+        raise UdhError(f"--photometric {config.photometric}: choose one of {', '.join(PHOTOMETRIC_SPACES)}")
     if not (0 <= config.max_heading <= 180 and 1 <= config.max_scale <= 4 and 0 <= config.max_shift <= 1 and 0.05 <= config.min_overlap <= 1):
         raise UdhError(f"flight motion out of range: --max-heading {config.max_heading} (0-180 degrees), "
                        f"--max-scale {config.max_scale} (1-4), --max-shift {config.max_shift} (0-1 of the frame), "

@@ -7,6 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from udh_cli import geometry
+from udh_cli.train.config import PHOTOMETRIC_SPACES
 
 
 def _shift(origin: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -49,17 +50,50 @@ def warp_context(offsets: torch.Tensor, context_a: torch.Tensor, origin: torch.T
 
 
 PHOTOMETRIC_SCALES = (1, 2, 4, 8)
+CONTRAST_WINDOW = 9  # px of the 128-px patch: about one cell of the correlation networks
+CONTRAST_FLOOR = 0.01  # grey units ([0, 1]); as images.local_contrast: flat regions are not amplified into texture
+
+
+def local_contrast(image: torch.Tensor, valid: torch.Tensor, window: int = CONTRAST_WINDOW,
+                   floor: float = CONTRAST_FLOOR) -> torch.Tensor:
+    """(N, 1, H, W) grey in [0, 1] -> (N, 1, H, W) with zero local mean and unit local deviation.
+
+    The torch twin of :func:`udh_cli.images.local_contrast` for the training loss, with a ``window`` x
+    ``window`` box instead of a Gaussian and statistics over the ``valid`` (N, 1, H, W) pixels only, so that
+    the black surround of a flight-motion canvas does not become an edge. Invalid pixels come out 0.
+    The deviation is ``sqrt(var + floor^2)``: smooth, and it caps the gain in flat regions.
+    """
+    pad = window // 2
+
+    def box(x: torch.Tensor) -> torch.Tensor:
+        return F.avg_pool2d(x, window, stride=1, padding=pad, count_include_pad=True)
+
+    weight = box(valid).clamp_min(1e-6)
+    mean = box(image * valid) / weight
+    variance = (box(image * image * valid) / weight - mean * mean).clamp_min(0.0)
+    return (image - mean) * valid / torch.sqrt(variance + floor * floor)
 
 
 def photometric_loss(offsets: torch.Tensor, context_a: torch.Tensor, origin: torch.Tensor, clean_b: torch.Tensor,
-                     scales: tuple[int, ...] = PHOTOMETRIC_SCALES) -> torch.Tensor:
+                     scales: tuple[int, ...] = PHOTOMETRIC_SCALES, space: str = "intensity") -> torch.Tensor:
     """The paper's unsupervised loss, over a pyramid: mean L1 between warped A and B over valid pixels.
 
     ``context_a`` is (N, 2, H, W): the image in A's frame and its validity mask (1 where real pixels).
     ``clean_b`` is (N, P, P). Pixels whose sample falls outside A's real pixels do not count.
     The paper uses full resolution only (``scales=(1,)``). The coarser levels widen the basin of the
     L1 error, so large displacements get a useful gradient from the first step; level 1 keeps it precise.
+
+    ``space`` "intensity" compares grey values (the paper's); "contrast" compares both images' local
+    contrast (:func:`local_contrast`), which ignores what varies slowly across a frame and does not move
+    with the ground: vignetting, a lens hot spot, sun glint, exposure. On low-texture frames those
+    dominate the intensity L1 and pull the answer towards the identity.
     """
+    if space not in PHOTOMETRIC_SPACES:
+        raise ValueError(f"photometric space {space!r}: use one of {', '.join(PHOTOMETRIC_SPACES)}")
+    if space == "contrast":
+        mask = context_a[:, 1:2]
+        context_a = torch.cat([local_contrast(context_a[:, :1], mask), mask], 1)
+        clean_b = local_contrast(clean_b[:, None], torch.ones_like(clean_b[:, None]))[:, 0]
     total = clean_b.new_zeros(())
     for scale in scales:
         warped = warp_context(offsets, context_a, origin, clean_b.shape[-1], scale)

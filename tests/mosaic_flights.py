@@ -10,6 +10,7 @@ import numpy as np
 
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators import Estimator, create_estimator
+from udh_cli.estimators.pair import PreparedImage
 from udh_cli.images import read_image
 from udh_cli.mosaic.frames import work_copy
 from udh_cli.simulate import FlightConfig, write_flight
@@ -24,8 +25,9 @@ def make_flight(folder: Path, config: FlightConfig = SMALL, seed: int = 3) -> li
     return sorted(folder.glob("frame_*.jpg"))
 
 
-def fingerprint(image: np.ndarray) -> str:
-    return hashlib.sha1(np.ascontiguousarray(image).tobytes()).hexdigest()
+def fingerprint(image) -> str:
+    """The same text for an image array and for that image prepared (its grey pixels)."""
+    return hashlib.sha1(np.ascontiguousarray(PreparedImage.of(image).grey).tobytes()).hexdigest()
 
 
 def work_fingerprints(paths: list[Path], work_size: int = 800) -> list[str]:
@@ -48,13 +50,14 @@ class FailOn(Estimator):
         self.inner = create_estimator(inner)
         self.calls: list[tuple[int | None, int | None]] = []
 
-    def _estimate(self, image_a, image_b):
+    def _estimate(self, pair):
+        image_a, image_b = pair.a, pair.b
         a, b = self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))
         self.calls.append((a, b))
         if self.should_fail(a, b):
             raise EstimationFailed("made to fail by the test")
-        return self.inner._estimate(image_a, image_b)
+        return self.inner._estimate(pair)
 
-    def estimate_many(self, pairs):
+    def estimate_pairs(self, pairs):
         self.batches = getattr(self, "batches", []) + [len(pairs)]
-        return super().estimate_many(pairs)
+        return super().estimate_pairs(pairs)

@@ -12,6 +12,7 @@ from conftest import export_tiny_network, textured_image, warped_pair
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators import create_estimator
+from udh_cli.estimators.pair import PreparedImage
 from udh_cli.models_catalog import SHIPPED_MODELS, models_dir
 
 
@@ -54,7 +55,7 @@ def test_estimate_and_batch_agree_and_return_full_resolution_pixels(tiny_onnx):
     batch = estimator.estimate_many([(a, b), (b, a)])
     np.testing.assert_allclose(single.homography, batch[0].homography, atol=1e-9)
     # The network works on 32x32 versions; the answer must be that estimate rescaled exactly.
-    small = estimator.predict_small(estimator._small(a)[None], estimator._small(b)[None])[0]
+    small = estimator.predict_small(PreparedImage.of(a).resized((32, 32))[None], PreparedImage.of(b).resized((32, 32))[None])[0]
     expected = geometry.rescale_homography(small, (32, 32), (400, 300), (32, 32), (320, 240))
     np.testing.assert_allclose(single.homography, expected / expected[2, 2], atol=1e-9)
     assert 0.0 <= single.confidence <= 1.0 and single.elapsed_ms > 0
@@ -80,7 +81,7 @@ def test_refinement_rounds_run_the_second_network_on_the_pre_warped_pair(tiny_on
     with pytest.raises(UdhError, match="no such model file"):
         create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_onnx.with_name("missing.onnx")))
     a, b = textured_image(64, 64, seed=5), textured_image(64, 64, seed=6)
-    small_a, small_b = cascade._small(a)[None], cascade._small(b)[None]
+    small_a, small_b = PreparedImage.of(a).resized((32, 32))[None], PreparedImage.of(b).resized((32, 32))[None]
     first = coarse.predict_small(small_a, small_b)[0]
     warped_a = cv2.warpPerspective(small_a[0], first, (32, 32), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     residual = fine.predict_small(warped_a[None], small_b)[0]

@@ -13,6 +13,7 @@ from conftest import warped_pair
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.base import Estimator
+from udh_cli.estimators.pair import PreparedImage
 from udh_cli.estimators.refined import NEAR_PX, AutoEstimator, RefinedEstimator
 from udh_cli.estimators.verify import verification_score
 from udh_cli.models_catalog import models_dir
@@ -148,7 +149,7 @@ def test_verification_score_separates_right_from_wrong():
 class AlwaysFails(Estimator):
     name: ClassVar[str] = "always-fails"
 
-    def _estimate(self, image_a, image_b):
+    def _estimate(self, pair):
         raise EstimationFailed("made to fail")
 
 
@@ -204,7 +205,7 @@ class Answers(Estimator):
     def __init__(self, homography):
         self.homography = homography
 
-    def _estimate(self, image_a, image_b):
+    def _estimate(self, pair):
         return self.homography, 1.0, {}
 
 
@@ -340,7 +341,7 @@ class Matches(Estimator):
     def __init__(self, homography, inliers):
         self.homography, self.inliers = homography, inliers
 
-    def _estimate(self, image_a, image_b):
+    def _estimate(self, pair):
         return self.homography, 0.9, {"inliers": self.inliers}
 
 
@@ -397,8 +398,9 @@ def test_views_are_the_last_opinions_and_the_best_verified_one_is_kept():
     class RightWhenMirrored(Estimator):
         """The truth when shown the mirrored pair (as seen there), far off otherwise."""
 
-        def _estimate(self, image_a, image_b):
-            if np.array_equal(image_a, cv2.flip(a, 1)):
+        def _estimate(self, pair):
+            image_a = pair.a
+            if np.array_equal(image_a.grey, PreparedImage.of(cv2.flip(a, 1)).grey):
                 return mirror @ truth @ mirror, 1.0, {}
             return wrong.homography, 1.0, {}
 

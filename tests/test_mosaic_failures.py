@@ -85,11 +85,12 @@ class PastTheHorizon(FailOn):
 
     name = "past-the-horizon"
 
-    def _estimate(self, image_a, image_b):
+    def _estimate(self, pair):
+        image_a, image_b = pair.a, pair.b
         a, b = self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))
         if (a, b) == (6, 7):
             return np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.004, 0.0, 1.0]]), 0.9, {}
-        return self.inner._estimate(image_a, image_b)
+        return self.inner._estimate(pair)
 
 
 def test_a_frame_chained_past_the_horizon_is_reported_not_fatal(flight, tmp_path):
@@ -109,12 +110,13 @@ class ZoomsIn(FailOn):
 
     name = "zooms-in"
 
-    def _estimate(self, image_a, image_b):
+    def _estimate(self, pair):
+        image_a, image_b = pair.a, pair.b
         a, b = self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))
         if (a, b) == (6, 7):
-            h, confidence, details = self.inner._estimate(image_a, image_b)
+            h, confidence, details = self.inner._estimate(pair)
             return np.diag([0.25, 0.25, 1.0]) @ h, confidence, details  # B = A scaled down: A drawn 4x larger
-        return self.inner._estimate(image_a, image_b)
+        return self.inner._estimate(pair)
 
 
 def test_a_frame_drawn_at_an_implausible_scale_is_reported_and_the_bound_is_a_setting(flight, tmp_path):
@@ -137,10 +139,11 @@ class Crashes(FailOn):
 
     name = "crashes"
 
-    def _estimate(self, image_a, image_b):
+    def _estimate(self, pair):
+        image_a, image_b = pair.a, pair.b
         if (self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))) == (2, 3):
             raise RuntimeError("boom")
-        return self.inner._estimate(image_a, image_b)
+        return self.inner._estimate(pair)
 
 
 def test_an_estimator_that_raises_fails_only_its_pair(flight, tmp_path):
@@ -156,9 +159,10 @@ class ConfidentlyWrong(FailOn):
 
     name = "confidently-wrong"
 
-    def _estimate(self, image_a, image_b):
+    def _estimate(self, pair):
+        image_a, image_b = pair.a, pair.b
         a, b = self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))
-        h, confidence, details = self.inner._estimate(image_a, image_b)
+        h, confidence, details = self.inner._estimate(pair)
         if (a, b) == (3, 4):
             return geometry.translation(40.0, -25.0) @ h, 0.95, details
         return h, confidence, details

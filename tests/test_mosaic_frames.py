@@ -64,8 +64,9 @@ class ShiftLoops(Estimator):
         self.known = set(prints)
         self.sift = create_estimator("sift")
 
-    def _estimate(self, image_a, image_b):
-        homography, confidence, details = self.sift._estimate(image_a, image_b)
+    def _estimate(self, pair):
+        image_b = pair.b
+        homography, confidence, details = self.sift._estimate(pair)
         if fingerprint(image_b) not in self.known:
             homography = geometry.translation(60.0, 0.0) @ homography
         return homography, confidence, details

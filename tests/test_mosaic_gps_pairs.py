@@ -73,8 +73,9 @@ def test_a_gps_pair_that_places_a_frame_far_from_its_gps_is_rejected(tmp_path):
     from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
 
     class ShiftedAcross(FailOn):
-        def _estimate(self, image_a, image_b):
-            homography, confidence, details = super()._estimate(image_a, image_b)
+        def _estimate(self, pair):
+            image_a, image_b = pair.a, pair.b
+            homography, confidence, details = super()._estimate(pair)
             a, b = self.index.get(fingerprint(image_a)), self.index.get(fingerprint(image_b))
             if a is not None and b is not None and (a < 5) != (b < 5):
                 homography = geometry.translation(150.0, 0.0) @ homography

@@ -33,10 +33,10 @@ class Interrupted(FailOn):
         super().__init__(prints, lambda a, b: False)
         self.interrupt_after = interrupt_after
 
-    def _estimate(self, image_a, image_b):
+    def _estimate(self, pair):
         if self.interrupt_after is not None and len(self.calls) >= self.interrupt_after:
             raise KeyboardInterrupt
-        return super()._estimate(image_a, image_b)
+        return super()._estimate(pair)
 
 
 @pytest.fixture(scope="module")

@@ -25,7 +25,7 @@ def test_a_view_maps_its_answer_back_to_the_pair_as_given(view):
 
 
 class Fails(Estimator):
-    def _estimate(self, image_a, image_b):
+    def _estimate(self, pair):
         raise EstimationFailed("made to fail")
 
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
-from udh_cli.images import check_image
+from udh_cli.estimators.pair import ImageLike, PreparedPair
 
 
 @dataclass(frozen=True)
@@ -78,11 +78,14 @@ TYPED_FIELDS = ("inliers", "verification_score", "verified", "verified_by", "sta
 class Estimator:
     """Base class: estimates ``b_from_a`` between two images of any size, colour or grey, 8 or 16 bit.
 
-    Subclasses set ``name`` and implement :meth:`_estimate`, which either returns
-    ``(b_from_a, confidence, details)`` or raises :class:`EstimationFailed`; the :data:`TYPED_FIELDS` it
-    puts in ``details`` (a matcher's ``inliers``...) become the :class:`Estimate`'s typed fields. This class times the call,
-    checks the result (a non-finite, singular or folded homography is a failure, never an answer) and
-    packs it into an :class:`Estimate`.
+    Every entry point takes images as numpy arrays or as :class:`~udh_cli.estimators.pair.PreparedImage`
+    (made grey once, shared by every stage; see :mod:`udh_cli.estimators.pair`) and prepares each pair once.
+    Subclasses set ``name`` and implement :meth:`_estimate`, which takes a
+    :class:`~udh_cli.estimators.pair.PreparedPair` and either returns ``(b_from_a, confidence, details)`` or
+    raises :class:`EstimationFailed`; the :data:`TYPED_FIELDS` it puts in ``details`` (a matcher's
+    ``inliers``...) become the :class:`Estimate`'s typed fields. Batched (learned) estimators override
+    :meth:`estimate_pairs` instead. This class times the call, checks the result (a non-finite, singular or
+    folded homography is a failure, never an answer) and packs it into an :class:`Estimate`.
 
     ``verifies_itself`` says whether an answer was already checked against the images (RANSAC's inlier
     count, a photometric score); callers such as the mosaic add their own check only when it was not.
@@ -91,28 +94,35 @@ class Estimator:
     name: ClassVar[str] = "base"
     verifies_itself: ClassVar[bool] = False
 
-    def estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> Estimate:
+    def estimate(self, image_a: ImageLike, image_b: ImageLike) -> Estimate:
         """Estimate the homography from ``image_a`` to ``image_b``. Never raises for a failed estimate."""
-        check_image(image_a, "image A")
-        check_image(image_b, "image B")
+        return self.estimate_pairs([PreparedPair.of(image_a, image_b)])[0]
+
+    def estimate_many(self, pairs: Sequence[tuple[ImageLike, ImageLike] | PreparedPair]) -> list[Estimate]:
+        """Estimate many pairs, each given as ``(image_a, image_b)`` or prepared; learned estimators batch them."""
+        return self.estimate_pairs([p if isinstance(p, PreparedPair) else PreparedPair.of(*p) for p in pairs])
+
+    def estimate_pairs(self, pairs: Sequence[PreparedPair]) -> list[Estimate]:
+        """Estimate prepared pairs; the one method batched estimators override."""
+        return [self._estimate_one(pair) for pair in pairs]
+
+    def _estimate_one(self, pair: PreparedPair) -> Estimate:
+        """One prepared pair through :meth:`_estimate`, timed and checked."""
         start = time.perf_counter()
         try:
-            homography, confidence, details = self._estimate(image_a, image_b)
+            homography, confidence, details = self._estimate(pair)
             failure = None
         except EstimationFailed as exc:
             homography, confidence, details, failure = None, 0.0, {}, str(exc)
         elapsed_ms = (time.perf_counter() - start) * 1e3
         typed = {key: details.pop(key) for key in TYPED_FIELDS if key in details}
-        return self._checked(homography, confidence, elapsed_ms, failure, details, image_a.shape, **typed)
+        return self._checked(homography, confidence, elapsed_ms, failure, details, pair.a.shape, **typed)
 
-    def estimate_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
-        """Estimate many pairs. Learned estimators override this to run them in batches."""
-        return [self.estimate(a, b) for a, b in pairs]
-
-    def _estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> tuple[np.ndarray, float, dict]:
+    def _estimate(self, pair: PreparedPair) -> tuple[np.ndarray, float, dict]:
         raise NotImplementedError
 
     def _checked(self, homography, confidence, elapsed_ms, failure, details, shape_a, **typed: Any) -> Estimate:
+        """Pack an answer into an :class:`Estimate`; ``shape_a`` is A's (height, width, ...)."""
         if homography is not None:
             homography = np.asarray(homography, dtype=np.float64)
             if np.isfinite(homography).all() and abs(homography[2, 2]) > 1e-12:

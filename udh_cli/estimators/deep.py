@@ -14,7 +14,7 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.tiles import refine_with_tiles
-from udh_cli.images import check_image, to_gray_float
+from udh_cli.estimators.pair import PreparedPair
 from udh_cli.onnx_model import OnnxHomographyModel
 from udh_cli.estimators.verify import alignment_ncc
 
@@ -142,10 +142,6 @@ class DeepEstimator(Estimator):
         found = {network.metadata.get("precision", "fp32") for network in [*(n for n, _ in self.stages), *self.first_stages]}
         return found.pop() if len(found) == 1 else "mixed"
 
-    def _small(self, image: np.ndarray) -> np.ndarray:
-        s = self.network.input_size
-        return cv2.resize(to_gray_float(image), (s, s), interpolation=cv2.INTER_AREA)
-
     def rounds(self) -> list[OnnxHomographyModel]:
         """The network of every round of the cascade, in order."""
         return [network for network, count in self.stages for _ in range(count)]
@@ -184,22 +180,17 @@ class DeepEstimator(Estimator):
             return 0.0
         return max(0.0, alignment_ncc(small_a, small_b, b_from_a, on="both"))
 
-    def estimate_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
+    def estimate_pairs(self, pairs: Sequence[PreparedPair]) -> list[Estimate]:
         if not pairs:
             return []
-        for a, b in pairs:
-            check_image(a, "image A")
-            check_image(b, "image B")
         start = time.perf_counter()
         s = self.network.input_size
-        # Each image becomes grey float once; the network's S x S view and the tiles both read that copy.
-        grey = [(to_gray_float(a), to_gray_float(b)) for a, b in pairs]
-        small_a = np.stack([cv2.resize(ga, (s, s), interpolation=cv2.INTER_AREA) for ga, _ in grey])
-        small_b = np.stack([cv2.resize(gb, (s, s), interpolation=cv2.INTER_AREA) for _, gb in grey])
+        small_a = np.stack([pair.square(s)[0] for pair in pairs])
+        small_b = np.stack([pair.square(s)[1] for pair in pairs])
         prepared = time.perf_counter()
         small_h, scores = self._predict_headings(small_a, small_b)
         coarse = time.perf_counter()
-        tiled = [self._tiles(grey[i], pairs[i], small_h[i]) for i in range(len(pairs))] if self.tiles else [None] * len(pairs)
+        tiled = [self._tiles(pairs[i], small_h[i]) for i in range(len(pairs))] if self.tiles else [None] * len(pairs)
         tiles_done = time.perf_counter()
         searched = [False] * len(pairs)
         # Doubted: a low score, or (with tiles) an answer no finer level could confirm, which on real flights
@@ -208,7 +199,7 @@ class DeepEstimator(Estimator):
         if self.search and doubtful:
             found, found_scores = self._search([pairs[i] for i in doubtful], small_a[doubtful], small_b[doubtful])
             for i, h, score in zip(doubtful, found, found_scores):
-                retiled = self._tiles(grey[i], pairs[i], h) if self.tiles else None
+                retiled = self._tiles(pairs[i], h) if self.tiles else None
                 confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
                 if (confirmed, score) > (was_confirmed, scores[i]):
                     small_h[i], scores[i], tiled[i], searched[i] = h, score, retiled, True
@@ -218,8 +209,8 @@ class DeepEstimator(Estimator):
                     (("prepare", start, prepared), ("network", prepared, coarse), ("tiles", coarse, tiles_done), ("search", tiles_done, finished))}
         precision = self.loaded_precision()
         out = []
-        for (a, b), h, confidence, was_searched, refined in zip(pairs, small_h, scores, searched, tiled):
-            full = self._full_resolution(h, a, b)
+        for pair, h, confidence, was_searched, refined in zip(pairs, small_h, scores, searched, tiled):
+            full = self._full_resolution(h, pair)
             failure = None if full is not None else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
                        "precision": precision, "provider": self.network.provider, "stage_ms": stage_ms}
@@ -228,23 +219,24 @@ class DeepEstimator(Estimator):
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
                                tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
             stage = "tiles" if details.get("tile_levels") else "search" if was_searched else "network"
-            out.append(self._checked(full, confidence, per_pair_ms, failure, details, a.shape, stage=stage))
+            out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage))
         return out
 
-    def _full_resolution(self, small_h: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
-        """A ``b_from_a`` of the S x S images rescaled exactly to ``a``'s and ``b``'s pixels; None when degenerate."""
+    def _full_resolution(self, small_h: np.ndarray, pair: PreparedPair) -> np.ndarray | None:
+        """A ``b_from_a`` of the S x S images rescaled exactly to the pair's pixels; None when degenerate."""
         s = self.network.input_size
         if not geometry.is_valid_homography(small_h, s, s):
             return None
-        return geometry.rescale_homography(small_h, (s, s), (a.shape[1], a.shape[0]), (s, s), (b.shape[1], b.shape[0]))
+        return geometry.rescale_homography(small_h, (s, s), pair.a.size, (s, s), pair.b.size)
 
-    def _tiles(self, grey: tuple[np.ndarray, np.ndarray], pair: tuple[np.ndarray, np.ndarray], small_h: np.ndarray):
+    def _tiles(self, pair: PreparedPair, small_h: np.ndarray):
         """The tile stage (:func:`refine_with_tiles`) from a whole-frame answer of the S x S images; None when
         that answer is degenerate."""
-        full = self._full_resolution(small_h, *pair)
+        full = self._full_resolution(small_h, pair)
         if full is None:
             return None
-        return refine_with_tiles(self.stages[-1][0], *grey, full, coarse_network=self.network if len(self.stages) > 1 else None)
+        return refine_with_tiles(self.stages[-1][0], pair.a.grey, pair.b.grey, full,
+                                 coarse_network=self.network if len(self.stages) > 1 else None)
 
     def _predict_headings(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
         """The cascade of every coarse network (:attr:`first_stages`), from B as given and (``headings`` 2)
@@ -273,7 +265,7 @@ class DeepEstimator(Estimator):
             scores.append(score)
         return np.stack(found), scores
 
-    def _search(self, pairs, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
+    def _search(self, pairs: Sequence[PreparedPair], small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
         """Large-motion search: for every pair, run the network from each translation hypothesis of a
         (2 * search + 1)^2 grid of shifts up to half the frame, on the two overlapping windows cropped
         from the full images and resized to S x S, and keep the best-scoring answer.
@@ -284,16 +276,17 @@ class DeepEstimator(Estimator):
         grid = np.linspace(-0.5, 0.5, 2 * self.search + 1)
         shifts = [(fx, fy) for fy in grid for fx in grid if (fx, fy) != (0.0, 0.0)]
         crops_a, crops_b, maps = [], [], []
-        for a, b in pairs:
-            whole_a = geometry.resize_matrix((a.shape[1], a.shape[0]), (s, s))
-            whole_b = geometry.resize_matrix((b.shape[1], b.shape[0]), (s, s))
+        for pair in pairs:
+            a, b = pair.a.grey, pair.b.grey
+            whole_a = geometry.resize_matrix(pair.a.size, (s, s))
+            whole_b = geometry.resize_matrix(pair.b.size, (s, s))
             for fx, fy in shifts:
                 # B shows A's content moved by -shift: A's window starts where B's ends, and the other way.
                 window_a = _window(a.shape, max(0.0, fx), max(0.0, fy), 1 + min(0.0, fx), 1 + min(0.0, fy))
                 window_b = _window(b.shape, max(0.0, -fx), max(0.0, -fy), 1 - max(0.0, fx), 1 - max(0.0, fy))
                 (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = window_a, window_b
-                crops_a.append(self._small(a[ay0:ay1, ax0:ax1]))
-                crops_b.append(self._small(b[by0:by1, bx0:bx1]))
+                crops_a.append(cv2.resize(a[ay0:ay1, ax0:ax1], (s, s), interpolation=cv2.INTER_AREA))
+                crops_b.append(cv2.resize(b[by0:by1, bx0:bx1], (s, s), interpolation=cv2.INTER_AREA))
                 crop_from_a = geometry.resize_matrix((ax1 - ax0, ay1 - ay0), (s, s)) @ geometry.translation(-ax0, -ay0)
                 crop_from_b = geometry.resize_matrix((bx1 - bx0, by1 - by0), (s, s)) @ geometry.translation(-bx0, -by0)
                 # whole-S b_from_a = whole_b . crop_from_b^-1 . H_crop . crop_from_a . whole_a^-1
@@ -329,9 +322,6 @@ class DeepEstimator(Estimator):
             best_h.append(h)
             best_scores.append(score)
         return np.stack(best_h), best_scores
-
-    def estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> Estimate:
-        return self.estimate_many([(image_a, image_b)])[0]
 
 
 def has_refinement_stage(name: str, model: str | None, refine_model: str | None) -> bool:

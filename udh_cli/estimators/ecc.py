@@ -12,7 +12,6 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
-from udh_cli.images import to_gray_float
 
 
 HAS_MASKED_ECC = hasattr(cv2, "findTransformECCWithMask")  # recent OpenCV only (5.0.0 on the development machine)
@@ -43,16 +42,16 @@ class EccEstimator(Estimator):
         if self.iterations < 1:  # OpenCV would stop at once and report a meaningless correlation
             raise UdhError(f"method '{self.name}': iterations {self.iterations} must be at least 1")
 
-    def _estimate(self, image_a, image_b):
-        return self.refine(image_a, image_b, self.init)
+    def _estimate(self, pair):
+        return self.refine(pair.a.grey, pair.b.grey, self.init)
 
-    def refine(self, image_a, image_b, b_from_a: np.ndarray | None, mask_b: np.ndarray | None = None):
+    def refine(self, gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray | None, mask_b: np.ndarray | None = None):
         """Run ECC from ``b_from_a`` (or the identity); returns ``(b_from_a, correlation, details)``.
 
+        ``gray_a``, ``gray_b``: (H, W) float32 images (grey, or any normalisation of it such as local contrast).
         ``mask_b``: (H_B, W_B) bool, the pixels of B that may count (all when None). Needs OpenCV's
         ``findTransformECCWithMask`` (:data:`HAS_MASKED_ECC`).
         """
-        gray_a, gray_b = to_gray_float(image_a), to_gray_float(image_b)
         if float(gray_a.std()) < 1e-4 or float(gray_b.std()) < 1e-4:
             raise EstimationFailed("an image is constant; ECC needs texture")
         if mask_b is not None:

@@ -12,7 +12,6 @@ import numpy as np
 
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
-from udh_cli.images import to_gray_u8
 
 
 # Recently detected features, least recently used first: (method, settings, shape, digest) -> (keypoints,
@@ -112,11 +111,9 @@ class FeatureRansacEstimator(Estimator):
             return flann.knnMatch(descriptors_a, descriptors_b, k=2)
         return cv2.BFMatcher(self.norm).knnMatch(descriptors_a, descriptors_b, k=2)
 
-    def _estimate(self, image_a, image_b):
-        # 8-bit images are display-ready and used as they are; 16-bit and float data are stretched to
-        # their own range first, or a frame that fills a sixth of 16 bits gets ~40 grey levels.
-        keypoints_a, descriptors_a = self._detect(to_gray_u8(image_a, stretch=image_a.dtype != np.uint8))
-        keypoints_b, descriptors_b = self._detect(to_gray_u8(image_b, stretch=image_b.dtype != np.uint8))
+    def _estimate(self, pair):
+        keypoints_a, descriptors_a = self._detect(pair.a.grey_u8())
+        keypoints_b, descriptors_b = self._detect(pair.b.grey_u8())
         if len(keypoints_a) < 4 or len(keypoints_b) < 4:
             raise EstimationFailed(
                 f"too few keypoints ({len(keypoints_a)} in A, {len(keypoints_b)} in B); the images may lack texture"

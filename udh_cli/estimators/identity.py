@@ -17,7 +17,6 @@ class IdentityEstimator(Estimator):
 
     name: ClassVar[str] = "identity"
 
-    def _estimate(self, image_a, image_b):
-        size_a = (image_a.shape[1], image_a.shape[0])
-        size_b = (image_b.shape[1], image_b.shape[0])
+    def _estimate(self, pair):
+        size_a, size_b = pair.a.size, pair.b.size
         return geometry.rescale_homography(np.eye(3), size_a, size_a, size_a, size_b), 0.0, {}

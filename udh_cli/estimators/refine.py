@@ -15,7 +15,8 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators.ecc import HAS_MASKED_ECC, EccEstimator
-from udh_cli.images import local_contrast, scaled_size, to_gray_float
+from udh_cli.estimators.pair import ImageLike, PreparedImage
+from udh_cli.images import scaled_size
 
 
 ROBUST_MIN_SHARE = 0.2  # the robust pass needs this share of B's pixels to agree
@@ -70,13 +71,15 @@ class PyramidEcc:
             raise ValueError(f"PyramidEcc: contrast_sigma ({self.contrast_sigma}) and robust_k ({self.robust_k}) must be "
                              f"0 (off) or more, robust_iterations ({self.robust_iterations}) at least 1")
 
-    def refine(self, image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.ndarray) -> tuple[np.ndarray, float]:
+    def refine(self, image_a: ImageLike, image_b: ImageLike, b_from_a: np.ndarray) -> tuple[np.ndarray, float]:
         """Returns the refined ``b_from_a`` (pixels of the given images) and the final correlation.
 
-        Raises :class:`EstimationFailed` when ECC diverges at the finest level.
+        The images are arrays or prepared ones (:mod:`udh_cli.estimators.pair`), whose pyramid levels are then
+        made once and shared with the other stages. Raises :class:`EstimationFailed` when ECC diverges at the
+        finest level.
         """
-        gray_a, gray_b = to_gray_float(image_a), to_gray_float(image_b)
-        size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
+        prepared_a, prepared_b = PreparedImage.of(image_a, "image A"), PreparedImage.of(image_b, "image B")
+        size_a, size_b = prepared_a.size, prepared_b.size
         scale = min(1.0, self.work_side / max(*size_a, *size_b))
         current = np.asarray(b_from_a, dtype=np.float64)
         correlation = float("nan")
@@ -85,10 +88,10 @@ class PyramidEcc:
         for level, budget, blur in zip(range(self.levels - 1, -1, -1), budgets, blurs):
             s = scale / (2**level)
             work_a, work_b = scaled_size(size_a, s), scaled_size(size_b, s)
-            small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
-            small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
             if self.contrast_sigma > 0:
-                small_a, small_b = local_contrast(small_a, self.contrast_sigma), local_contrast(small_b, self.contrast_sigma)
+                small_a, small_b = prepared_a.contrast(work_a, self.contrast_sigma), prepared_b.contrast(work_b, self.contrast_sigma)
+            else:
+                small_a, small_b = prepared_a.resized(work_a), prepared_b.resized(work_b)
             start = geometry.rescale_homography(current, size_a, work_a, size_b, work_b)
             ecc = EccEstimator(iterations=budget, eps=self.eps, gauss_filt_size=blur, min_correlation=0.0)
             try:

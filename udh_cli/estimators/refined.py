@@ -23,6 +23,7 @@ from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.deep import DeepEstimator, has_refinement_stage
+from udh_cli.estimators.pair import PreparedPair
 from udh_cli.estimators.registry import create_estimator, estimator_options
 from udh_cli.estimators.views import VIEWS, ViewEstimator
 from udh_cli.estimators.refine import PyramidEcc
@@ -128,21 +129,21 @@ class RefinedEstimator(Estimator):
         if self.trusted_inliers < 4:
             raise UdhError(f"method '{self.name}': trusted_inliers ({self.trusted_inliers}) must be at least 4, the matches a homography needs")
 
-    def _refine_and_score(self, image_a, image_b, start: Estimate) -> tuple[np.ndarray | None, float, dict]:
+    def _refine_and_score(self, pair: PreparedPair, start: Estimate) -> tuple[np.ndarray | None, float, dict]:
         """Refine ``start`` photometrically and keep whichever of the two verifies better."""
         if not start.ok:
             return None, 0.0, {"start_failure": start.failure}
-        start_score = verification_score(image_a, image_b, start.homography, structure=True)
+        start_score = verification_score(pair.a, pair.b, start.homography, structure=True)
         details = {"start_method": start.method, "start_score": start_score}
         try:
-            refined, correlation = self.refiner.refine(image_a, image_b, start.homography)
-            if not geometry.is_valid_homography(refined, image_a.shape[1], image_a.shape[0]):
+            refined, correlation = self.refiner.refine(pair.a, pair.b, start.homography)
+            if not geometry.is_valid_homography(refined, *pair.a.size):
                 raise EstimationFailed("refinement left a degenerate homography")
             details["ecc_correlation"] = correlation
         except EstimationFailed as exc:
             details["refine_failure"] = str(exc)
             return start.homography, start_score, details
-        refined_score = verification_score(image_a, image_b, refined, structure=True)
+        refined_score = verification_score(pair.a, pair.b, refined, structure=True)
         # The score (NCC at 256 px) cannot rank sub-pixel differences: preferring the start whenever it
         # scored higher undid good refinements (sim flight 0.24 -> 0.50 px). Only a clear drop means ECC
         # wandered off.
@@ -151,16 +152,13 @@ class RefinedEstimator(Estimator):
             return start.homography, start_score, details
         return refined, refined_score, details
 
-    def estimate_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
+    def estimate_pairs(self, pairs: Sequence[PreparedPair]) -> list[Estimate]:
         if not pairs:
             return []
         started = time.perf_counter()
-        first = self._first.estimate_many(pairs)
+        first = self._first.estimate_pairs(pairs)
         first_ms = (time.perf_counter() - started) * 1e3 / len(pairs)
-        return [self._finish(a, b, start, first_ms) for (a, b), start in zip(pairs, first)]
-
-    def estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> Estimate:
-        return self.estimate_many([(image_a, image_b)])[0]
+        return [self._finish(pair, start, first_ms) for pair, start in zip(pairs, first)]
 
     def _doubted(self, score: float, details: dict) -> bool:
         """An answer needs a second opinion when it scores low, or when its refinement failed (ECC diverged,
@@ -178,9 +176,9 @@ class RefinedEstimator(Estimator):
         height, width = shape_a[:2]
         return float(geometry.corner_errors(refined, start, width, height).max()) <= NEAR_PX
 
-    def _finish(self, image_a, image_b, start: Estimate, first_ms: float) -> Estimate:
+    def _finish(self, pair: PreparedPair, start: Estimate, first_ms: float) -> Estimate:
         started = time.perf_counter()
-        homography, score, details = self._refine_and_score(image_a, image_b, start)
+        homography, score, details = self._refine_and_score(pair, start)
         details["score"] = score
         doubted = self._doubted(score, details)
         # Second opinions, cheapest first, each only while the answer held is still doubted: SIFT settles most
@@ -194,10 +192,10 @@ class RefinedEstimator(Estimator):
         for key, used, estimator in opinions:
             if not doubted:
                 break
-            found = estimator.estimate(image_a, image_b)
-            other, other_score, other_details = self._refine_and_score(image_a, image_b, found)
+            found = estimator.estimate_pairs([pair])[0]
+            other, other_score, other_details = self._refine_and_score(pair, found)
             matched = found.ok and found.inliers is not None
-            if matched and not self._near(other, found.homography, image_a.shape):
+            if matched and not self._near(other, found.homography, pair.a.shape):
                 # Matches agreeing on one answer say more than a photometric score that occluders, surf or a
                 # wrong shift of a smooth scene can fool: ECC's polish stands only if it stays by them.
                 other, other_score = found.homography, other_details.get("start_score", 0.0)
@@ -228,7 +226,7 @@ class RefinedEstimator(Estimator):
         verified_by = details.pop("verified_by", "alignment" if verified else None)
         stage = details.pop("used", "network")
         elapsed = first_ms + (time.perf_counter() - started) * 1e3
-        return self._checked(homography, score, elapsed, failure, details, image_a.shape, verified=verified,
+        return self._checked(homography, score, elapsed, failure, details, pair.a.shape, verified=verified,
                              verification_score=score, verified_by=verified_by, stage=stage)
 
 

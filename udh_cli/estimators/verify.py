@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
-from udh_cli.images import scaled_size, to_gray_float
+from udh_cli.estimators.pair import ImageLike, PreparedImage
+from udh_cli.images import scaled_size
 
 VERIFY_SIDE = 256  # longer side (px) of the images a verification score is computed on
 # Verification correlates a 4 x 4 grid of tiles over the overlap and takes the median. On held-out rho-32 pairs
@@ -103,9 +104,10 @@ def _ncc(x: np.ndarray, y: np.ndarray) -> float:
     return float((x * y).sum() / denominator) if denominator > 1e-12 else 0.0
 
 
-def verification_score(image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.ndarray | None,
+def verification_score(image_a: ImageLike, image_b: ImageLike, b_from_a: np.ndarray | None,
                        structure: bool = False) -> float:
-    """How well ``b_from_a`` aligns two images of any size, at :data:`VERIFY_SIDE` px: in [0, 1].
+    """How well ``b_from_a`` aligns two images of any size (arrays, or prepared once and shared), at
+    :data:`VERIFY_SIDE` px: in [0, 1].
 
     The median intensity NCC of :data:`VERIFY_TILES` x :data:`VERIFY_TILES` tiles of the overlap; with
     ``structure``, the lower of that and the same for the gradient magnitudes (both must agree, see
@@ -114,11 +116,10 @@ def verification_score(image_a: np.ndarray, image_b: np.ndarray, b_from_a: np.nd
     """
     if b_from_a is None:
         return 0.0
-    gray_a, gray_b = to_gray_float(image_a), to_gray_float(image_b)
-    size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
+    prepared_a, prepared_b = PreparedImage.of(image_a, "image A"), PreparedImage.of(image_b, "image B")
+    size_a, size_b = prepared_a.size, prepared_b.size
     scale = min(1.0, VERIFY_SIDE / max(*size_a, *size_b))
     work_a, work_b = scaled_size(size_a, scale), scaled_size(size_b, scale)
-    small_a = cv2.resize(gray_a, work_a, interpolation=cv2.INTER_AREA)
-    small_b = cv2.resize(gray_b, work_b, interpolation=cv2.INTER_AREA)
+    small_a, small_b = prepared_a.resized(work_a), prepared_b.resized(work_b)
     h = geometry.rescale_homography(b_from_a, size_a, work_a, size_b, work_b)
     return max(0.0, alignment_ncc(small_a, small_b, h, VERIFY_MIN_OVERLAP, on="both" if structure else "intensity", tiles=VERIFY_TILES))

@@ -10,12 +10,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-import cv2
 import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimate, Estimator
+from udh_cli.estimators.pair import PreparedPair
 
 VIEWS = ("mirrored", "flipped", "swapped")  # left-right, upside down, A and B exchanged
 
@@ -38,16 +38,15 @@ class ViewEstimator(Estimator):
         if self.view not in VIEWS:
             raise UdhError(f"view '{self.view}': choose one of {', '.join(VIEWS)}")
 
-    def _estimate(self, image_a: np.ndarray, image_b: np.ndarray) -> tuple[np.ndarray, float, dict]:
+    def _estimate(self, pair: PreparedPair) -> tuple[np.ndarray, float, dict]:
         if self.view == "swapped":
-            found = _answer(self.inner.estimate(image_b, image_a))
+            found = _answer(self.inner.estimate_pairs([pair.swapped()])[0])
             b_from_a = geometry.invert(found.homography)
         else:
             horizontal = self.view == "mirrored"
-            code = 1 if horizontal else 0  # cv2.flip: 1 left-right, 0 upside down
-            found = _answer(self.inner.estimate(cv2.flip(image_a, code), cv2.flip(image_b, code)))
-            mirror_a = geometry.mirror_matrix(image_a.shape[1], image_a.shape[0], horizontal)
-            mirror_b = geometry.mirror_matrix(image_b.shape[1], image_b.shape[0], horizontal)
+            found = _answer(self.inner.estimate_pairs([pair.flipped(1 if horizontal else 0)])[0])  # cv2.flip codes
+            mirror_a = geometry.mirror_matrix(*pair.a.size, horizontal)
+            mirror_b = geometry.mirror_matrix(*pair.b.size, horizontal)
             b_from_a = mirror_b @ found.homography @ mirror_a  # each mirror is its own inverse
         return b_from_a, found.confidence, {"view": self.view, **found.details, "inliers": found.inliers}
 

@@ -11,6 +11,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.estimators import Estimate, Estimator
+from udh_cli.estimators.pair import ImageLike
 from udh_cli.mosaic.frames import Frame
 from udh_cli.mosaic.report import Reporter
 from udh_cli.estimators.verify import verification_score
@@ -40,7 +41,7 @@ class Acceptance:
     min_confidence: float = 0.2
     min_verified: float = 0.3
 
-    def judge(self, estimate: Estimate, image_a: np.ndarray, image_b: np.ndarray,
+    def judge(self, estimate: Estimate, image_a: ImageLike, image_b: ImageLike,
               verified_by_method: bool = False) -> tuple[float | None, str | None]:
         """``(verification score or None when not computed, reason for doubt or None when accepted)``."""
         if not estimate.ok:

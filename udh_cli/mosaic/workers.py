@@ -25,8 +25,9 @@ import numpy as np
 
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate, Estimator
+from udh_cli.estimators.pair import PreparedPair
 
-ImagePair = tuple[np.ndarray, np.ndarray]
+ImagePair = tuple[np.ndarray, np.ndarray]  # working-size images A and B, as sent to a worker
 Judged = tuple[Estimate, "float | None", "str | None"]  # the estimate, its verification score, why it is doubted
 # Per pair: the first method's judged answer, then the fallback's when the first was doubted.
 Attempts = list[Judged]
@@ -49,19 +50,21 @@ class EstimatorSpec:
         return repr((self.method, sorted(self.options.items()), self.fallback, sorted(self.fallback_options.items())))
 
 
-def judge_batch(method: Estimator, acceptance, pairs: Sequence[ImagePair]) -> list[Judged]:
+def judge_batch(method: Estimator, acceptance, pairs: Sequence[PreparedPair]) -> list[Judged]:
     """Estimate ``pairs`` (working-size images) with ``method`` and judge each answer (:class:`Acceptance`)."""
     estimates = estimate_many_safely(method, list(pairs))
     out = []
-    for (image_a, image_b), estimate in zip(pairs, estimates):
-        verified, doubt = acceptance.judge(estimate, image_a, image_b, method.verifies_itself)
+    for pair, estimate in zip(pairs, estimates):
+        verified, doubt = acceptance.judge(estimate, pair.a, pair.b, method.verifies_itself)
         out.append((estimate, verified, doubt))
     return out
 
 
 def judge_with_fallback(method: Estimator, fallback: Estimator | None, acceptance, pairs: Sequence[ImagePair]) -> list[Attempts]:
     """One job: ``method`` on every pair, then ``fallback`` on the pairs it left doubted. Both in the same job,
-    so that a doubted batch never waits in the queue behind other batches for its second opinion."""
+    so that a doubted batch never waits in the queue behind other batches for its second opinion. Each pair
+    is prepared once (:mod:`udh_cli.estimators.pair`) for both methods and the acceptance test."""
+    pairs = [PreparedPair.of(a, b) for a, b in pairs]
     first = judge_batch(method, acceptance, pairs)
     out = [[judged] for judged in first]
     doubted = [i for i, (_, _, doubt) in enumerate(first) if doubt is not None]
@@ -71,21 +74,21 @@ def judge_with_fallback(method: Estimator, fallback: Estimator | None, acceptanc
     return out
 
 
-def estimate_many_safely(method: Estimator, pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[Estimate]:
+def estimate_many_safely(method: Estimator, pairs: list[PreparedPair]) -> list[Estimate]:
     """``estimate_many``, but an estimator that raises (a bug, a runtime error) fails only its own pairs.
 
     Estimators report failures as estimates and never raise by contract; this keeps one broken pair from
     stopping a run of hundreds.
     """
     try:
-        return method.estimate_many(pairs)
+        return method.estimate_pairs(pairs)
     except UdhError:
         raise  # a problem the user must fix (a missing model...): stop with its message
     except Exception:  # noqa: BLE001 - retry one by one so that only the offending pairs fail
         out = []
-        for a, b in pairs:
+        for pair in pairs:
             try:
-                out.append(method.estimate(a, b))
+                out.append(method.estimate_pairs([pair])[0])
             except UdhError:
                 raise
             except Exception as exc:  # noqa: BLE001

@@ -106,11 +106,11 @@ def test_contrast_loss_ignores_a_hot_spot_that_the_intensity_loss_follows(pool):
     from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs
 
     sources = load_sources(list_images(pool)[:3])
-    pairs = make_pairs(sources, 4, PairConfig(patch_size=64, rho=10, illumination=False), np.random.default_rng(1))
+    pairs = make_pairs(sources, 4, PairConfig(patch_size=128, rho=10, illumination=False), np.random.default_rng(1))
     context, origin = torch.from_numpy(pairs.context_a), torch.from_numpy(pairs.origin)
     clean_b, truth = torch.from_numpy(pairs.clean_b), torch.from_numpy(pairs.offsets)
-    yy, xx = torch.meshgrid(torch.arange(64.0), torch.arange(64.0), indexing="ij")
-    hot_b = (clean_b + 0.3 * torch.exp(-((xx - 32) ** 2 + (yy - 32) ** 2) / (2 * 16.0 ** 2))).clamp(0, 1)
+    yy, xx = torch.meshgrid(torch.arange(128.0), torch.arange(128.0), indexing="ij")
+    hot_b = (clean_b + 0.3 * torch.exp(-((xx - 64) ** 2 + (yy - 64) ** 2) / (2 * 32.0 ** 2))).clamp(0, 1)
 
     def loss(offsets, b, space):
         return losses.photometric_loss(offsets, context, origin, b, space=space).item()

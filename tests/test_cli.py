@@ -276,3 +276,15 @@ def test_the_papers_single_pass_is_still_one_command(files):
     assert "tile_levels" not in report["details"] and report["details"]["stage_ms"]["tiles"] == 0.0
     full = json.loads(CliRunner().invoke(cli.app, args[:5] + ["--json"]).stdout)
     assert full["details"]["tile_levels"] >= 0 and full["details"]["refine_rounds"] == 2
+
+
+def test_estimate_takes_method_options_in_the_one_syntax(files):
+    """-O [METHOD.]KEY=VALUE on estimate, as on mosaic and bench: it reaches the method, and a key the method does
+    not take is a one-line error."""
+    a, b = str(files["a.png"]), str(files["b16.png"])
+    few = json.loads(CliRunner().invoke(cli.app, ["estimate", a, b, "-m", "sift", "-O", "best_features=40", "--json"]).stdout)
+    assert few["ok"] and few["details"]["keypoints_a"] == 40
+    also = json.loads(CliRunner().invoke(cli.app, ["estimate", a, b, "-m", "sift", "-O", "sift.best_features=40", "--json"]).stdout)
+    assert also["homography"] == few["homography"]
+    wrong = CliRunner().invoke(cli.app, ["estimate", a, b, "-m", "sift", "-O", "iterations=3"])
+    assert wrong.exit_code == 1 and "no method here takes 'iterations'" in str(wrong.exception)

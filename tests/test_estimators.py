@@ -240,3 +240,19 @@ def test_features_are_detected_once_per_image_and_never_served_stale(monkeypatch
     assert len(calls) == 3  # new pixels, new detection
     create_estimator("sift", contrast_threshold=0.01).estimate(a, b)
     assert len(calls) == 5  # other settings, other features
+
+
+def test_one_option_syntax_for_every_command():
+    from udh_cli.estimators.registry import parse_method_options
+
+    # A bare KEY reaches every method here that takes it; METHOD.KEY only that one; values are JSON or text.
+    got = parse_method_options(["ratio=0.8", "ecc.iterations=200", "model=my.v2.onnx"], ["sift", "ecc", "unsupervised"])
+    assert got == {"sift": {"ratio": 0.8}, "ecc": {"iterations": 200}, "unsupervised": {"model": "my.v2.onnx"}}
+    assert parse_method_options(["threads=1"], ["auto", "unsupervised", "sift"]) == {"auto": {"threads": 1}, "unsupervised": {"threads": 1}}
+    assert parse_method_options(None, ["sift"]) == {}
+    with pytest.raises(UdhError, match="KEY=VALUE"):
+        parse_method_options(["junk"], ["sift"])
+    with pytest.raises(UdhError, match="'orb' is not a method of this command"):
+        parse_method_options(["orb.ratio=0.8"], ["sift"])
+    with pytest.raises(UdhError, match="no method here takes 'iterations'.*sift takes: ratio"):
+        parse_method_options(["iterations=3"], ["sift"])

@@ -18,7 +18,7 @@ from rich.table import Table
 from udh_cli import __version__, geometry
 from udh_cli.errors import UdhError
 from udh_cli.api import ESTIMATE_WORK_SIZE
-from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS
+from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS, parse_method_options
 from udh_cli.train.config import TrainConfig as _TrainConfig
 
 _TRAIN = _TrainConfig()  # the command line's defaults are the library's
@@ -44,6 +44,8 @@ def _choices(name: str, values) -> type[Enum]:
 
 
 Method = _choices("Method", ESTIMATORS)
+OPTION_HELP = ("An option of the method, [METHOD.]KEY=VALUE, repeatable: e.g. model=my.onnx, sift.ratio=0.8 (VALUE is read as "
+               "JSON when it parses). A bare KEY goes to every method here that takes it; docs/estimators.md lists them.")
 METHOD_HELP = "; ".join(f"[bold]{name}[/bold]: {description}" for name, (_, _, description) in ESTIMATORS.items())
 _state = {"debug": False}
 INTERRUPTED = 130  # the shell's exit code for Ctrl-C
@@ -86,6 +88,7 @@ def estimate(
     flight_model: Annotated[Optional[str], typer.Option(help="Learned methods: the flight-motion coarse network beside the first (default: the shipped one; 'none' for none).")] = None,
     work_size: Annotated[int, typer.Option(help="Estimate with the images' longer side shrunk to this many pixels; the answer is in full-resolution pixels.")] = ESTIMATE_WORK_SIZE,
     full_resolution: Annotated[bool, typer.Option("--full-resolution", help="Estimate at the images' full resolution (slow and memory-hungry on large photos).", metavar="")] = False,
+    option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
 ) -> None:
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold]).
 
@@ -97,7 +100,8 @@ def estimate(
              "refine_model": None if refine_model is None else str(refine_model), "refine_rounds": refine_rounds, "search": search,
              "precision": precision, "headings": headings, "tiles": tiles,
              "flight_model": None if flight_model is None else ("" if flight_model.lower() == "none" else flight_model)}
-    options = {key: value for key, value in given.items() if value is not None}
+    options = {**parse_method_options(option, [method.value]).get(method.value, {}),
+               **{key: value for key, value in given.items() if value is not None}}
     try:
         report = estimate_report(image_a, image_b, method.value, gt=gt, viz=viz, work_size=None if full_resolution else work_size, **options)
     except UdhError as exc:
@@ -289,7 +293,7 @@ def mosaic(
     output: Annotated[Path, typer.Option("--output", "-o", help="Mosaic image (.png or .tif keep the alpha channel). Split runs write NAME.partK.png.")] = Path("mosaic.png"),
     method: Annotated[Method, typer.Option("--method", "-m", case_sensitive=False, help=METHOD_HELP)] = Method(_MOSAIC.method),
     fallback: Annotated[Optional[str], typer.Option("--fallback", help="Method for the pairs --method fails or doubts (e.g. sift).")] = _MOSAIC.fallback,
-    method_option: Annotated[Optional[list[str]], typer.Option("--method-option", "-O", help="KEY=VALUE option for --method, repeatable (e.g. model=my.onnx); VALUE is read as JSON when it parses.")] = None,
+    method_option: Annotated[Optional[list[str]], typer.Option("--option", "-O", "--method-option", help=OPTION_HELP)] = None,
     work_size: Annotated[int, typer.Option("--work-size", help="Longest side, pixels, of the copies the estimators see; homographies are rescaled exactly.")] = _MOSAIC.work_size,
     order: Annotated[str, typer.Option("--order", help="Frame order in a folder: name or time (EXIF capture time).")] = _MOSAIC.order,
     every: Annotated[int, typer.Option("--every", help="Video: keep every N-th frame.")] = _MOSAIC.every,
@@ -317,7 +321,7 @@ def mosaic(
     from udh_cli.mosaic import FollowConfig, Reporter, run_live, run_mosaic
 
     config = _MosaicConfig(
-        method=method.value, fallback=fallback, method_options=_key_values(method_option or []), work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
+        method=method.value, fallback=fallback, method_options=parse_method_options(method_option, [method.value]).get(method.value, {}), work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
         blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, workers=workers, scheduler=scheduler,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
@@ -328,19 +332,6 @@ def mosaic(
         report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume, cache_dir=cache_dir, gcp=gcp,
                             gcp_image_width=gcp_image_width)
     _print_mosaic(report)
-
-
-def _key_values(items: list[str]) -> dict:
-    """["k=v", ...] -> {k: v}, with v parsed as JSON when it parses (numbers, booleans), else kept as text."""
-    from udh_cli.estimators.registry import parse_key_value
-
-    options = {}
-    for item in items:
-        parsed = parse_key_value(item)
-        if parsed is None:
-            raise UdhError(f"--method-option '{item}': write KEY=VALUE, e.g. model=my.onnx")
-        options[parsed[0]] = parsed[1]
-    return options
 
 
 def _print_mosaic(report: dict) -> None:
@@ -374,7 +365,6 @@ bench_app = typer.Typer(
 app.add_typer(bench_app, name="bench")
 
 _METHODS_HELP = "Comma-separated registry names (default: every registered method)."
-_OPTION_HELP = "A method option, METHOD.NAME=VALUE (repeatable), e.g. ecc.iterations=200 or sift.best_features=50."
 
 
 @bench_app.command("synthetic")
@@ -390,19 +380,19 @@ def bench_synthetic(
     out: Annotated[Path, typer.Option("--out", help="Folder for results.md/.csv/.json, per_pair.csv and the two PNG plots.")] = Path("bench-results"),
     save_pairs: Annotated[Optional[Path], typer.Option("--save-pairs", help="Also save the generated pairs to this .npz.")] = None,
     load_pairs: Annotated[Optional[Path], typer.Option("--load-pairs", help="Run on pairs saved with --save-pairs (replaces --images/--rho/--n/--seed).")] = None,
-    option: Annotated[Optional[list[str]], typer.Option("--option", help=_OPTION_HELP)] = None,
+    option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.", metavar="")] = True,
     motion: Annotated[str, typer.Option("--motion", help="paper (128x128 patches, corners moved by --rho) or flight (whole 320x240 frames with real flight motion: turns, scale, low overlap).")] = "paper",
 ) -> None:
     """Benchmark on synthetic pairs from held-out images, drawn with the training generator."""
     from udh_cli.bench import check_output_folder, run_synthetic_bench
     from udh_cli.bench.runner import parse_methods
-    from udh_cli.bench.suite import parse_options, parse_rhos
+    from udh_cli.bench.suite import bench_options, parse_rhos
 
     check_output_folder(out)
     result = run_synthetic_bench(
         images=images, rhos=parse_rhos(rho), count=n, seed=seed, illumination=illumination, occluders=occluders,
-        methods=parse_methods(methods) if methods else None, mode=mode, options=parse_options(option),
+        methods=parse_methods(methods) if methods else None, mode=mode, options=bench_options(option, methods),
         save_pairs=save_pairs, load_pairs=load_pairs, motion=motion,
     )
     _finish_bench(result, out, plots)
@@ -415,17 +405,17 @@ def bench_pairs(
     h_column: Annotated[str, typer.Option("--h-column", help="CSV column holding H.")] = "H",
     prefix: Annotated[Optional[str], typer.Option("--prefix", help="Folder: the image series, e.g. graf for graf1/graf3, when several match.")] = None,
     out: Annotated[Path, typer.Option("--out", help="Folder for the result files and plots.")] = Path("bench-results"),
-    option: Annotated[Optional[list[str]], typer.Option("--option", help=_OPTION_HELP)] = None,
+    option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.", metavar="")] = True,
 ) -> None:
     """Benchmark on real image pairs with known homographies."""
     from udh_cli.bench import check_output_folder, run_pairs_bench
     from udh_cli.bench.runner import parse_methods
-    from udh_cli.bench.suite import parse_options
+    from udh_cli.bench.suite import bench_options
 
     check_output_folder(out)
     result = run_pairs_bench(source, methods=parse_methods(methods) if methods else None, h_column=h_column,
-                             prefix=prefix, options=parse_options(option))
+                             prefix=prefix, options=bench_options(option, methods))
     _finish_bench(result, out, plots)
 
 

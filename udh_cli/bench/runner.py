@@ -101,8 +101,8 @@ def make_jobs(
             if str(exc).startswith("unknown method"):
                 raise
             about = str(exc) if str(exc).startswith(f"method '{name}'") else f"method '{name}': {exc}"
-            raise UdhError(f"{about} (in udh bench, options reach a method as --option "
-                           f"{name}.NAME=VALUE, e.g. --option {name}.model=PATH; or leave it out of --methods)") from None
+            raise UdhError(f"{about} (in udh bench, options reach a method as -O "
+                           f"{name}.KEY=VALUE, e.g. -O {name}.model=PATH; or leave it out of --methods)") from None
         for kind in inputs:
             if kind == "full" and name not in full_methods:
                 continue

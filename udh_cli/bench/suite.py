@@ -17,7 +17,7 @@ from udh_cli.bench.pairsets import held_out_sources, load_sets, save_sets, synth
 from udh_cli.bench.real_pairs import load_real_pairs
 from udh_cli.bench.report import BenchResult
 from udh_cli.errors import UdhError
-from udh_cli.estimators.registry import parse_key_value
+from udh_cli.estimators.registry import parse_method_options
 from udh_cli.estimators import estimator_names
 from udh_cli.images import check_output_path
 from udh_cli.synthetic import SOURCE_SIZE
@@ -44,19 +44,11 @@ def parse_rhos(text: str) -> list[float]:
     return list(dict.fromkeys(rhos))
 
 
-def parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
-    """``["ecc.iterations=200", "sift.ratio=0.8"]`` -> ``{"ecc": {"iterations": 200}, "sift": {"ratio": 0.8}}``.
-
-    Values are read as JSON when they parse (numbers, true/false, null), else kept as strings (paths).
-    """
-    options: dict[str, dict[str, Any]] = {}
-    for item in items or []:
-        parsed = parse_key_value(item)
-        method, dot, name = (parsed[0] if parsed else "").partition(".")
-        if parsed is None or not dot or not method or not name:
-            raise UdhError(f"--option {item!r}: write METHOD.NAME=VALUE, e.g. ecc.iterations=200")
-        options.setdefault(method.strip(), {})[name.strip()] = parsed[1]
-    return options
+def bench_options(items: list[str] | None, methods: str | None) -> dict[str, dict[str, Any]]:
+    """``-O`` items for the methods compared (``methods``: the ``--methods`` text, None for every registered
+    one): :func:`udh_cli.estimators.registry.parse_method_options`, so a bare ``KEY=VALUE`` reaches every
+    compared method that takes it."""
+    return parse_method_options(items, runner.parse_methods(methods or default_methods()))
 
 
 def _inputs_for(mode: str) -> list[str]:

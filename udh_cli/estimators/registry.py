@@ -9,7 +9,7 @@ import numbers
 import os
 import types
 import typing
-from typing import Any
+from typing import Any, Sequence
 
 from udh_cli.errors import UdhError
 from udh_cli.estimators.base import Estimator
@@ -43,6 +43,40 @@ def parse_key_value(item: str) -> tuple[str, Any] | None:
         return key.strip(), json.loads(text)
     except (ValueError, RecursionError):  # not JSON, or absurdly nested: kept as text
         return key.strip(), text
+
+
+OPTION_SYNTAX = "-O [METHOD.]KEY=VALUE"  # how every command takes estimator options
+
+
+def parse_method_options(items: Sequence[str] | None, methods: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """Estimator options from a command line, one syntax for every command: ``[METHOD.]KEY=VALUE``.
+
+    ``METHOD.KEY=VALUE`` goes to that method; a bare ``KEY=VALUE`` goes to every method of ``methods`` that
+    takes ``KEY`` (the command's method; under ``udh bench`` each method compared). Values are read as JSON
+    when they parse (numbers, true/false, null), else kept as text (paths). Returns ``{method: {key: value}}``
+    for the methods that got options. Raises :class:`UdhError` for a malformed item, a METHOD not in
+    ``methods``, or a bare KEY that none of them takes.
+    """
+    options: dict[str, dict[str, Any]] = {}
+    for item in items or []:
+        parsed = parse_key_value(item)
+        if parsed is None:
+            shown = item if len(item) <= 60 else item[:57] + "..."
+            raise UdhError(f"option '{shown}': write {OPTION_SYNTAX.removeprefix('-O ')}, e.g. model=my.onnx or sift.ratio=0.8")
+        key, value = parsed
+        method, dot, name = key.rpartition(".")
+        if dot:
+            if method not in methods:
+                raise UdhError(f"option {key!r}: {method!r} is not a method of this command ({', '.join(methods)})")
+            targets = [method]
+        else:
+            targets = [m for m in methods if name in estimator_options(m)]
+            if not targets:
+                raise UdhError(f"option {key!r}: no method here takes {name!r} ({', '.join(methods)}); "
+                               f"{methods[0]} takes: {', '.join(estimator_options(methods[0])) or 'no options'}")
+        for target in targets:
+            options.setdefault(target, {})[name.strip()] = value
+    return options
 
 
 def estimator_names() -> list[str]:

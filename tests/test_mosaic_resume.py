@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 import sys
+from pathlib import Path
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -144,6 +145,9 @@ class WithModel(Estimator):
     model: str = ""
     device: str = "cpu"
 
+    def model_files(self) -> list[str]:
+        return [self.model]
+
 
 def test_estimator_identity_follows_settings_and_model_files(tmp_path):
     model = tmp_path / "net.onnx"
@@ -154,6 +158,19 @@ def test_estimator_identity_follows_settings_and_model_files(tmp_path):
     assert estimator_identity(WithModel(str(model), device="cuda")) != before
     model.write_bytes(b"retrained")  # same path, new weights: a different method
     assert estimator_identity(WithModel(str(model))) != before
+
+
+def test_the_shipped_networks_are_named_in_the_identity_of_every_method_that_runs_them():
+    from udh_cli.estimators import create_estimator
+
+    auto = estimator_identity(create_estimator("auto"))
+    network = estimator_identity(create_estimator("unsupervised"))
+    assert auto["name"] == "auto" and network["name"] == "unsupervised"
+    shipped = {Path(f[0]).name for f in network["files"]}
+    assert {"udh-unsupervised-int8.onnx", "udh-unsupervised-refine-int8.onnx", "udh-unsupervised-flight-int8.onnx"} <= shipped
+    assert shipped <= {Path(f[0]).name for f in auto["files"]}  # auto runs the same networks
+    assert auto["settings"]["fallback"] == "sift" and auto["settings"]["refiner"]["levels"] == 3
+    assert estimator_identity(create_estimator("sift"))["files"] == []
 
 
 def test_cli_resume_with_the_output_inside_the_frames_folder(flight, tmp_path, monkeypatch, capfd):

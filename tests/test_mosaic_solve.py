@@ -6,7 +6,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates
-from udh_cli.mosaic.pairwise import PairResult
+from udh_cli.mosaic.pairs import PairResult
 from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_part, solve_with_rejection
 
 SIZE = (320, 240)
@@ -105,7 +105,7 @@ def test_loop_pair_inputs_are_cropped_to_the_covered_window():
     """A pre-warped B is cut to a window that is at least 98 % real pixels, so no method sees its empty border."""
     import cv2
 
-    from udh_cli.mosaic.pairwise import _covered_window
+    from udh_cli.mosaic.pairs import covered_window as _covered_window
 
     covered = np.zeros((480, 640), np.uint8)
     quad = np.array([[200, 40], [630, 90], [600, 470], [150, 420]], np.int32)

@@ -5,6 +5,7 @@ Mosaicking, benchmarking and the CLI depend only on :class:`Estimator` and :clas
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Sequence
@@ -121,6 +122,18 @@ class Estimator:
     def _estimate(self, pair: PreparedPair) -> tuple[np.ndarray, float, dict]:
         raise NotImplementedError
 
+    def settings(self) -> dict[str, Any]:
+        """The options this estimator runs with, JSON-ready: its dataclass fields shown in its repr (nested
+        settings such as a refiner's as dicts). With :attr:`name` and :meth:`model_files` it says what makes
+        its answers what they are (the mosaic's pair cache and sidecar record it)."""
+        if not dataclasses.is_dataclass(self):
+            return {}
+        return {f.name: json_ready(getattr(self, f.name, None)) for f in dataclasses.fields(self) if f.repr}
+
+    def model_files(self) -> list[str]:
+        """The model files its answers depend on (none for the classical methods)."""
+        return []
+
     def _checked(self, homography, confidence, elapsed_ms, failure, details, shape_a, **typed: Any) -> Estimate:
         """Pack an answer into an :class:`Estimate`; ``shape_a`` is A's (height, width, ...)."""
         if homography is not None:
@@ -134,6 +147,21 @@ class Estimator:
             if typed.get("verified"):
                 typed["verified"] = False
         return Estimate(self.name, homography, float(np.clip(confidence, 0.0, 1.0)), elapsed_ms, failure, details, **typed)
+
+
+def json_ready(value: Any) -> Any:
+    """``value`` as JSON types: arrays and tuples as lists, dataclasses as dicts, anything else by its repr."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: json_ready(getattr(value, f.name, None)) for f in dataclasses.fields(value) if f.repr}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): json_ready(v) for k, v in value.items()}
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    return repr(value)
 
 
 def require_ok(estimate: Estimate) -> Estimate:

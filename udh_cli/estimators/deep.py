@@ -142,6 +142,9 @@ class DeepEstimator(Estimator):
         found = {network.metadata.get("precision", "fp32") for network in [*(n for n, _ in self.stages), *self.first_stages]}
         return found.pop() if len(found) == 1 else "mixed"
 
+    def model_files(self) -> list[str]:
+        return sorted({str(network.path) for network in [*(n for n, _ in self.stages), *self.first_stages]})
+
     def rounds(self) -> list[OnnxHomographyModel]:
         """The network of every round of the cascade, in order."""
         return [network for network, count in self.stages for _ in range(count)]

@@ -129,6 +129,10 @@ class RefinedEstimator(Estimator):
         if self.trusted_inliers < 4:
             raise UdhError(f"method '{self.name}': trusted_inliers ({self.trusted_inliers}) must be at least 4, the matches a homography needs")
 
+    def model_files(self) -> list[str]:
+        inner = [self._first, *([self._fallback] if self._fallback is not None else [])]
+        return sorted({path for estimator in inner for path in estimator.model_files()})
+
     def _refine_and_score(self, pair: PreparedPair, start: Estimate) -> tuple[np.ndarray | None, float, dict]:
         """Refine ``start`` photometrically and keep whichever of the two verifies better."""
         if not start.ok:

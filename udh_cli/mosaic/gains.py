@@ -15,7 +15,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.pairwise import PairResult
+from udh_cli.mosaic.pairs import PairResult
 
 SIGMA_N = 10.0  # grey levels: how closely overlapping means should agree
 SIGMA_G = 0.1  # how far a gain may stray from 1 at the same cost

@@ -1,7 +1,7 @@
 """Resumable pairwise estimation: every finished pair estimate is kept in ``<output stem>.pairs.json``.
 
 Pairwise estimation is the expensive stage of a mosaic run. :class:`PairCache` records each finished pair
-(its :class:`~udh_cli.mosaic.pairwise.PairResult`) and rewrites the file atomically after every batch, so an
+(its :class:`~udh_cli.mosaic.pairs.PairResult`) and rewrites the file atomically after every batch, so an
 interrupted run loses at most the batch it was in. With ``resume`` a later run takes a pair from the file
 only when its key matches exactly; anything else is estimated again.
 
@@ -16,11 +16,9 @@ A pair's key covers everything its estimate depends on:
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -31,11 +29,10 @@ from udh_cli.estimators import Estimate, Estimator
 from udh_cli.estimators.base import TYPED_FIELDS
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, _full_resolution, _work_inputs
+from udh_cli.mosaic.pairs import Acceptance, PairRequest, PairResult, full_resolution, work_inputs
 from udh_cli.mosaic.report import Reporter
 
 CACHE_FORMAT = "udh-mosaic-pairs/1"
-_MAX_DEPTH = 6  # how deep estimator settings are searched for model files (auto -> its network -> stages -> model -> path)
 _MAX_RECORD_DEPTH = 64  # a pair record nests a few levels (estimates, details); deeper is damage, and could not be written back
 
 
@@ -46,60 +43,16 @@ def cache_path(output: str | Path) -> Path:
 
 
 def estimator_identity(estimator: Estimator | None) -> dict[str, Any] | None:
-    """What makes an estimator's answers what they are: its name, its settings and its model files.
-
-    Settings are the dataclass fields shown in its repr (none for an estimator that is not a dataclass).
-    Model files are found among the dataclass fields (repr or not, nested estimators and model wrappers
-    included); each is named with its size and modification time, so that overwriting a model with a
-    retrained one changes the identity. Values that cannot be written as JSON are named by their repr.
-    """
+    """What makes an estimator's answers what they are: its registry name, its settings record
+    (:meth:`~udh_cli.estimators.base.Estimator.settings`) and its model files, each named with its size and
+    modification time, so that overwriting a model with a retrained one changes the identity."""
     if estimator is None:
         return None
-    settings = {}
-    if dataclasses.is_dataclass(estimator):
-        settings = {f.name: _plain(getattr(estimator, f.name, None)) for f in dataclasses.fields(estimator) if f.repr}
-    files = sorted(_model_files(estimator, _MAX_DEPTH))
-    return {"name": estimator.name, "settings": settings, "files": [list(f) for f in files]}
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _plain(getattr(value, f.name, None)) for f in dataclasses.fields(value) if f.repr}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if value is None or isinstance(value, (bool, int, float, str)):
-        return value
-    return repr(value)
-
-
-def _model_files(value: Any, depth: int) -> set[tuple[str, int, int]]:
-    """(resolved path, size, mtime_ns) of every existing file named by a str/Path within the dataclass fields."""
-    if isinstance(value, (str, os.PathLike)):
-        try:
-            path = Path(value)
-            if path.is_file():
-                stat = path.stat()
-                return {(str(path.resolve()), stat.st_size, stat.st_mtime_ns)}
-        except (OSError, ValueError):  # not a path at all (too long, NUL...)
-            pass
-        return set()
-    if depth <= 0:
-        return set()
-    found: set[tuple[str, int, int]] = set()
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        for f in dataclasses.fields(value):
-            found |= _model_files(getattr(value, f.name, None), depth - 1)
-    elif isinstance(value, (list, tuple)):
-        for item in value:
-            found |= _model_files(item, depth - 1)
-    elif isinstance(value, dict):
-        for item in value.values():
-            found |= _model_files(item, depth - 1)
-    return found
+    files = []
+    for name in estimator.model_files():
+        stat = Path(name).stat()
+        files.append([str(Path(name).resolve()), stat.st_size, stat.st_mtime_ns])
+    return {"name": estimator.name, "settings": estimator.settings(), "files": files}
 
 
 def frame_identity(frame: Frame) -> dict[str, Any]:
@@ -283,7 +236,7 @@ def _result_from_record(record: dict[str, Any], request: PairRequest, frames: Se
     """
     if not isinstance(record.get("estimates"), list) or not record["estimates"]:
         raise ValueError("no estimates")
-    image_a, _, undo = _work_inputs(request, frames)  # what the estimator saw (cropped when pre-warped)
+    image_a, _, undo = work_inputs(request, frames)  # what the estimator saw (cropped when pre-warped)
     size_a = (image_a.shape[1], image_a.shape[0])
     estimates = []
     for e in record["estimates"]:
@@ -304,7 +257,7 @@ def _result_from_record(record: dict[str, Any], request: PairRequest, frames: Se
         accepted = estimates[-1]  # attempts stop at the accepted one
         if not accepted.ok or accepted.method != method:
             raise ValueError(f"its last estimate is not an answer of its method {method!r}")
-        expected = _full_resolution(accepted, request, frames, undo)
+        expected = full_resolution(accepted, request, frames, undo)
         if not (np.all(np.isfinite(b_from_a)) and np.allclose(b_from_a, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())):
             raise ValueError("its homography is not the one its estimate gives (NaN or altered)")
     verified = record.get("verified")

@@ -35,7 +35,8 @@ from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps
                                       placement_error_m)
 from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
-from udh_cli.mosaic.pairwise import Acceptance, PairRequest, PairResult, corner_disagreement_px, estimate_pairs
+from udh_cli.mosaic.pairs import Acceptance, PairRequest, PairResult
+from udh_cli.mosaic.pairwise import corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_with_rejection, summarise
 from udh_cli.mosaic.truth import corner_errors_vs_truth, summarise_truth
@@ -58,7 +59,7 @@ class MosaicConfig:
         every: for a video, keep every N-th frame.
         min_confidence: estimates below this confidence count as failures (then fallback, then split).
         min_verified: estimates whose photometric alignment check (see
-            :class:`~udh_cli.mosaic.pairwise.Acceptance`) is below this count as failures too; 0: no check.
+            :class:`~udh_cli.mosaic.pairs.Acceptance`) is below this count as failures too; 0: no check.
         overlap_min: non-consecutive frames whose chained footprints overlap by this share of the smaller
             frame are estimated too (loop closure).
         overlap_per_frame: at most this many loop-closure partners per frame (bounds the work).

@@ -22,7 +22,7 @@ from scipy import sparse
 from scipy.sparse import linalg as sparse_linalg
 
 from udh_cli import geometry
-from udh_cli.mosaic.pairwise import PairResult
+from udh_cli.mosaic.pairs import PairResult
 
 GRID_POINTS = 3  # per side: 9 correspondences per pair
 

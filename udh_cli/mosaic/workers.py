@@ -37,7 +37,7 @@ Attempts = list[Judged]
 class EstimatorSpec:
     """How a worker builds the mosaic's estimators: registry names and options, and the acceptance test.
 
-    ``acceptance`` is a :class:`~udh_cli.mosaic.pairwise.Acceptance`."""
+    ``acceptance`` is a :class:`~udh_cli.mosaic.pairs.Acceptance`."""
 
     method: str
     options: dict[str, Any] = field(default_factory=dict)

@@ -12,9 +12,12 @@ import pytest
 from conftest import warped_pair
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed
+from udh_cli.estimators import create_estimator
 from udh_cli.estimators.base import Estimator
 from udh_cli.estimators.pair import PreparedImage
-from udh_cli.estimators.refined import NEAR_PX, AutoEstimator, RefinedEstimator
+from udh_cli.estimators.refined import (FALLBACK_OPTIONS, NEAR_PX, AutoOptions, Cascade, Opinion, Policy,
+                                       UnsupervisedEccOptions)
+from udh_cli.estimators.views import VIEWS, ViewEstimator
 from udh_cli.estimators.verify import verification_score
 from udh_cli.models_catalog import models_dir
 from udh_cli.estimators.refine import PyramidEcc
@@ -128,8 +131,6 @@ def test_pyramid_settings_are_checked():
 
 
 def test_verification_score_separates_right_from_wrong():
-    from udh_cli.estimators.refined import RefinedEstimator
-
     right, wrong, right_structure, wrong_structure = [], [], [], []
     for seed in range(8):
         a, b, truth = known_pair(seed)
@@ -140,7 +141,7 @@ def test_verification_score_separates_right_from_wrong():
         wrong_structure.append(verification_score(a, b, off, structure=True))
     assert min(right) > 0.9 and max(wrong) < 0.7
     # auto doubts answers by the structure score: the right ones stay clear above its threshold.
-    min_score = RefinedEstimator.min_score
+    min_score = Policy.min_score
     assert min(right_structure) > min_score + 0.1 and max(wrong_structure) < min_score - 0.2
     assert verification_score(a, b, None) == 0.0
 
@@ -153,10 +154,23 @@ class AlwaysFails(Estimator):
         raise EstimationFailed("made to fail")
 
 
+def cascade(start, fallback="sift", escalated=None, views=None, refiner=None, name="auto") -> Cascade:
+    """auto's composition around a given start: the fallback (SIFT with its role options by default), an
+    escalated opinion, and views (of the identity by default, which cannot help)."""
+    if fallback == "sift":
+        fallback = create_estimator("sift", **FALLBACK_OPTIONS["sift"])
+    opinions = [Opinion("fallback", fallback, fallback.name)] if fallback is not None else []
+    if escalated is not None:
+        opinions.append(Opinion("escalated", escalated, "escalated"))
+    if views is None:
+        views = [ViewEstimator(create_estimator("identity"), view) for view in VIEWS]
+    opinions += [Opinion(view.view, view, view.view) for view in views]
+    return Cascade(name, start, refiner or PyramidEcc(), tuple(opinions), Policy())
+
+
 def test_auto_falls_back_when_the_first_estimate_fails():
     a, b, truth = known_pair(3)
-    auto = AutoEstimator(initial="identity")
-    auto._first = AlwaysFails()
+    auto = cascade(AlwaysFails())
     estimate = auto.estimate(a, b)
     assert estimate.ok and estimate.stage == "sift"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
@@ -164,19 +178,18 @@ def test_auto_falls_back_when_the_first_estimate_fails():
 
 def test_auto_keeps_a_verified_answer_and_refined_alone_does_not_fall_back():
     a, b, truth = known_pair(5, spread=3.0)
-    auto = AutoEstimator(initial="identity")  # identity + ECC converges for a 3 px motion
+    auto = cascade(create_estimator("identity"))  # identity + ECC converges for a 3 px motion
     estimate = auto.estimate(a, b)
     assert "fallback" not in estimate.details
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
-    plain = RefinedEstimator(initial="identity")
-    plain._first = AlwaysFails()
+    plain = cascade(AlwaysFails(), fallback=None, views=(), name="unsupervised+ecc")
     failed = plain.estimate(a, b)
     assert not failed.ok and failed.confidence == 0.0
 
 
 def test_textureless_images_give_a_clear_failure_not_an_answer():
     flat = np.full((240, 320), 128, np.uint8)
-    estimate = AutoEstimator(initial="identity").estimate(flat, flat)
+    estimate = cascade(create_estimator("identity")).estimate(flat, flat)
     assert not estimate.ok and estimate.confidence == 0.0
     assert "no answer aligns the images" in estimate.failure
 
@@ -213,25 +226,25 @@ def test_a_doubtful_answer_asks_the_fallback_first_and_escalates_only_if_that_is
     a, b, truth = known_pair(4)
     wrong = Answers(geometry.translation(60.0, -40.0) @ truth)  # far off: ECC cannot save it
     # SIFT settles the pair: the longer cascade is not run.
-    auto = AutoEstimator(initial="identity")
-    auto._first, auto._second = wrong, Answers(truth)
+    auto = cascade(wrong, escalated=Answers(truth))
     estimate = auto.estimate(a, b)
     assert estimate.stage == "sift" and "escalated" not in estimate.details
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
     # SIFT fails as well: the longer cascade gets its turn and wins.
-    auto._fallback = AlwaysFails()
-    estimate = auto.estimate(a, b)
+    estimate = cascade(wrong, fallback=AlwaysFails(), escalated=Answers(truth)).estimate(a, b)
     assert estimate.details["fallback"]["score"] == 0.0 and estimate.stage == "escalated"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
-    # Learned initials get the second run with the networks' default rounds; others have none.
-    assert AutoEstimator(initial="identity", escalate=True)._second is None
-    assert AutoEstimator.escalate and not RefinedEstimator.escalate  # on for auto only
+    # auto's network gets the second run with its default rounds, sharing the loaded networks.
+    assert AutoOptions.escalate and not UnsupervisedEccOptions.escalate  # on for auto only
     if (models_dir() / "udh-unsupervised-refine.onnx").is_file():
-        learned = AutoEstimator(escalate=True)
-        assert [rounds for _, rounds in learned._first.stages] == [1, 1]
-        assert [rounds for _, rounds in learned._second.stages] == [2, 2]
-        assert AutoEstimator(threads=1)._first.threads == 1  # passed on to the network
-        assert AutoEstimator(iterations=2, refine_rounds=2)._second is None  # already the full cascade
+        learned = AutoOptions().build()
+        escalated = {o.key: o.estimator for o in learned.opinions}["escalated"]
+        assert [rounds for _, rounds in learned.start.stages] == [1, 1]
+        assert [rounds for _, rounds in escalated.stages] == [2, 2] and escalated.network is learned.start.network
+        assert [o.key for o in learned.opinions] == ["fallback", "escalated", *VIEWS]
+        assert AutoOptions(threads=1).build().start.threads == 1  # passed on to the network
+        already_full = AutoOptions(iterations=2, refine_rounds=2).build()
+        assert "escalated" not in [o.key for o in already_full.opinions]  # rerunning it would repeat its answer
 
 
 @dataclass
@@ -247,14 +260,12 @@ def test_an_answer_ecc_diverges_from_gets_a_second_opinion_even_when_it_scores_w
     better warning. The fallback then runs, and its answer is kept only if it verifies better."""
     a, b, truth = known_pair(6)
     nearly = geometry.translation(0.6, -0.4) @ truth  # scores above min_score, yet 0.7 px off
-    auto = AutoEstimator(initial="identity", refiner=DivergingRefiner())
-    auto._first = Answers(nearly)
+    auto = cascade(Answers(nearly), refiner=DivergingRefiner())
     estimate = auto.estimate(a, b)
-    assert estimate.details["score"] >= auto.min_score and "refine_failure" in estimate.details
+    assert estimate.details["score"] >= auto.policy.min_score and "refine_failure" in estimate.details
     assert estimate.details["fallback"]["method"] == "sift" and estimate.stage == "sift"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.5
-    converging = AutoEstimator(initial="identity")  # the same answer, refined normally: no second opinion
-    converging._first = Answers(nearly)
+    converging = cascade(Answers(nearly))  # the same answer, refined normally: no second opinion
     assert "fallback" not in converging.estimate(a, b).details
 
 
@@ -326,8 +337,8 @@ def test_a_network_without_refinement_stage_can_start_the_refinement():
     """supervised has no refinement network: unsupervised+ecc must not hand it the default refine_rounds."""
     if not (models_dir() / "udh-supervised.onnx").is_file():
         pytest.skip("shipped supervised model not built yet")
-    refined = RefinedEstimator(initial="supervised", device="cpu")
-    assert refined._first.refine_rounds == 0 and len(refined._first.rounds()) == 1
+    refined = create_estimator("unsupervised+ecc", initial="supervised", device="cpu")
+    assert refined.start.refine_rounds == 0 and len(refined.start.rounds()) == 1
     truth = geometry.translation(2.0, -1.5)
     a, b = warped_pair(truth, 320, 240, seed=4)
     assert geometry.mace(refined.estimate(a, b).homography, truth, 320, 240) < 0.3
@@ -359,9 +370,8 @@ def test_an_answer_many_matches_agree_on_outvotes_the_photometric_score():
     a, b, truth = known_pair(2)
     b = occluded(b)
     wrong = Answers(geometry.translation(30.0, 20.0) @ truth)
-    assert verification_score(a, b, truth, structure=True) < AutoEstimator.min_score  # doubted on its score
-    auto = AutoEstimator(initial="identity")
-    auto._first, auto._second, auto._fallback = wrong, wrong, Matches(truth, inliers=40)
+    assert verification_score(a, b, truth, structure=True) < Policy.min_score  # doubted on its score
+    auto = cascade(wrong, fallback=Matches(truth, inliers=40), escalated=wrong)
     estimate = auto.estimate(a, b)
     assert estimate.stage == "matches" and estimate.verified_by == "matches"
     assert "escalated" not in estimate.details and estimate.confidence >= 0.9 and estimate.verified
@@ -373,24 +383,21 @@ def test_fewer_matches_ask_for_more_opinions_and_win_only_when_nothing_verifies(
     a, b, truth = known_pair(2)
     wrong = Answers(geometry.translation(30.0, 20.0) @ truth)
     # Occluded: nothing verifies photometrically, so the 8 matches' answer is kept after the other opinions.
-    auto = AutoEstimator(initial="identity")
-    auto._first, auto._second, auto._fallback = wrong, wrong, Matches(truth, inliers=8)
+    auto = cascade(wrong, fallback=Matches(truth, inliers=8), escalated=wrong)
     estimate = auto.estimate(a, occluded(b))
     assert "escalated" in estimate.details and "mirrored" in estimate.details
     assert estimate.stage == "matches" and estimate.verified_by == "matches"
     assert geometry.corner_errors(estimate.homography, truth, 320, 240).max() <= NEAR_PX
     # Clear images: the longer cascade's answer verifies and beats 8 matches agreeing on a wrong one.
-    auto._second, auto._fallback = Answers(truth), Matches(wrong.homography, inliers=8)
+    auto = cascade(wrong, fallback=Matches(wrong.homography, inliers=8), escalated=Answers(truth))
     estimate = auto.estimate(a, b)
     assert estimate.stage == "escalated" and estimate.verified_by != "matches"
-    assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3 and estimate.confidence >= auto.min_score
+    assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3 and estimate.confidence >= auto.policy.min_score
 
 
 def test_views_are_the_last_opinions_and_the_best_verified_one_is_kept():
     """When the network, SIFT and the longer cascade all stay doubted, the cascade looks at mirrored,
     flipped and swapped copies; the answer that verifies best is kept."""
-    from udh_cli.estimators.views import ViewEstimator
-
     a, b, truth = known_pair(8)
     wrong = Answers(geometry.translation(60.0, -40.0) @ truth)
     mirror = geometry.mirror_matrix(320, 240, horizontal=True)
@@ -405,27 +412,29 @@ def test_views_are_the_last_opinions_and_the_best_verified_one_is_kept():
             return wrong.homography, 1.0, {}
 
     right_when_mirrored = RightWhenMirrored()
-    auto = AutoEstimator(initial="identity")
-    auto._first, auto._second, auto._fallback = wrong, wrong, AlwaysFails()
-    auto._views = [ViewEstimator(right_when_mirrored, view) for view in ("flipped", "mirrored", "swapped")]
+    views = [ViewEstimator(right_when_mirrored, view) for view in ("flipped", "mirrored", "swapped")]
+    auto = cascade(wrong, fallback=AlwaysFails(), escalated=wrong, views=views)
     estimate = auto.estimate(a, b)
     assert estimate.stage == "mirrored" and "swapped" not in estimate.details  # settled: no more looks
     assert estimate.details["flipped"]["score"] < 0.3 and estimate.verified
     assert geometry.mace(estimate.homography, truth, 320, 240) < 0.3
-    assert AutoEstimator.views == ("mirrored", "flipped", "swapped") and RefinedEstimator.views == ()
+    assert AutoOptions.views == ("mirrored", "flipped", "swapped") and UnsupervisedEccOptions.views == ()
 
 
 def test_the_fallback_takes_its_role_options_unless_given_its_own():
     """As auto's fallback SIFT keeps low-contrast keypoints and matches with FLANN; explicit options replace those."""
-    from udh_cli.estimators.refined import FALLBACK_OPTIONS
+    def fallback(**options):
+        return create_estimator("auto", device="cpu", **options).opinions[0]
 
-    auto = AutoEstimator(initial="identity")
-    assert auto._fallback.contrast_threshold == FALLBACK_OPTIONS["sift"]["contrast_threshold"] == 0.002
-    assert auto._fallback.matcher == "flann" and auto._fallback.best_features == 10000
-    assert auto.fallback_options == FALLBACK_OPTIONS["sift"]  # recorded, so mosaic settings and caches say what ran
-    plain = AutoEstimator(initial="identity", fallback_options={})
-    assert plain._fallback.contrast_threshold == 0.02 and plain._fallback.matcher == "auto"  # SIFT's own defaults
-    assert AutoEstimator(initial="identity", fallback="orb")._fallback.name == "orb"  # no role options for orb
+    role = fallback()
+    assert role.key == "fallback" and role.stage == "sift"
+    assert role.estimator.contrast_threshold == FALLBACK_OPTIONS["sift"]["contrast_threshold"] == 0.002
+    assert role.estimator.matcher == "flann" and role.estimator.best_features == 10000
+    recorded = create_estimator("auto", device="cpu").settings()["opinions"][0]  # mosaic settings and caches say what ran
+    assert recorded["method"] == "sift" and recorded["contrast_threshold"] == 0.002 and recorded["matcher"] == "flann"
+    plain = fallback(fallback_options={}).estimator
+    assert plain.contrast_threshold == 0.02 and plain.matcher == "auto"  # SIFT's own defaults
+    assert fallback(fallback="orb").estimator.name == "orb"  # no role options for orb
 
 
 @pytest.mark.parametrize(("options", "message"), [
@@ -434,21 +443,21 @@ def test_the_fallback_takes_its_role_options_unless_given_its_own():
     ({"trusted_inliers": 3}, "must be at least 4"),
     ({"fallback_options": {"colour": True}}, "does not take colour"),
     ({"min_score": 0.0}, r"must be in \(0, 1\]"),
+    ({"initial": "identity"}, "must be a network: unsupervised, supervised"),
 ])
 def test_bad_auto_options_fail_when_it_is_made(options, message):
     from udh_cli.errors import UdhError
 
     with pytest.raises(UdhError, match=message):
-        AutoEstimator(initial="identity", **options)
+        create_estimator("auto", device="cpu", **options)
 
 
 def test_a_polish_that_leaves_the_matches_is_dropped_and_the_details_say_so():
     """ECC moving a matched answer by more than NEAR_PX is not kept, and what is returned is the matched answer."""
     a, b, truth = known_pair(2)
     off = geometry.translation(5.0, 0.0) @ truth  # ECC pulls this 5 px back towards the truth
-    auto = AutoEstimator(initial="identity")
     wrong = Answers(geometry.translation(30.0, 20.0) @ truth)
-    auto._first, auto._second, auto._fallback, auto._views = wrong, wrong, Matches(off, inliers=8), []
+    auto = cascade(wrong, fallback=Matches(off, inliers=8), escalated=wrong, views=())
     estimate = auto.estimate(a, b)
     assert estimate.details["fallback"]["refinement_kept"] is False
     np.testing.assert_allclose(estimate.homography, off / off[2, 2], atol=1e-9)

@@ -1,4 +1,8 @@
-"""Beyond the paper: a network's estimate, refined photometrically and verified, with a fallback.
+"""Beyond the paper: a network's estimate, refined photometrically and verified, with second opinions.
+
+Both methods here are a :class:`Cascade` of estimator instances (a start, an ECC refiner, second opinions and
+a :class:`Policy` that chooses between them), composed by the ``build()`` of their registered option records,
+:class:`UnsupervisedEccOptions` and :class:`AutoOptions`:
 
 * ``unsupervised+ecc``: the unsupervised network (several rounds), then coarse-to-fine ECC
   (:class:`udh_cli.estimators.refine.PyramidEcc`), scored by how well the aligned images agree: the lower of their
@@ -21,10 +25,10 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
-from udh_cli.estimators.base import Estimate, Estimator
-from udh_cli.estimators.deep import DeepEstimator, has_refinement_stage
+from udh_cli.estimators.base import Estimate, Estimator, json_ready
+from udh_cli.estimators.deep import has_refinement_stage
 from udh_cli.estimators.pair import PreparedPair
-from udh_cli.estimators.registry import create_estimator, estimator_options
+from udh_cli.estimators.registry import create_estimator
 from udh_cli.estimators.views import VIEWS, ViewEstimator
 from udh_cli.estimators.refine import PyramidEcc
 from udh_cli.estimators.verify import verification_score
@@ -39,99 +43,99 @@ FALLBACK_OPTIONS: dict[str, dict[str, Any]] = {"sift": {"contrast_threshold": 0.
 NEAR_PX = 2.0
 
 
-@dataclass
-class RefinedEstimator(Estimator):
-    """Network + photometric refinement + verification.
+LEARNED_STARTS = ("unsupervised", "supervised")  # the networks a cascade can start from
+
+
+@dataclass(frozen=True)
+class Policy:
+    """How a :class:`Cascade` judges answers and chooses between them.
 
     Attributes:
-        initial: the registry name of the first estimator (the unsupervised network by default).
-        model: ONNX path for a learned ``initial``; None takes the shipped model.
-        device: onnxruntime device for a learned ``initial``.
-        threads: onnxruntime intra-op threads for a learned ``initial`` (None: onnxruntime's default, one per
-            physical core).
-        iterations: rounds of the coarse network (each predicts the residual of the last).
-        refine_model, refine_rounds, search, precision: the network's refinement stage, large-motion search
-            and shipped-model precision (see :class:`~udh_cli.estimators.deep.DeepEstimator`).
-        refiner: the ECC pyramid and its iteration budget.
-        escalate: when the answer is still doubted after the fallback (see :meth:`_doubted`), rerun a learned
-            ``initial`` with its own default (longer) cascade and keep the better-verified answer: it rescues
-            large-motion pairs at the cost of the few doubted ones.
-        fallback: registry name tried first when the answer is doubted (None: never).
-        fallback_options: the fallback's options; None: :data:`FALLBACK_OPTIONS` for its name (then recorded
-            here). As the fallback, SIFT keeps keypoints of a tenth of its own default contrast, so that the
-            faint texture of dark or smooth patches survives next to bright occluders.
-        views: the last opinions, while still doubted: the network (its longer cascade when it escalates) on
-            these copies of the pair (:data:`~udh_cli.estimators.views.VIEWS`).
+        min_score: an answer scoring below this is doubted: the lower of the intensity and gradient NCC at
+            256 px (:func:`~udh_cli.estimators.verify.verification_score`), where wrong answers' gradients stayed
+            below 0.7 and right ones above it.
         trusted_inliers: an opinion with at least this many RANSAC inliers (SIFT's, ORB's) is verified by its
-            matches: it is kept whatever its photometric score, with its matcher's confidence if that is
-            higher, and no further opinion is asked; ECC may polish it by up to :data:`NEAR_PX` at each
-            corner. With fewer inliers the opinions go on, and the matched answer is kept only if none
-            verifies photometrically. Why: occluders, surf and moving water lower the photometric score of
-            right answers, never the agreement of 20 matches.
-        min_score: the score below which an answer is doubted: the lower of the intensity and gradient NCC at
-            256 px, where wrong answers' gradients stayed below 0.7 and right ones above it.
-
-    The measurements behind these settings are in ``docs/estimators.md`` ("Why the settings").
+            matches: kept whatever its photometric score, with its matcher's confidence if that is higher, and
+            no further opinion is asked; ECC may polish it by up to :data:`NEAR_PX` at each corner. With fewer
+            inliers the opinions go on, and the matched answer is kept only if none verifies photometrically.
+            Why: occluders, surf and moving water lower the photometric score of right answers, never the
+            agreement of 20 matches.
     """
 
-    name: ClassVar[str] = "unsupervised+ecc"
-    # Its confidence is the NCC score of the aligned images (or, for an answer matches verify, the higher of
-    # that and the matcher's confidence).
-    verifies_itself: ClassVar[bool] = True
-    initial: str = "unsupervised"
-    model: str | None = None
-    device: str = "auto"
-    threads: int | None = None
-    # One round of each network is enough ahead of ECC; always running the full cascade cost about 25 % more
-    # time (held-out rho 32, 300 pairs).
-    iterations: int = 1
-    refine_model: str | None = None
-    refine_rounds: int | None = None  # None: one round when the network has a refinement stage
-    search: int = 0
-    precision: str | None = None
-    refiner: PyramidEcc = field(default_factory=PyramidEcc)
-    escalate: bool = False
-    fallback: str | None = None
-    fallback_options: dict[str, Any] | None = None
-    views: tuple[str, ...] = ()
     min_score: float = 0.7
     trusted_inliers: int = 20
-    _first: Estimator = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        # The network's options go to the first estimator when it takes them (the learned ones do).
-        # A model given alone runs alone, as with the network's own method, and so does a network with no
-        # shipped refinement stage (supervised): their refine_rounds default to 0 there. An explicit value goes as is.
-        has_stage = has_refinement_stage(self.initial, self.model, self.refine_model)
-        refine_rounds = self.refine_rounds if self.refine_rounds is not None else (1 if has_stage else None)
-        wanted = {"model": self.model, "device": self.device, "threads": self.threads, "iterations": self.iterations, "search": self.search,
-                  "refine_model": self.refine_model, "refine_rounds": refine_rounds, "precision": self.precision}
-        takes = estimator_options(self.initial)
-        self._first = create_estimator(self.initial, **{k: v for k, v in wanted.items() if k in takes})
-        if self.precision is None:
-            self.precision = getattr(self._first, "precision", None)  # what the network chose (see DeepEstimator)
-        # Escalation: a learned initial again, with its default (longer) rounds, sharing the loaded networks.
-        self._second = self._first.with_default_rounds() if self.escalate and isinstance(self._first, DeepEstimator) else None
-        if self._second is not None and len(self._second.rounds()) <= len(self._first.rounds()):
-            self._second = None  # the first run is already as long: rerunning it would only repeat its answer
-        if self.fallback:
-            if self.fallback_options is None:  # record what runs, so settings (mosaic sidecars, the pair cache) say it
-                self.fallback_options = dict(FALLBACK_OPTIONS.get(self.fallback, {}))
-            self._fallback = create_estimator(self.fallback, **self.fallback_options)
-        else:
-            self._fallback = None
         if not 0.0 < self.min_score <= 1.0:
-            raise UdhError(f"method '{self.name}': min_score ({self.min_score}) must be in (0, 1]")
-        if isinstance(self.views, str) or not all(isinstance(view, str) for view in self.views):
-            raise UdhError(f"method '{self.name}': views takes a list of names ({', '.join(VIEWS)}), not {self.views!r}")
-        network = self._second or self._first
-        self._views = [ViewEstimator(network, view) for view in self.views]
+            raise UdhError(f"min_score ({self.min_score}) must be in (0, 1]")
         if self.trusted_inliers < 4:
-            raise UdhError(f"method '{self.name}': trusted_inliers ({self.trusted_inliers}) must be at least 4, the matches a homography needs")
+            raise UdhError(f"trusted_inliers ({self.trusted_inliers}) must be at least 4, the matches a homography needs")
+
+    def doubted(self, score: float, details: dict) -> bool:
+        """An answer needs a second opinion when it scores low, or when its refinement failed (ECC diverged,
+        did not converge, or left a degenerate homography): a start outside ECC's basin is rarely right, yet a
+        wrong network answer on a smooth pair can still score above ``min_score`` (held-out rho 32: one such
+        pair at 11.5 px scored 0.73; SIFT's answer scored 0.94). ``details`` at the top level describe the
+        first answer; the second opinions are under their own keys."""
+        return score < self.min_score or "refine_failure" in details
+
+
+@dataclass(frozen=True)
+class Opinion:
+    """A second opinion of a :class:`Cascade`, asked while the answer held is doubted.
+
+    Attributes:
+        key: where its findings go in the estimate's details ("fallback", "escalated", "mirrored"...).
+        estimator: who gives it.
+        stage: what the estimate's ``stage`` says when it wins (the fallback's method name, "escalated"...).
+    """
+
+    key: str
+    estimator: Estimator
+    stage: str
+
+
+@dataclass
+class Cascade(Estimator):
+    """A start, refined photometrically and verified; while the answer is doubted, second opinions in order,
+    each refined and verified the same way, and the answer the :class:`Policy` prefers is kept.
+
+    Attributes:
+        name: the registry name it is built for ("auto", "unsupervised+ecc").
+        start: the first estimator (a network).
+        refiner: the ECC pyramid and its iteration budget.
+        opinions: the second opinions, cheapest first.
+        policy: how answers are judged and chosen.
+
+    Its confidence is the NCC score of the aligned images (or, for an answer matches verify, the higher of that
+    and the matcher's confidence).
+    """
+
+    verifies_itself: ClassVar[bool] = True
+    name: str = "cascade"
+    start: Estimator = field(default=None)  # type: ignore[assignment]
+    refiner: PyramidEcc = field(default_factory=PyramidEcc)
+    opinions: tuple[Opinion, ...] = ()
+    policy: Policy = field(default_factory=Policy)
+
+    def settings(self) -> dict[str, Any]:
+        def described(estimator: Estimator) -> dict[str, Any]:
+            return {"method": estimator.name, **estimator.settings()}
+
+        return {"start": described(self.start), "refiner": json_ready(self.refiner), "policy": json_ready(self.policy),
+                "opinions": [{"key": o.key, **described(o.estimator)} for o in self.opinions]}
 
     def model_files(self) -> list[str]:
-        inner = [self._first, *([self._fallback] if self._fallback is not None else [])]
+        inner = [self.start, *(opinion.estimator for opinion in self.opinions)]
         return sorted({path for estimator in inner for path in estimator.model_files()})
+
+    def estimate_pairs(self, pairs: Sequence[PreparedPair]) -> list[Estimate]:
+        if not pairs:
+            return []
+        started = time.perf_counter()
+        first = self.start.estimate_pairs(pairs)
+        first_ms = (time.perf_counter() - started) * 1e3 / len(pairs)
+        return [self._finish(pair, start, first_ms) for pair, start in zip(pairs, first)]
 
     def _refine_and_score(self, pair: PreparedPair, start: Estimate) -> tuple[np.ndarray | None, float, dict]:
         """Refine ``start`` photometrically and keep whichever of the two verifies better."""
@@ -156,22 +160,6 @@ class RefinedEstimator(Estimator):
             return start.homography, start_score, details
         return refined, refined_score, details
 
-    def estimate_pairs(self, pairs: Sequence[PreparedPair]) -> list[Estimate]:
-        if not pairs:
-            return []
-        started = time.perf_counter()
-        first = self._first.estimate_pairs(pairs)
-        first_ms = (time.perf_counter() - started) * 1e3 / len(pairs)
-        return [self._finish(pair, start, first_ms) for pair, start in zip(pairs, first)]
-
-    def _doubted(self, score: float, details: dict) -> bool:
-        """An answer needs a second opinion when it scores low, or when its refinement failed (ECC diverged,
-        did not converge, or left a degenerate homography): a start outside ECC's basin is rarely right, yet a
-        wrong network answer on a smooth pair can still score above ``min_score`` (held-out rho 32: one such
-        pair at 11.5 px scored 0.73; SIFT's answer scored 0.94). ``details`` at the top level describe the
-        first answer; the second opinions are under their own keys."""
-        return score < self.min_score or "refine_failure" in details
-
     @staticmethod
     def _near(refined: np.ndarray | None, start: np.ndarray, shape_a: tuple[int, ...]) -> bool:
         """Whether ``refined`` moved no corner of A by more than :data:`NEAR_PX` from ``start``."""
@@ -182,21 +170,18 @@ class RefinedEstimator(Estimator):
 
     def _finish(self, pair: PreparedPair, start: Estimate, first_ms: float) -> Estimate:
         started = time.perf_counter()
+        policy = self.policy
         homography, score, details = self._refine_and_score(pair, start)
         details["score"] = score
-        doubted = self._doubted(score, details)
+        doubted = policy.doubted(score, details)
         # Second opinions, cheapest first, each only while the answer held is still doubted: SIFT settles most
         # doubtful clean pairs, so the longer cascade runs where it fails too (and on occluded pairs, whose
         # right answers also score low). Cascade first was as accurate at rho 45 but worse at rho 32.
-        opinions = [("fallback", self._fallback.name, self._fallback)] if self._fallback is not None else []
-        if self._second is not None:
-            opinions.append(("escalated", "escalated", self._second))
-        opinions += [(view.view, view.view, view) for view in self._views]
         supported = None  # a feature method's answer, with its matches' support but not trusted outright
-        for key, used, estimator in opinions:
+        for opinion in self.opinions:
             if not doubted:
                 break
-            found = estimator.estimate_pairs([pair])[0]
+            found = opinion.estimator.estimate_pairs([pair])[0]
             other, other_score, other_details = self._refine_and_score(pair, found)
             matched = found.ok and found.inliers is not None
             if matched and not self._near(other, found.homography, pair.a.shape):
@@ -204,17 +189,17 @@ class RefinedEstimator(Estimator):
                 # wrong shift of a smooth scene can fool: ECC's polish stands only if it stays by them.
                 other, other_score = found.homography, other_details.get("start_score", 0.0)
                 other_details["refinement_kept"] = False
-            details[key] = {"method": estimator.name, "score": other_score, **other_details}
+            details[opinion.key] = {"method": opinion.estimator.name, "score": other_score, **other_details}
             if matched:
-                supported = (other, max(other_score, found.confidence), used)
-                if found.inliers >= self.trusted_inliers:
+                supported = (other, max(other_score, found.confidence), opinion.stage)
+                if found.inliers >= policy.trusted_inliers:
                     homography, score, doubted = supported[0], supported[1], False
-                    details["used"], details["verified_by"] = used, "matches"
+                    details["used"], details["verified_by"] = opinion.stage, "matches"
                     break
             if other_score > score:
                 homography, score = other, other_score
-                details["used"] = used
-                doubted = self._doubted(other_score, other_details)
+                details["used"] = opinion.stage
+                doubted = policy.doubted(other_score, other_details)
         if doubted and supported is not None:
             # Nothing verified photometrically: a low score does not tell right from wrong (held-out occluded
             # pairs: right SIFT answers with 9-19 inliers scored 0.00-0.25, wrong mirrored views up to 0.36),
@@ -235,9 +220,85 @@ class RefinedEstimator(Estimator):
 
 
 @dataclass
-class AutoEstimator(RefinedEstimator):
-    """The verified combination: network + ECC; while the answer is doubted, SIFT (+ ECC), the full cascade, then
-    the cascade on mirrored, flipped and swapped views; SIFT's RANSAC matches verify its answers (module docstring)."""
+class UnsupervisedEccOptions:
+    """The options of ``unsupervised+ecc``; :meth:`build` composes its :class:`Cascade`.
+
+    Attributes:
+        initial: the network that starts it: "unsupervised" or "supervised" (:data:`LEARNED_STARTS`).
+        model, device, threads, iterations, refine_model, refine_rounds, search, precision: that network's
+            (see :class:`~udh_cli.estimators.deep.DeepEstimator`). ``iterations`` 1: one round of each network is
+            enough ahead of ECC; always running the full cascade cost about 25 % more time (held-out rho 32,
+            300 pairs). ``refine_rounds`` None: one round when the network has a refinement stage.
+        refiner: the ECC pyramid and its iteration budget.
+        escalate: when the answer is still doubted after the fallback, rerun the network with its own default
+            (longer) cascade, sharing its loaded networks: it rescues large-motion pairs at the cost of the few
+            doubted ones.
+        fallback: registry name of the first second opinion (None: none).
+        fallback_options: the fallback's options; None: :data:`FALLBACK_OPTIONS` for its name. As the fallback,
+            SIFT keeps keypoints of a tenth of its own default contrast, so that the faint texture of dark or
+            smooth patches survives next to bright occluders.
+        views: the last opinions: the network (its longer cascade when it escalates) on these copies of the
+            pair (:data:`~udh_cli.estimators.views.VIEWS`).
+        min_score, trusted_inliers: the :class:`Policy`.
+
+    The measurements behind these settings are in ``docs/estimators.md`` ("Why the settings").
+    """
+
+    name: ClassVar[str] = "unsupervised+ecc"
+    initial: str = "unsupervised"
+    model: str | None = None
+    device: str = "auto"
+    threads: int | None = None
+    iterations: int = 1
+    refine_model: str | None = None
+    refine_rounds: int | None = None
+    search: int = 0
+    precision: str | None = None
+    refiner: PyramidEcc = field(default_factory=PyramidEcc)
+    escalate: bool = False
+    fallback: str | None = None
+    fallback_options: dict[str, Any] | None = None
+    views: tuple[str, ...] = ()
+    min_score: float = 0.7
+    trusted_inliers: int = 20
+
+    def build(self) -> Cascade:
+        """The :class:`Cascade` these options describe (networks and fallback loaded once here)."""
+        if self.initial not in LEARNED_STARTS:
+            raise UdhError(f"method '{self.name}': initial '{self.initial}' must be a network: {', '.join(LEARNED_STARTS)}")
+        if isinstance(self.views, str) or not all(isinstance(view, str) for view in self.views):
+            raise UdhError(f"method '{self.name}': views takes a list of names ({', '.join(VIEWS)}), not {self.views!r}")
+        try:
+            policy = Policy(self.min_score, self.trusted_inliers)
+        except UdhError as exc:
+            raise UdhError(f"method '{self.name}': {exc}") from None
+        # A model given alone runs alone, as with the network's own method, and so does a network with no
+        # shipped refinement stage (supervised): refine_rounds then stays the network's own default (0).
+        refine_rounds = self.refine_rounds
+        if refine_rounds is None and has_refinement_stage(self.initial, self.model, self.refine_model):
+            refine_rounds = 1
+        network = create_estimator(self.initial, model=self.model, device=self.device, threads=self.threads,
+                                   iterations=self.iterations, refine_model=self.refine_model,
+                                   refine_rounds=refine_rounds, search=self.search, precision=self.precision)
+        opinions = []
+        if self.fallback:
+            options = FALLBACK_OPTIONS.get(self.fallback, {}) if self.fallback_options is None else self.fallback_options
+            fallback = create_estimator(self.fallback, **options)
+            opinions.append(Opinion("fallback", fallback, fallback.name))
+        longer = network.with_default_rounds() if self.escalate else None
+        if longer is not None and len(longer.rounds()) <= len(network.rounds()):
+            longer = None  # the first run is already as long: rerunning it would only repeat its answer
+        if longer is not None:
+            opinions.append(Opinion("escalated", longer, "escalated"))
+        opinions += [Opinion(view, ViewEstimator(longer or network, view), view) for view in self.views]
+        return Cascade(self.name, network, self.refiner, tuple(opinions), policy)
+
+
+@dataclass
+class AutoOptions(UnsupervisedEccOptions):
+    """The options of ``auto``, the verified combination: network + ECC; while the answer is doubted, SIFT
+    (+ ECC), the full cascade, then the cascade on mirrored, flipped and swapped views; SIFT's RANSAC matches
+    verify its answers (module docstring)."""
 
     name: ClassVar[str] = "auto"
     fallback: str | None = "sift"

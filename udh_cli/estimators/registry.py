@@ -15,7 +15,8 @@ from udh_cli.errors import UdhError
 from udh_cli.estimators.base import Estimator
 
 # name -> (module, class, one-line description). Modules are imported on demand, so that choosing
-# "sift" never loads onnxruntime.
+# "sift" never loads onnxruntime. The class is an Estimator, or an options record whose build() composes one
+# (the cascades of udh_cli.estimators.refined): either way its dataclass fields are the method's options.
 ESTIMATORS: dict[str, tuple[str, str, str]] = {
     "sift": ("udh_cli.estimators.features", "SiftRansac", "SIFT + ratio test + RANSAC (5 px)"),
     "orb": ("udh_cli.estimators.features", "OrbRansac", "ORB + ratio test + RANSAC (5 px)"),
@@ -23,8 +24,8 @@ ESTIMATORS: dict[str, tuple[str, str, str]] = {
     "identity": ("udh_cli.estimators.identity", "IdentityEstimator", "no motion; the baseline"),
     "unsupervised": ("udh_cli.estimators.deep", "UnsupervisedEstimator", "the unsupervised deep network (onnxruntime)"),
     "supervised": ("udh_cli.estimators.deep", "SupervisedEstimator", "supervised HomographyNet (onnxruntime)"),
-    "unsupervised+ecc": ("udh_cli.estimators.refined", "RefinedEstimator", "unsupervised network, then coarse-to-fine ECC"),
-    "auto": ("udh_cli.estimators.refined", "AutoEstimator", "unsupervised+ecc, verified; SIFT+ECC, the full cascade, then mirrored/flipped/swapped views while it does not verify"),
+    "unsupervised+ecc": ("udh_cli.estimators.refined", "UnsupervisedEccOptions", "unsupervised network, then coarse-to-fine ECC"),
+    "auto": ("udh_cli.estimators.refined", "AutoOptions", "unsupervised+ecc, verified; SIFT+ECC, the full cascade, then mirrored/flipped/swapped views while it does not verify"),
 }
 
 # The method of `udh estimate` and `udh mosaic` when none is given: the verified combination, which measured
@@ -108,7 +109,8 @@ def create_estimator(name: str, **options: Any) -> Estimator:
     if unknown:
         raise UdhError(f"method '{name}' does not take {', '.join(unknown)}; it takes: {', '.join(accepted) or 'no options'}")
     _check_option_types(name, cls, options)
-    return cls(**options)
+    made = cls(**options)
+    return made.build() if hasattr(made, "build") else made
 
 
 _SIMPLE_TYPES = (bool, int, float, str, type(None))

@@ -23,7 +23,7 @@ from udh_cli.train import losses  # noqa: E402
 from udh_cli.train.checkpoint import load_checkpoint  # noqa: E402
 from udh_cli.train.loop import TrainConfig, Trainer, train  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -134,10 +134,10 @@ def _interrupt_and_resume(pool: Path, tmp_path: Path, sig: int, slow_first_save:
             "def slow_save(self):\n    original(self); time.sleep(0.5 if self.step == 20 else 0)\n"
             "loop.Trainer.save = slow_save\n") if slow_first_save else ""
     script = (
-        "import sys; sys.path.insert(0, %r); from test_train import tiny_config; from pathlib import Path;"
+        "import sys; sys.path[:0] = [%r, %r]; from test_train import tiny_config; from pathlib import Path;"
         "from udh_cli.train.loop import train\n" + slow +
         "train(tiny_config(Path(%r), Path(%r), steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False)"
-    ) % (str(Path(__file__).parent), str(pool), str(interrupted))
+    ) % (str(Path(__file__).parent), str(Path(__file__).parents[1]), str(pool), str(interrupted))
     process = subprocess.Popen([sys.executable, "-c", script], cwd=REPO, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     while time.time() < deadline and not (interrupted / "checkpoint.pt").exists():

@@ -18,7 +18,7 @@ from udh_cli.estimators.pair import PreparedImage
 from udh_cli.estimators.refined import (FALLBACK_OPTIONS, NEAR_PX, AutoOptions, Cascade, Opinion, Policy,
                                        UnsupervisedEccOptions)
 from udh_cli.estimators.views import VIEWS, ViewEstimator
-from udh_cli.estimators.verify import verification_score
+from udh_cli.estimators.verify import VERIFIER
 from udh_cli.models_catalog import models_dir
 from udh_cli.estimators.refine import PyramidEcc
 
@@ -135,15 +135,15 @@ def test_verification_score_separates_right_from_wrong():
     for seed in range(8):
         a, b, truth = known_pair(seed)
         off = geometry.homography_from_offsets(np.random.default_rng(seed).uniform(-25, 25, (4, 2)), 320, 240) @ truth
-        right.append(verification_score(a, b, truth))
-        wrong.append(verification_score(a, b, off))
-        right_structure.append(verification_score(a, b, truth, structure=True))
-        wrong_structure.append(verification_score(a, b, off, structure=True))
+        right.append(VERIFIER.score(a, b, truth, structure=False))
+        wrong.append(VERIFIER.score(a, b, off, structure=False))
+        right_structure.append(VERIFIER.score(a, b, truth))
+        wrong_structure.append(VERIFIER.score(a, b, off))
     assert min(right) > 0.9 and max(wrong) < 0.7
     # auto doubts answers by the structure score: the right ones stay clear above its threshold.
     min_score = Policy.min_score
     assert min(right_structure) > min_score + 0.1 and max(wrong_structure) < min_score - 0.2
-    assert verification_score(a, b, None) == 0.0
+    assert VERIFIER.score(a, b, None) == 0.0
 
 
 @dataclass
@@ -277,9 +277,9 @@ def test_a_right_answer_with_little_overlap_still_verifies():
     ground = textured_image(700, 240, seed=5)
     a, b = ground[:, :320], ground[:, 260:580]  # B starts 260 px right of A: 60 of 320 columns shared (19 %)
     truth = geometry.translation(-260.0, 0.0)  # x_B = x_A - 260
-    assert verification_score(a, b, truth, structure=True) > 0.9
-    assert verification_score(a, b, geometry.translation(-245.0, 6.0), structure=True) < 0.5
-    assert verification_score(a, b, geometry.translation(-300.0, 0.0), structure=True) == 0.0  # 6 % overlap: no judgement
+    assert VERIFIER.score(a, b, truth) > 0.9
+    assert VERIFIER.score(a, b, geometry.translation(-245.0, 6.0)) < 0.5
+    assert VERIFIER.score(a, b, geometry.translation(-300.0, 0.0)) == 0.0  # 6 % overlap: no judgement
 
 
 def test_verification_is_not_fooled_by_an_occluder_but_still_rejects_a_wrong_answer():
@@ -294,9 +294,9 @@ def test_verification_is_not_fooled_by_an_occluder_but_still_rejects_a_wrong_ans
     gray_a, gray_b = (x.astype(np.float32) / 255 for x in (a, occluded))
     whole = alignment_ncc(gray_a, gray_b, truth, on="both")
     assert whole < 0.7  # the blob alone pulls the right answer under auto's threshold
-    assert verification_score(a, occluded, truth, structure=True) > 0.8
+    assert VERIFIER.score(a, occluded, truth) > 0.8
     wrong = geometry.translation(9.0, -7.0) @ truth
-    assert verification_score(a, occluded, wrong, structure=True) < 0.4
+    assert VERIFIER.score(a, occluded, wrong) < 0.4
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -370,7 +370,7 @@ def test_an_answer_many_matches_agree_on_outvotes_the_photometric_score():
     a, b, truth = known_pair(2)
     b = occluded(b)
     wrong = Answers(geometry.translation(30.0, 20.0) @ truth)
-    assert verification_score(a, b, truth, structure=True) < Policy.min_score  # doubted on its score
+    assert VERIFIER.score(a, b, truth) < Policy.min_score  # doubted on its score
     auto = cascade(wrong, fallback=Matches(truth, inliers=40), escalated=wrong)
     estimate = auto.estimate(a, b)
     assert estimate.stage == "matches" and estimate.verified_by == "matches"

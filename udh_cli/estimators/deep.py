@@ -16,12 +16,16 @@ from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.tiles import refine_with_tiles
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.onnx_model import OnnxHomographyModel
-from udh_cli.estimators.verify import alignment_ncc
+from udh_cli.estimators.verify import Verifier
 
 
 DEFAULT_ITERATIONS = 2  # coarse rounds
 DEFAULT_REFINE_ROUNDS = 2  # measured on the held-out rho-32 bench (models/README.md)
 SEARCH_FINALISTS = 3  # large-motion search: hypotheses of a pair that get the whole cascade after screening
+# How the networks judge their own answers, on their S x S input: the one Verifier, whole (a tile of a 4 x 4 grid
+# at 128 px holds too few pixels to correlate) and with at least 30 % overlap: the check that the heading
+# choice, the search and its search_below were tuned with.
+NETWORK_CHECK = Verifier(side=128, tiles=1, min_overlap=0.3)
 
 
 @dataclass
@@ -181,7 +185,7 @@ class DeepEstimator(Estimator):
         s = self.network.input_size
         if not geometry.is_valid_homography(b_from_a, s, s):
             return 0.0
-        return max(0.0, alignment_ncc(small_a, small_b, b_from_a, on="both"))
+        return NETWORK_CHECK.score_grey(small_a, small_b, b_from_a)
 
     def estimate_pairs(self, pairs: Sequence[PreparedPair]) -> list[Estimate]:
         if not pairs:

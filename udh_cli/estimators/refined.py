@@ -6,7 +6,7 @@ a :class:`Policy` that chooses between them), composed by the ``build()`` of the
 
 * ``unsupervised+ecc``: the unsupervised network (several rounds), then coarse-to-fine ECC
   (:class:`udh_cli.estimators.refine.PyramidEcc`), scored by how well the aligned images agree: the lower of their
-  intensity and gradient NCC (``verification_score(..., structure=True)``).
+  intensity and gradient NCC over tiles (:data:`~udh_cli.estimators.verify.VERIFIER`).
 * ``auto``: the same, and while the answer is doubted (a score below ``min_score``, or ECC diverged from it)
   it asks for second opinions, each refined the same way: ``fallback`` (SIFT), then the network's full
   cascade, then the cascade on mirrored, flipped and swapped copies of the pair (``views``). It keeps
@@ -31,7 +31,7 @@ from udh_cli.estimators.pair import PreparedPair
 from udh_cli.estimators.registry import create_estimator
 from udh_cli.estimators.views import VIEWS, ViewEstimator
 from udh_cli.estimators.refine import PyramidEcc
-from udh_cli.estimators.verify import verification_score
+from udh_cli.estimators.verify import VERIFIER
 
 CLEAR_DROP = 0.05  # a refinement that lowers the score by more than this is discarded
 # See fallback_options. At this contrast 800-px drone frames have 5,000-12,000 SIFT keypoints: flann matches them
@@ -52,7 +52,7 @@ class Policy:
 
     Attributes:
         min_score: an answer scoring below this is doubted: the lower of the intensity and gradient NCC at
-            256 px (:func:`~udh_cli.estimators.verify.verification_score`), where wrong answers' gradients stayed
+            256 px (:data:`~udh_cli.estimators.verify.VERIFIER`), where wrong answers' gradients stayed
             below 0.7 and right ones above it.
         trusted_inliers: an opinion with at least this many RANSAC inliers (SIFT's, ORB's) is verified by its
             matches: kept whatever its photometric score, with its matcher's confidence if that is higher, and
@@ -141,7 +141,7 @@ class Cascade(Estimator):
         """Refine ``start`` photometrically and keep whichever of the two verifies better."""
         if not start.ok:
             return None, 0.0, {"start_failure": start.failure}
-        start_score = verification_score(pair.a, pair.b, start.homography, structure=True)
+        start_score = VERIFIER.score(pair.a, pair.b, start.homography)
         details = {"start_method": start.method, "start_score": start_score}
         try:
             refined, correlation = self.refiner.refine(pair.a, pair.b, start.homography)
@@ -151,7 +151,7 @@ class Cascade(Estimator):
         except EstimationFailed as exc:
             details["refine_failure"] = str(exc)
             return start.homography, start_score, details
-        refined_score = verification_score(pair.a, pair.b, refined, structure=True)
+        refined_score = VERIFIER.score(pair.a, pair.b, refined)
         # The score (NCC at 256 px) cannot rank sub-pixel differences: preferring the start whenever it
         # scored higher undid good refinements (sim flight 0.24 -> 0.50 px). Only a clear drop means ECC
         # wandered off.

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -9,16 +11,54 @@ from udh_cli import geometry
 from udh_cli.estimators.pair import ImageLike, PreparedImage
 from udh_cli.images import scaled_size
 
-VERIFY_SIDE = 256  # longer side (px) of the images a verification score is computed on
-# Verification correlates a 4 x 4 grid of tiles over the overlap and takes the median. On held-out rho-32 pairs
-# with occluders, right answers (under 1 px) scored 0.41 median on the whole overlap and 0.73 tiled, while wrong
-# ones (over 10 px) stayed at most 0.51 tiled; on the wrong seneca pairs of the unsupervised network, 11 % passed
-# the mosaic's 0.3 check tiled against 40 % whole (and 93 % of its right pairs, against 100 %).
-VERIFY_TILES = 4
-# Least share of B that A must cover for verification_score to judge an alignment. Real consecutive drone
-# frames can overlap that little: two right copr pairs (SIFT reference, 30 and 158 inliers) cover 17 % and
-# 17.5 %, and at 0.3 they scored 0 and split the mosaic.
-VERIFY_MIN_OVERLAP = 0.15
+
+@dataclass(frozen=True)
+class Verifier:
+    """The one photometric check of an alignment, used by the networks (on their own S x S input), by the
+    cascades (``auto``, ``unsupervised+ecc``) and by the mosaic's acceptance test.
+
+    The score is the median, over ``tiles`` x ``tiles`` tiles of the overlap, of the lower of the intensity and
+    gradient NCC of B and A warped into B's frame (:func:`alignment_ncc`), at ``side`` px: in [0, 1].
+
+    Attributes:
+        side: longer side (px) the images are scored at. 256: enough texture to separate right from wrong,
+            a few ms a score.
+        tiles: the median over tiles ignores what disagrees in a minority of them: on held-out rho-32 pairs with
+            occluders, right answers (under 1 px) scored 0.41 median on the whole overlap and 0.73 tiled, while
+            wrong ones (over 10 px) stayed at most 0.51 tiled; on the wrong seneca pairs of the unsupervised
+            network, 11 % passed the mosaic's 0.3 check tiled against 40 % whole (and 93 % of its right pairs,
+            against 100 %).
+        min_overlap: least share of B that A must cover to be judged at all. Real consecutive drone frames can
+            overlap that little: two right copr pairs (SIFT reference, 30 and 158 inliers) cover 17 % and
+            17.5 %, and at 0.3 they scored 0 and split the mosaic.
+    """
+
+    side: int = 256
+    tiles: int = 4
+    min_overlap: float = 0.15
+
+    def score(self, image_a: ImageLike, image_b: ImageLike, b_from_a: np.ndarray | None, structure: bool = True) -> float:
+        """How well ``b_from_a`` aligns two images of any size (arrays, or prepared once and shared); in [0, 1].
+
+        ``structure`` False scores the intensity NCC alone. 0 for no or a degenerate estimate, or an overlap
+        below ``min_overlap``.
+        """
+        if b_from_a is None:
+            return 0.0
+        prepared_a, prepared_b = PreparedImage.of(image_a, "image A"), PreparedImage.of(image_b, "image B")
+        size_a, size_b = prepared_a.size, prepared_b.size
+        scale = min(1.0, self.side / max(*size_a, *size_b))
+        work_a, work_b = scaled_size(size_a, scale), scaled_size(size_b, scale)
+        h = geometry.rescale_homography(b_from_a, size_a, work_a, size_b, work_b)
+        return self.score_grey(prepared_a.resized(work_a), prepared_b.resized(work_b), h, structure)
+
+    def score_grey(self, gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray, structure: bool = True) -> float:
+        """The score of (H, W) float32 grey images already at the size to score them at; in [0, 1]."""
+        on = "both" if structure else "intensity"
+        return max(0.0, alignment_ncc(gray_a, gray_b, b_from_a, self.min_overlap, on=on, tiles=self.tiles))
+
+
+VERIFIER = Verifier()  # the check of auto's answers (Policy.min_score) and of the mosaic's (Acceptance.min_verified)
 
 
 def gradient_magnitude(gray: np.ndarray) -> np.ndarray:
@@ -102,24 +142,3 @@ def _ncc(x: np.ndarray, y: np.ndarray) -> float:
     x, y = x - x.mean(), y - y.mean()
     denominator = np.sqrt((x * x).sum() * (y * y).sum())
     return float((x * y).sum() / denominator) if denominator > 1e-12 else 0.0
-
-
-def verification_score(image_a: ImageLike, image_b: ImageLike, b_from_a: np.ndarray | None,
-                       structure: bool = False) -> float:
-    """How well ``b_from_a`` aligns two images of any size (arrays, or prepared once and shared), at
-    :data:`VERIFY_SIDE` px: in [0, 1].
-
-    The median intensity NCC of :data:`VERIFY_TILES` x :data:`VERIFY_TILES` tiles of the overlap; with
-    ``structure``, the lower of that and the same for the gradient magnitudes (both must agree, see
-    :func:`alignment_ncc`). 0 for no or a degenerate estimate, or an overlap below
-    :data:`VERIFY_MIN_OVERLAP` of B.
-    """
-    if b_from_a is None:
-        return 0.0
-    prepared_a, prepared_b = PreparedImage.of(image_a, "image A"), PreparedImage.of(image_b, "image B")
-    size_a, size_b = prepared_a.size, prepared_b.size
-    scale = min(1.0, VERIFY_SIDE / max(*size_a, *size_b))
-    work_a, work_b = scaled_size(size_a, scale), scaled_size(size_b, scale)
-    small_a, small_b = prepared_a.resized(work_a), prepared_b.resized(work_b)
-    h = geometry.rescale_homography(b_from_a, size_a, work_a, size_b, work_b)
-    return max(0.0, alignment_ncc(small_a, small_b, h, VERIFY_MIN_OVERLAP, on="both" if structure else "intensity", tiles=VERIFY_TILES))

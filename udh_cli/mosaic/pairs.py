@@ -15,7 +15,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.estimators import Estimate
 from udh_cli.estimators.pair import ImageLike
-from udh_cli.estimators.verify import verification_score
+from udh_cli.estimators.verify import VERIFIER
 from udh_cli.mosaic.frames import Frame
 
 
@@ -28,7 +28,7 @@ class Acceptance:
         min_verified: a photometric check for the methods that do not verify their answers themselves
             (the networks, ECC; not SIFT/ORB, whose answers are RANSAC-verified, nor auto): the lower of
             the intensity and gradient NCC of the aligned working images at 256 px
-            (:func:`udh_cli.estimators.verify.verification_score`). Why: the networks' confidence stayed at 0.2-0.9
+            (:data:`udh_cli.estimators.verify.VERIFIER`, the check auto uses). Why: the networks' confidence stayed at 0.2-0.9
             on wrong seneca pairs (smooth infrared fields correlate under a wrong shift); their gradient NCC
             was at most 0.47 (95 % below 0.28). Not for every method: right SIFT pairs of brighton-beach
             (surf and sand) scored 0.19-0.30 and were split off. 0 turns the check off.
@@ -46,7 +46,7 @@ class Acceptance:
             return None, f"confidence {estimate.confidence:.2f} < {self.min_confidence}"
         if self.min_verified <= 0 or verified_by_method:
             return None, None
-        verified = verification_score(image_a, image_b, estimate.homography, structure=True)
+        verified = VERIFIER.score(image_a, image_b, estimate.homography)
         if verified < self.min_verified:
             return verified, f"alignment check {verified:.2f} < {self.min_verified} (intensity/gradient NCC)"
         return verified, None

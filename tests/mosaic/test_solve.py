@@ -166,3 +166,34 @@ def test_a_long_survey_solves_with_memory_that_grows_with_its_pairs():
     before = np.mean([pair_rms_px(chained, p) for p in loops])
     after = np.mean([pair_rms_px(solved, p) for p in loops])
     assert before > 3.0 and after < before / 10  # the cross-strip pairs, off under chaining, agree after the solve
+
+
+def test_gps_anchors_bound_the_drift_of_a_long_chain_without_loops():
+    """A lawn-mower of 3 strips of 12 frames, every consecutive pair slightly off in perspective, no loop pairs:
+    the chain drifts and the solve alone cannot see it. GPS fixes (1 px of noise, in metres) pull it back; with
+    too few fixes the solve is the plain one."""
+    from udh_cli.mosaic.solve import Anchors
+
+    per_strip, strips = 12, 3
+    order = [(column if strip % 2 == 0 else per_strip - 1 - column, strip) for strip in range(strips) for column in range(per_strip)]
+    truth = {i: geometry.translation(60.0 * column, 150.0 * strip) for i, (column, strip) in enumerate(order)}
+    count = len(truth)
+    sizes = [SIZE] * count
+    bias = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [2e-5, 1e-5, 1.0]])
+    pairs = [_pair(truth, i, i + 1, "sequential", bias) for i in range(count - 1)]
+    points = [pair_points(p, SIZE, SIZE) for p in pairs]
+    chained = {0: np.eye(3)}
+    for p in pairs:
+        h = chained[p.a] @ geometry.invert(p.b_from_a)
+        chained[p.b] = h / h[2, 2]
+    metres = np.array([[0.0, -0.05], [0.05, 0.0]])  # 5 cm a pixel, the frame turned a quarter from north
+    rng = np.random.default_rng(1)
+    centre = np.array([(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2])
+    fixes = {i: metres @ (truth[i][:2, 2] + centre) + [500_000.0, 4_000_000.0] + rng.normal(0, 0.05, 2) for i in range(count)}
+    plain = solve_part(0, chained, sizes, points)
+    anchored = solve_part(0, chained, sizes, points, anchors=Anchors(fixes, sigma_m=0.05))
+    drift, bounded = _max_error(plain, truth), _max_error(anchored, truth)
+    assert drift > 100 and bounded < drift / 4
+    assert max(pair_rms_px(anchored, p) for p in points) < 2.0  # the pairs still hold
+    few = solve_part(0, chained, sizes, points, anchors=Anchors({i: fixes[i] for i in (0, 5, 9)}, sigma_m=0.05))
+    assert all(np.allclose(few[i], plain[i]) for i in plain)

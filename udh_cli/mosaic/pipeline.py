@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import os
 import time
 from dataclasses import asdict, dataclass, field
@@ -38,7 +39,7 @@ from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairs import Acceptance, PairRequest, PairResult
 from udh_cli.mosaic.pairwise import corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
-from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_with_rejection, summarise
+from udh_cli.mosaic.solve import Anchors, pair_points, pair_rms_px, solve_with_rejection, summarise
 from udh_cli.mosaic.truth import corner_errors_vs_truth, summarise_truth
 from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
 
@@ -67,6 +68,9 @@ class MosaicConfig:
             parts that GPS puts close together are estimated (:mod:`.gps_pairs`); 0: off. Off by default:
             joining a long flight's parts can chain homographies further than one plane per frame holds
             (measured in docs/mosaic.md).
+        gps_sigma_m: with GPS in the frames, the fixes join the global solve as anchors of this standard
+            error in metres (:class:`~udh_cli.mosaic.solve.Anchors`): they bound the projective drift of long
+            chains that loop closures alone leave. 0: off, the solve uses the pairs alone.
         workers: local processes estimating pairs at once (:mod:`.workers`; 1: in this process).
         scheduler: a Dask scheduler's address (``tcp://host:8786``): pairs are estimated on its workers.
         preview: also write a small JPEG preview beside the mosaic.
@@ -83,6 +87,7 @@ class MosaicConfig:
     overlap_min: float = 0.3
     overlap_per_frame: int = 3
     gps_pairs: int = 0
+    gps_sigma_m: float = 0.0
     workers: int = 1
     scheduler: str | None = None
     max_disagreement: float = 0.1
@@ -166,6 +171,8 @@ def check_config(config: MosaicConfig) -> None:
         raise UdhError(f"--max-frame-scale {config.max_frame_scale}: give a factor above 1 (frames drawn that many times larger or smaller than the reference are reported)")
     if config.workers < 1:
         raise UdhError(f"--workers {config.workers}: give at least 1 (pairs estimated in this process)")
+    if not (config.gps_sigma_m >= 0 and math.isfinite(config.gps_sigma_m)):
+        raise UdhError(f"--gps-sigma {config.gps_sigma_m}: give the GPS fixes' error in metres (e.g. 3), or 0 for off")
     if config.every < 1 or config.overlap_per_frame < 0 or config.gps_pairs < 0:
         raise UdhError("--every must be at least 1, and --overlap-pairs and --gps-pairs at least 0")
 
@@ -588,6 +595,13 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
     sizes = [f.size for f in frameset.frames]
     loops_before, loops_after, all_after = [], [], []
     multi = [p for p in parts if len(p.frames) > 1]
+    anchors = None
+    if config.gps_sigma_m > 0:
+        fixes = {f.index: (f.metadata.latitude, f.metadata.longitude) for f in frameset.frames if f.metadata is not None and f.metadata.has_gps}
+        if fixes:
+            anchors = Anchors(ground_positions(fixes), config.gps_sigma_m)
+        else:
+            reporter.warn(f"--gps-sigma {config.gps_sigma_m}: no frame carries GPS; the solve uses the pairs alone")
     with reporter.stage("global solve", len(multi)) as advance:
         for part in multi:
             members = set(part.frames)
@@ -595,7 +609,7 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
             points = [pair_points(p, sizes[p.a], sizes[p.b]) for p in inside]
             part.solved, dropped = solve_with_rejection(
                 part.reference, part.chained, sizes, points, [p.kind == "overlap" or (p.kind == "gps" and id(p) not in part.tree) for p in inside],
-                config.huber_px, config.outlier_px
+                config.huber_px, config.outlier_px, anchors=anchors
             )
             for i, residual in dropped.items():  # loop pairs the other pairs contradict
                 inside[i].consistency_px = {"before": pair_rms_px(part.chained, points[i]), "after": residual, "loop": True}

@@ -22,9 +22,25 @@ from scipy import sparse
 from scipy.sparse import linalg as sparse_linalg
 
 from udh_cli import geometry
+from udh_cli.mosaic.georef import fit_similarity
 from udh_cli.mosaic.pairs import PairResult
 
 GRID_POINTS = 3  # per side: 9 correspondences per pair
+MIN_ANCHORS = 4  # GPS fixes a part needs before they join its solve: the map homography needs four
+
+
+@dataclass(frozen=True)
+class Anchors:
+    """Map positions that pull frame centres in the solve (GPS fixes), with their uncertainty.
+
+    Attributes:
+        positions: frame -> (2,) easting, northing in metres (a projected CRS, e.g. UTM).
+        sigma_m: the fixes' standard error, metres: a fix this far from the solution costs as much as a pair
+            correspondence 1 px off.
+    """
+
+    positions: dict[int, np.ndarray]
+    sigma_m: float
 
 
 @dataclass(frozen=True)
@@ -100,6 +116,7 @@ def solve_part(
     points: Sequence[PairPoints],
     huber_px: float = 2.0,
     iterations: int = 60,
+    anchors: Anchors | None = None,
 ) -> dict[int, np.ndarray]:
     """Jointly refine ``ref_from_frame`` for the frames of one part.
 
@@ -109,12 +126,20 @@ def solve_part(
         sizes: (width, height) of every frame, full resolution.
         points: correspondences of every accepted pair inside the part.
         huber_px: residuals beyond this many reference pixels count linearly (robust to bad pairs).
+        anchors: GPS fixes of the part's frames (used when at least :data:`MIN_ANCHORS` are in the part):
+            each frame's centre is pulled towards its fix through a map homography from the reference frame
+            to the ground plane (a homography, not a similarity: the reference frame itself may look at the
+            ground at a slant), solved with the frames. Chained homographies drift projectively over long
+            sequences while their loops stay consistent; the fixes bound that drift.
 
     Returns:
         frame -> refined ``ref_from_frame`` (3, 3), h33 = 1; the reference stays the identity.
     """
     frames = [i for i in sorted(initial) if i != reference]
-    if not frames or not points:
+    anchored = [] if anchors is None else [i for i in sorted(initial) if i in anchors.positions]
+    if len(anchored) < MIN_ANCHORS:
+        anchored = []
+    if not frames or not (points or anchored):
         return dict(initial)
     n = len(frames)
     slot = {frame: k for k, frame in enumerate(frames)}
@@ -125,42 +150,100 @@ def solve_part(
     for i in initial:
         g = t_ref @ initial[i] @ np.linalg.inv(normalisers[i])
         params[slot[i]] = (g / g[2, 2]).ravel()[:8]
-    slot_a = np.array([slot[p.a] for p in points])
-    slot_b = np.array([slot[p.b] for p in points])
-    points_a = np.stack([geometry.transform_points(normalisers[p.a], p.points_a) for p in points])  # P, K, 2
-    points_b = np.stack([geometry.transform_points(normalisers[p.b], p.points_b) for p in points])
+    slot_a = np.array([slot[p.a] for p in points], dtype=int)
+    slot_b = np.array([slot[p.b] for p in points], dtype=int)
+    points_a = np.stack([geometry.transform_points(normalisers[p.a], p.points_a) for p in points]) if points else np.zeros((0, 1, 2))  # P, K, 2
+    points_b = np.stack([geometry.transform_points(normalisers[p.b], p.points_b) for p in points]) if points else np.zeros((0, 1, 2))
     k = huber_px * t_ref[0, 0]  # in normalised reference units
+    size = 8 * n + (8 if anchored else 0)  # the map homography's 8 parameters follow the frames' parameters
+    if anchored:
+        # Map metres, centred and scaled like the frames; an anchor residual of sigma_m weighs as 1 px would.
+        fixes = np.stack([anchors.positions[i] for i in anchored])
+        map_mean, map_scale = fixes.mean(0), max(float(np.abs(fixes - fixes.mean(0)).max()), 1e-6)
+        targets = (fixes - map_mean) / map_scale
+        anchor_weight = t_ref[0, 0] / (anchors.sigma_m / map_scale)
+        anchor_slots = np.array([slot[i] for i in anchored])
+        centres = np.stack([geometry.transform_points(normalisers[i], np.array([[(sizes[i][0] - 1) / 2, (sizes[i][1] - 1) / 2]]))
+                            for i in anchored])  # A, 1, 2 in each frame's normalised coordinates
+        start_centres = _project_with_jacobian(params[anchor_slots], centres)[0][:, 0]
+        # Started from the best similarity (closed form, and defined even for fixes along one line).
+        map_params = (fit_similarity(start_centres, targets).ravel()[:8]).copy()
+    else:
+        map_params = np.zeros(0)
 
-    def cost_of(current: np.ndarray) -> float:
-        residual = _project_with_jacobian(current[slot_a], points_a)[0] - _project_with_jacobian(current[slot_b], points_b)[0]
-        return float(_huber(np.sqrt((residual**2).sum(-1)), k)[0].sum())
+    def anchor_terms(current: np.ndarray, map_params: np.ndarray):
+        """Anchor residuals (A, 2), their Jacobians for the frame (A, 2, 8) and the map homography (A, 2, 8)."""
+        projected, jacobian = _project_with_jacobian(current[anchor_slots], centres)
+        q, jacobian = projected[:, 0], jacobian[:, 0]  # A, 2 and A, 2, 8
+        mapped, d_params = _project_with_jacobian(np.repeat(map_params[None], len(q), 0), q[:, None])
+        mapped, d_params = mapped[:, 0], d_params[:, 0]
+        g = map_params
+        w = g[6] * q[:, 0] + g[7] * q[:, 1] + 1.0
+        d_point = np.stack([np.stack([(g[0] - mapped[:, 0] * g[6]) / w, (g[1] - mapped[:, 0] * g[7]) / w], -1),
+                            np.stack([(g[3] - mapped[:, 1] * g[6]) / w, (g[4] - mapped[:, 1] * g[7]) / w], -1)], -2)  # A, 2, 2
+        residual = anchor_weight * (mapped - targets)
+        return residual, anchor_weight * np.einsum("aij,ajk->aik", d_point, jacobian), anchor_weight * d_params
+
+    def cost_of(current: np.ndarray, map_params: np.ndarray) -> float:
+        total = 0.0
+        if points:
+            residual = _project_with_jacobian(current[slot_a], points_a)[0] - _project_with_jacobian(current[slot_b], points_b)[0]
+            total += float(_huber(np.sqrt((residual**2).sum(-1)), k)[0].sum())
+        if anchored:
+            total += float(_huber(np.sqrt((anchor_terms(current, map_params)[0] ** 2).sum(-1)), k)[0].sum())
+        return total
 
     # 8x8 block (row, column) indices inside the 8n x 8n system, shared by every pair's four blocks.
     block_rows, block_cols = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
 
-    def normal_equations(current: np.ndarray):
-        """The Gauss-Newton system (8n x 8n, scipy CSR: each pair touches two frames, so it is sparse and its
-        memory and time grow with the pairs, not with n squared) and the gradient (8n,)."""
-        proj_a, jac_a = _project_with_jacobian(current[slot_a], points_a)
-        proj_b, jac_b = _project_with_jacobian(current[slot_b], points_b)
-        residual = proj_a - proj_b  # P, K, 2
-        _, weight = _huber(np.sqrt((residual**2).sum(-1)), k)  # P, K
-        gradient = np.zeros((n + 1, 8))
+    def normal_equations(current: np.ndarray, map_params: np.ndarray):
+        """The Gauss-Newton system (scipy CSR, ``size`` square: each pair touches two frames and each anchor one
+        frame and the map homography, so it is sparse and its memory and time grow with the pairs, not with n
+        squared) and the gradient (``size``,)."""
+        # The gradient's layout: the frames, the reference's dummy slot (dropped), the map homography.
+        gradient = np.zeros(8 * n + 8 + 8)
         rows, cols, values = [], [], []
-        for s1, j1, sign1 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
-            np.add.at(gradient, s1, sign1 * np.einsum("pk,pkij,pki->pj", weight, j1, residual))
-            for s2, j2, sign2 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
-                keep = (s1 < n) & (s2 < n)  # the reference's dummy slot is fixed: its rows and columns are dropped
-                block = sign1 * sign2 * np.einsum("pk,pkij,pkil->pjl", weight[keep], j1[keep], j2[keep])  # P', 8, 8
-                rows.append((s1[keep, None, None] * 8 + block_rows).ravel())
-                cols.append((s2[keep, None, None] * 8 + block_cols).ravel())
-                values.append(block.ravel())
-        system = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(8 * n, 8 * n))
-        return system, gradient[:n].ravel()
+
+        def add(slot_rows: np.ndarray, slot_cols: np.ndarray, blocks: np.ndarray) -> None:
+            """Add (B, r, c) blocks at the given offsets of the system."""
+            _, r, c = blocks.shape
+            rows.append((slot_rows[:, None, None] + np.arange(r)[None, :, None] + np.zeros((1, 1, c), int)).ravel())
+            cols.append((slot_cols[:, None, None] + np.zeros((1, r, 1), int) + np.arange(c)[None, None, :]).ravel())
+            values.append(blocks.ravel())
+
+        if points:
+            proj_a, jac_a = _project_with_jacobian(current[slot_a], points_a)
+            proj_b, jac_b = _project_with_jacobian(current[slot_b], points_b)
+            residual = proj_a - proj_b  # P, K, 2
+            _, weight = _huber(np.sqrt((residual**2).sum(-1)), k)  # P, K
+            for s1, j1, sign1 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
+                np.add.at(gradient, (s1[:, None] * 8 + np.arange(8)).ravel(),
+                          (sign1 * np.einsum("pk,pkij,pki->pj", weight, j1, residual)).ravel())
+                for s2, j2, sign2 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
+                    keep = (s1 < n) & (s2 < n)  # the reference's dummy slot is fixed: its rows and columns are dropped
+                    add(s1[keep] * 8, s2[keep] * 8, sign1 * sign2 * np.einsum("pk,pkij,pkil->pjl", weight[keep], j1[keep], j2[keep]))
+        if anchored:
+            residual, jac_frame, jac_map = anchor_terms(current, map_params)
+            _, weight = _huber(np.sqrt((residual**2).sum(-1)), k)  # A
+            free = anchor_slots < n
+            at_map = np.full(int(free.sum()), 8 * n)
+            np.add.at(gradient, (anchor_slots[free, None] * 8 + np.arange(8)).ravel(),
+                      np.einsum("a,aij,ai->aj", weight[free], jac_frame[free], residual[free]).ravel())
+            gradient[8 * n + 8:] += np.einsum("a,aij,ai->j", weight, jac_map, residual)
+            add(anchor_slots[free] * 8, anchor_slots[free] * 8, np.einsum("a,aij,ail->ajl", weight[free], jac_frame[free], jac_frame[free]))
+            cross = np.einsum("a,aij,ail->ajl", weight[free], jac_frame[free], jac_map[free])
+            add(anchor_slots[free] * 8, at_map, cross)
+            add(at_map, anchor_slots[free] * 8, cross.transpose(0, 2, 1))
+            add(np.array([8 * n]), np.array([8 * n]), np.einsum("a,aij,ail->jl", weight, jac_map, jac_map)[None])
+        if rows:
+            system = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+        else:
+            system = sparse.csr_matrix((size, size))
+        return system, np.r_[gradient[:8 * n], gradient[8 * n + 8:]] if anchored else gradient[:8 * n]
 
     damping = 1e-3
-    cost = cost_of(params)
-    system, gradient = normal_equations(params)
+    cost = cost_of(params, map_params)
+    system, gradient = normal_equations(params, map_params)
     for _ in range(iterations):
         diagonal = system.diagonal() + 1e-12
         with warnings.catch_warnings():
@@ -173,12 +256,13 @@ def solve_part(
             damping *= 10
             continue
         trial = params.copy()
-        trial[:n] += step.reshape(n, 8)
-        trial_cost = cost_of(trial)
+        trial[:n] += step[:8 * n].reshape(n, 8)
+        trial_map = map_params + step[8 * n:]
+        trial_cost = cost_of(trial, trial_map)
         if trial_cost < cost:
             improvement = (cost - trial_cost) / max(cost, 1e-30)
-            params, cost = trial, trial_cost
-            system, gradient = normal_equations(params)
+            params, map_params, cost = trial, trial_map, trial_cost
+            system, gradient = normal_equations(params, map_params)
             damping = max(damping / 3, 1e-9)
             if improvement < 1e-10:
                 break
@@ -205,6 +289,7 @@ def solve_with_rejection(
     outlier_px: float = 5.0,
     max_rounds: int = 4,
     max_candidates: int = 12,
+    anchors: Anchors | None = None,
 ) -> tuple[dict[int, np.ndarray], dict[int, float]]:
     """:func:`solve_part`, then find and drop the loop-closure pairs that the other pairs contradict.
 
@@ -215,11 +300,13 @@ def solve_with_rejection(
     re-run from the current solution, and the pair whose absence lowers the others' squared residuals the
     most is dropped, if that at least halves them.
 
+    ``anchors``: GPS fixes that join every solve (:func:`solve_part`).
+
     Returns the solution and ``{index into points: residual px}`` of the dropped pairs.
     """
     active = list(range(len(points)))
     dropped: dict[int, float] = {}
-    solved = solve_part(reference, initial, sizes, points, huber_px)
+    solved = solve_part(reference, initial, sizes, points, huber_px, anchors=anchors)
     for _ in range(max_rounds):
         residuals = {i: pair_rms_px(solved, points[i]) for i in active}
         if not residuals:
@@ -233,7 +320,7 @@ def solve_with_rejection(
             for i in strained_loops:
                 dropped[i] = residuals[i]
                 active.remove(i)
-            solved = solve_part(reference, solved, sizes, [points[i] for i in active], huber_px)
+            solved = solve_part(reference, solved, sizes, [points[i] for i in active], huber_px, anchors=anchors)
             continue
         spans = [(min(points[i].a, points[i].b), max(points[i].a, points[i].b)) for i in strained]
         candidates = [i for i in active if removable[i] and any(max(lo, min(points[i].a, points[i].b)) <= min(hi, max(points[i].a, points[i].b)) for lo, hi in spans)]
@@ -242,7 +329,7 @@ def solve_with_rejection(
         for candidate in candidates:
             rest = [i for i in active if i != candidate]
             before = sum(residuals[i] ** 2 for i in rest)
-            trial = solve_part(reference, solved, sizes, [points[i] for i in rest], huber_px, iterations=20)
+            trial = solve_part(reference, solved, sizes, [points[i] for i in rest], huber_px, iterations=20, anchors=anchors)
             ratio = sum(pair_rms_px(trial, points[i]) ** 2 for i in rest) / max(before, 1e-12)
             if ratio < best_ratio:
                 best, best_ratio, best_solution = candidate, ratio, trial
@@ -250,7 +337,7 @@ def solve_with_rejection(
             break
         dropped[best] = residuals[best]
         active.remove(best)
-        solved = solve_part(reference, best_solution, sizes, [points[i] for i in active], huber_px)
+        solved = solve_part(reference, best_solution, sizes, [points[i] for i in active], huber_px, anchors=anchors)
     return solved, dropped
 
 

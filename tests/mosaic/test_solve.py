@@ -195,5 +195,5 @@ def test_gps_anchors_bound_the_drift_of_a_long_chain_without_loops():
     drift, bounded = _max_error(plain, truth), _max_error(anchored, truth)
     assert drift > 100 and bounded < drift / 4
     assert max(pair_rms_px(anchored, p) for p in points) < 2.0  # the pairs still hold
-    few = solve_part(0, chained, sizes, points, anchors=Anchors({i: fixes[i] for i in (0, 5, 9)}, sigma_m=0.05))
+    few = solve_part(0, chained, sizes, points, anchors=Anchors({i: fixes[i] for i in (0, 9)}, sigma_m=0.05))
     assert all(np.allclose(few[i], plain[i]) for i in plain)

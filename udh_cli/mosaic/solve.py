@@ -26,7 +26,7 @@ from udh_cli.mosaic.georef import fit_similarity
 from udh_cli.mosaic.pairs import PairResult
 
 GRID_POINTS = 3  # per side: 9 correspondences per pair
-MIN_ANCHORS = 4  # GPS fixes a part needs before they join its solve: the map homography needs four
+MIN_ANCHORS = 3  # GPS fixes a part needs before they join its solve: two fix a similarity exactly, a third checks it
 
 
 @dataclass(frozen=True)
@@ -126,11 +126,14 @@ def solve_part(
         sizes: (width, height) of every frame, full resolution.
         points: correspondences of every accepted pair inside the part.
         huber_px: residuals beyond this many reference pixels count linearly (robust to bad pairs).
-        anchors: GPS fixes of the part's frames (used when at least :data:`MIN_ANCHORS` are in the part):
-            each frame's centre is pulled towards its fix through a map homography from the reference frame
-            to the ground plane (a homography, not a similarity: the reference frame itself may look at the
-            ground at a slant), solved with the frames. Chained homographies drift projectively over long
-            sequences while their loops stay consistent; the fixes bound that drift.
+        anchors: GPS fixes of the part's frames (used when at least :data:`MIN_ANCHORS` are in the part).
+            Why: the pairs fix every frame relative to its neighbours, but leave the part free to bend by an
+            almost global homography that only the reference frame's own pairs resist: the projective drift
+            of long chains, invisible in their loop consistency. The fixes lie on the flat ground, where the
+            map is a similarity. So with anchors the frames are solved in a plane that a fixed similarity
+            (fitted to the chained centres first) maps onto the fixes, each frame's centre pulled towards its
+            fix, the reference frame free like the others; the solution is then expressed in the reference
+            frame's pixels again.
 
     Returns:
         frame -> refined ``ref_from_frame`` (3, 3), h33 = 1; the reference stays the identity.
@@ -143,7 +146,8 @@ def solve_part(
         return dict(initial)
     n = len(frames)
     slot = {frame: k for k, frame in enumerate(frames)}
-    slot[reference] = n  # a dummy slot whose rows and columns are dropped: the reference is fixed
+    slot[reference] = n  # the reference's slot: fixed (dropped from the system) unless anchors hold the part
+    free = n + 1 if anchored else n
     t_ref = _normaliser(sizes[reference])
     normalisers = {i: _normaliser(sizes[i]) for i in initial}
     params = np.zeros((n + 1, 8))
@@ -155,61 +159,46 @@ def solve_part(
     points_a = np.stack([geometry.transform_points(normalisers[p.a], p.points_a) for p in points]) if points else np.zeros((0, 1, 2))  # P, K, 2
     points_b = np.stack([geometry.transform_points(normalisers[p.b], p.points_b) for p in points]) if points else np.zeros((0, 1, 2))
     k = huber_px * t_ref[0, 0]  # in normalised reference units
-    size = 8 * n + (8 if anchored else 0)  # the map homography's 8 parameters follow the frames' parameters
     if anchored:
-        # Map metres, centred and scaled like the frames; an anchor residual of sigma_m weighs as 1 px would.
+        # Map metres centred and scaled like the frames; a fix sigma_m away weighs as a pair 1 px off would.
         fixes = np.stack([anchors.positions[i] for i in anchored])
-        map_mean, map_scale = fixes.mean(0), max(float(np.abs(fixes - fixes.mean(0)).max()), 1e-6)
-        targets = (fixes - map_mean) / map_scale
-        anchor_weight = t_ref[0, 0] / (anchors.sigma_m / map_scale)
+        map_scale = max(float(np.abs(fixes - fixes.mean(0)).max()), 1e-6)
+        targets = (fixes - fixes.mean(0)) / map_scale
+        anchor_weight = t_ref[0, 0] * map_scale / anchors.sigma_m
         anchor_slots = np.array([slot[i] for i in anchored])
         centres = np.stack([geometry.transform_points(normalisers[i], np.array([[(sizes[i][0] - 1) / 2, (sizes[i][1] - 1) / 2]]))
                             for i in anchored])  # A, 1, 2 in each frame's normalised coordinates
-        start_centres = _project_with_jacobian(params[anchor_slots], centres)[0][:, 0]
-        # Started from the best similarity (closed form, and defined even for fixes along one line).
-        map_params = (fit_similarity(start_centres, targets).ravel()[:8]).copy()
-    else:
-        map_params = np.zeros(0)
+        ground = fit_similarity(_project_with_jacobian(params[anchor_slots], centres)[0][:, 0], targets)[:2]  # 2 x 3, fixed
 
-    def anchor_terms(current: np.ndarray, map_params: np.ndarray):
-        """Anchor residuals (A, 2), their Jacobians for the frame (A, 2, 8) and the map homography (A, 2, 8)."""
+    def anchor_terms(current: np.ndarray):
+        """Anchor residuals (A, 2) and their Jacobians for the frames (A, 2, 8)."""
         projected, jacobian = _project_with_jacobian(current[anchor_slots], centres)
-        q, jacobian = projected[:, 0], jacobian[:, 0]  # A, 2 and A, 2, 8
-        mapped, d_params = _project_with_jacobian(np.repeat(map_params[None], len(q), 0), q[:, None])
-        mapped, d_params = mapped[:, 0], d_params[:, 0]
-        g = map_params
-        w = g[6] * q[:, 0] + g[7] * q[:, 1] + 1.0
-        d_point = np.stack([np.stack([(g[0] - mapped[:, 0] * g[6]) / w, (g[1] - mapped[:, 0] * g[7]) / w], -1),
-                            np.stack([(g[3] - mapped[:, 1] * g[6]) / w, (g[4] - mapped[:, 1] * g[7]) / w], -1)], -2)  # A, 2, 2
-        residual = anchor_weight * (mapped - targets)
-        return residual, anchor_weight * np.einsum("aij,ajk->aik", d_point, jacobian), anchor_weight * d_params
+        mapped = projected[:, 0] @ ground[:, :2].T + ground[:, 2]
+        return anchor_weight * (mapped - targets), anchor_weight * np.einsum("ij,ajk->aik", ground[:, :2], jacobian[:, 0])
 
-    def cost_of(current: np.ndarray, map_params: np.ndarray) -> float:
+    def cost_of(current: np.ndarray) -> float:
         total = 0.0
         if points:
             residual = _project_with_jacobian(current[slot_a], points_a)[0] - _project_with_jacobian(current[slot_b], points_b)[0]
             total += float(_huber(np.sqrt((residual**2).sum(-1)), k)[0].sum())
         if anchored:
-            total += float(_huber(np.sqrt((anchor_terms(current, map_params)[0] ** 2).sum(-1)), k)[0].sum())
+            total += float(_huber(np.sqrt((anchor_terms(current)[0] ** 2).sum(-1)), k)[0].sum())
         return total
 
-    # 8x8 block (row, column) indices inside the 8n x 8n system, shared by every pair's four blocks.
+    # 8x8 block (row, column) indices inside the system, shared by every block.
     block_rows, block_cols = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
 
-    def normal_equations(current: np.ndarray, map_params: np.ndarray):
-        """The Gauss-Newton system (scipy CSR, ``size`` square: each pair touches two frames and each anchor one
-        frame and the map homography, so it is sparse and its memory and time grow with the pairs, not with n
-        squared) and the gradient (``size``,)."""
-        # The gradient's layout: the frames, the reference's dummy slot (dropped), the map homography.
-        gradient = np.zeros(8 * n + 8 + 8)
+    def normal_equations(current: np.ndarray):
+        """The Gauss-Newton system (8 free x 8 free, scipy CSR: each pair touches two frames and each anchor one,
+        so it is sparse and its memory and time grow with the pairs, not with n squared) and the gradient."""
+        gradient = np.zeros((n + 1, 8))
         rows, cols, values = [], [], []
 
-        def add(slot_rows: np.ndarray, slot_cols: np.ndarray, blocks: np.ndarray) -> None:
-            """Add (B, r, c) blocks at the given offsets of the system."""
-            _, r, c = blocks.shape
-            rows.append((slot_rows[:, None, None] + np.arange(r)[None, :, None] + np.zeros((1, 1, c), int)).ravel())
-            cols.append((slot_cols[:, None, None] + np.zeros((1, r, 1), int) + np.arange(c)[None, None, :]).ravel())
-            values.append(blocks.ravel())
+        def add(s1: np.ndarray, s2: np.ndarray, blocks: np.ndarray) -> None:
+            keep = (s1 < free) & (s2 < free)  # a fixed reference's rows and columns are dropped
+            rows.append((s1[keep, None, None] * 8 + block_rows).ravel())
+            cols.append((s2[keep, None, None] * 8 + block_cols).ravel())
+            values.append(blocks[keep].ravel())
 
         if points:
             proj_a, jac_a = _project_with_jacobian(current[slot_a], points_a)
@@ -217,33 +206,20 @@ def solve_part(
             residual = proj_a - proj_b  # P, K, 2
             _, weight = _huber(np.sqrt((residual**2).sum(-1)), k)  # P, K
             for s1, j1, sign1 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
-                np.add.at(gradient, (s1[:, None] * 8 + np.arange(8)).ravel(),
-                          (sign1 * np.einsum("pk,pkij,pki->pj", weight, j1, residual)).ravel())
+                np.add.at(gradient, s1, sign1 * np.einsum("pk,pkij,pki->pj", weight, j1, residual))
                 for s2, j2, sign2 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
-                    keep = (s1 < n) & (s2 < n)  # the reference's dummy slot is fixed: its rows and columns are dropped
-                    add(s1[keep] * 8, s2[keep] * 8, sign1 * sign2 * np.einsum("pk,pkij,pkil->pjl", weight[keep], j1[keep], j2[keep]))
+                    add(s1, s2, sign1 * sign2 * np.einsum("pk,pkij,pkil->pjl", weight, j1, j2))
         if anchored:
-            residual, jac_frame, jac_map = anchor_terms(current, map_params)
+            residual, jacobian = anchor_terms(current)
             _, weight = _huber(np.sqrt((residual**2).sum(-1)), k)  # A
-            free = anchor_slots < n
-            at_map = np.full(int(free.sum()), 8 * n)
-            np.add.at(gradient, (anchor_slots[free, None] * 8 + np.arange(8)).ravel(),
-                      np.einsum("a,aij,ai->aj", weight[free], jac_frame[free], residual[free]).ravel())
-            gradient[8 * n + 8:] += np.einsum("a,aij,ai->j", weight, jac_map, residual)
-            add(anchor_slots[free] * 8, anchor_slots[free] * 8, np.einsum("a,aij,ail->ajl", weight[free], jac_frame[free], jac_frame[free]))
-            cross = np.einsum("a,aij,ail->ajl", weight[free], jac_frame[free], jac_map[free])
-            add(anchor_slots[free] * 8, at_map, cross)
-            add(at_map, anchor_slots[free] * 8, cross.transpose(0, 2, 1))
-            add(np.array([8 * n]), np.array([8 * n]), np.einsum("a,aij,ail->jl", weight, jac_map, jac_map)[None])
-        if rows:
-            system = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
-        else:
-            system = sparse.csr_matrix((size, size))
-        return system, np.r_[gradient[:8 * n], gradient[8 * n + 8:]] if anchored else gradient[:8 * n]
+            np.add.at(gradient, anchor_slots, np.einsum("a,aij,ai->aj", weight, jacobian, residual))
+            add(anchor_slots, anchor_slots, np.einsum("a,aij,ail->ajl", weight, jacobian, jacobian))
+        system = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(8 * free, 8 * free))
+        return system, gradient[:free].ravel()
 
     damping = 1e-3
-    cost = cost_of(params, map_params)
-    system, gradient = normal_equations(params, map_params)
+    cost = cost_of(params)
+    system, gradient = normal_equations(params)
     for _ in range(iterations):
         diagonal = system.diagonal() + 1e-12
         with warnings.catch_warnings():
@@ -256,13 +232,12 @@ def solve_part(
             damping *= 10
             continue
         trial = params.copy()
-        trial[:n] += step[:8 * n].reshape(n, 8)
-        trial_map = map_params + step[8 * n:]
-        trial_cost = cost_of(trial, trial_map)
+        trial[:free] += step.reshape(free, 8)
+        trial_cost = cost_of(trial)
         if trial_cost < cost:
             improvement = (cost - trial_cost) / max(cost, 1e-30)
-            params, map_params, cost = trial, trial_map, trial_cost
-            system, gradient = normal_equations(params, map_params)
+            params, cost = trial, trial_cost
+            system, gradient = normal_equations(params)
             damping = max(damping / 3, 1e-9)
             if improvement < 1e-10:
                 break
@@ -273,7 +248,10 @@ def solve_part(
     out = {}
     for i in initial:
         g = np.append(params[slot[i]], 1.0).reshape(3, 3)
-        h = np.linalg.inv(t_ref) @ g @ normalisers[i]
+        out[i] = np.linalg.inv(t_ref) @ g @ normalisers[i]
+    back = np.linalg.inv(out[reference])  # identity unless the anchors moved the reference too
+    for i in out:
+        h = back @ out[i]
         out[i] = h / h[2, 2]
     out[reference] = np.eye(3)
     return out

@@ -304,6 +304,7 @@ def mosaic(
     max_frame_scale: Annotated[float, typer.Option("--max-frame-scale", help="Report (leave out) frames the solve draws more than this many times larger or smaller than the reference frame.")] = _MOSAIC.max_frame_scale,
     no_gain: Annotated[bool, typer.Option("--no-gain", help="Skip gain (exposure) compensation.", metavar="")] = False,
     overlap_per_frame: Annotated[int, typer.Option("--overlap-pairs", help="Loop-closure pairs per frame at most (0: plain chaining).")] = _MOSAIC.overlap_per_frame,
+    gcp_sigma: Annotated[float, typer.Option("--gcp-sigma", min=0.0, help="With --gcp: the points' error in metres, e.g. 0.05; their observations then anchor the global solve (0: they only place the finished mosaic).")] = _MOSAIC.gcp_sigma_m,
     gps_sigma: Annotated[float, typer.Option("--gps-sigma", min=0.0, help="With GPS in the frames: the fixes' error in metres, e.g. 3; they then anchor the global solve and bound long-chain drift (0: off).")] = _MOSAIC.gps_sigma_m,
     gps_pairs: Annotated[int, typer.Option("--gps-pairs", min=0, help="With GPS in the frames: pairs tried between each two parts that GPS puts close together, e.g. 3 (0: off; short surveys split at a turn).")] = _MOSAIC.gps_pairs,
     workers: Annotated[int, typer.Option("--workers", min=1, help="Local processes estimating pairs at once (e.g. one per core; 1: in this process).")] = _MOSAIC.workers,
@@ -323,7 +324,7 @@ def mosaic(
 
     config = _MosaicConfig(
         method=method.value, fallback=fallback, method_options=parse_method_options(method_option, [method.value]).get(method.value, {}), work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
-        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, gps_sigma_m=gps_sigma, workers=workers, scheduler=scheduler,
+        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, gps_sigma_m=gps_sigma, gcp_sigma_m=gcp_sigma, workers=workers, scheduler=scheduler,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
     if follow:

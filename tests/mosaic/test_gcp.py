@@ -100,3 +100,39 @@ def test_two_labels_on_one_pixel_are_both_left_out(tmp_path):
     found = fit_gcps(gcps, {"a.jpg": ((320, 240), np.linalg.inv(flip) @ np.eye(3))})
     assert "p0" not in found.points and "p4" not in found.points
     assert any("same pixel" in line for line in found.skipped)
+
+
+def test_observations_become_anchors_of_the_solve(tmp_path):
+    """gcp_anchors: one anchor per usable observation, its pixel scaled to the frame, in the file's CRS; two
+    labels on one pixel, images that are not frames, pixels outside the frame and a point left out on purpose
+    are not anchors."""
+    from udh_cli.mosaic.gcp import gcp_anchors
+
+    lines = ["0 0 0 100 100 a.jpg p0", "20 0 0 101 100 a.jpg p4", "5 6 0 600 400 a.jpg p1", "7 8 0 50 60 b.jpg p2",
+             "9 9 0 9999 10 b.jpg p3", "1 2 0 10 10 other.jpg p5"]
+    gcps = read_gcp_file(_write(tmp_path / "g.txt", lines))
+    frames = {"a.jpg": (0, (320, 240)), "b.jpg": (3, (320, 240))}
+    anchors = gcp_anchors(gcps, frames, 0.05, image_width=640)  # the marks were made on 640-px copies
+    assert anchors.frames.tolist() == [0, 3]
+    np.testing.assert_allclose(anchors.pixels, [[300.0, 200.0], [25.0, 30.0]])
+    np.testing.assert_allclose(anchors.positions, [[5, 6], [7, 8]])
+    assert anchors.sigma_m.tolist() == [0.05, 0.05]
+    assert gcp_anchors(gcps, frames, 0.05, image_width=640, leave_out="p1").frames.tolist() == [3]
+    assert gcp_anchors(gcps, {"c.jpg": (0, (320, 240))}, 0.05) is None
+
+
+def test_ground_control_anchors_keep_a_simulated_flight_on_its_points(tmp_path):
+    """--gcp-sigma: the observations join the solve; on a simulated flight with exact points the map stays
+    within 0.3 m RMS at the checkpoints, as without them."""
+    from mosaic_flights import SMALL, make_flight
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+
+    folder = tmp_path / "flight"
+    folder.mkdir()
+    make_flight(folder, SMALL, seed=8)
+    truth = json.loads((folder / "ground_truth.json").read_text())
+    gcp = _write(tmp_path / "gcp_list.txt", _simulated_gcps(truth, [f"gcp{k}" for k in range(7)]))
+    results = [run_mosaic(folder, tmp_path / f"map{sigma}.png", MosaicConfig(method="sift", overlap_per_frame=1, gcp_sigma_m=sigma), gcp=gcp)
+               for sigma in (0.0, 0.05)]
+    rms = [r["parts"][0]["georeference"]["gcp_checkpoint_rms_m"] for r in results]
+    assert rms[1] < 0.3 and rms[1] < rms[0] + 0.05

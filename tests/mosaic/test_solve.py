@@ -191,9 +191,9 @@ def test_gps_anchors_bound_the_drift_of_a_long_chain_without_loops():
     centre = np.array([(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2])
     fixes = {i: metres @ (truth[i][:2, 2] + centre) + [500_000.0, 4_000_000.0] + rng.normal(0, 0.05, 2) for i in range(count)}
     plain = solve_part(0, chained, sizes, points)
-    anchored = solve_part(0, chained, sizes, points, anchors=Anchors(fixes, sigma_m=0.05))
+    anchored = solve_part(0, chained, sizes, points, anchors=Anchors.frame_centres(fixes, sizes, 0.05))
     drift, bounded = _max_error(plain, truth), _max_error(anchored, truth)
     assert drift > 100 and bounded < drift / 4
     assert max(pair_rms_px(anchored, p) for p in points) < 2.0  # the pairs still hold
-    few = solve_part(0, chained, sizes, points, anchors=Anchors({i: fixes[i] for i in (0, 9)}, sigma_m=0.05))
+    few = solve_part(0, chained, sizes, points, anchors=Anchors.frame_centres({i: fixes[i] for i in (0, 9)}, sizes, 0.05))
     assert all(np.allclose(few[i], plain[i]) for i in plain)

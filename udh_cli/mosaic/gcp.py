@@ -197,6 +197,32 @@ def fit_gcps(gcps: GcpFile, frames: dict[str, tuple[tuple[int, int], np.ndarray 
                   float(np.sqrt(np.mean(residuals[used] ** 2))), skipped)
 
 
+def gcp_anchors(gcps: GcpFile, frames: dict[str, tuple[int, tuple[int, int]]], sigma_m: float, image_width: int | None = None,
+                leave_out: str | None = None):
+    """The observations as anchors of the global solve (:class:`~udh_cli.mosaic.solve.Anchors`), in the file's CRS.
+
+    ``frames``: file name -> (frame index, (width, height) at full resolution); ``image_width`` as in
+    :func:`fit_gcps`. Marks that contradict each other (:func:`_contradicting_labels`), images that are not
+    frames and pixels outside their frame are left out, as the fit leaves them out. ``leave_out``: a point's
+    name whose observations are left out too (to check it honestly). None when no observation is usable.
+    """
+    from udh_cli.mosaic.solve import Anchors
+
+    rows = []
+    for o in _contradicting_labels(gcps.observations, []):
+        if o.image not in frames or o.name == leave_out:
+            continue
+        index, (width, height) = frames[o.image]
+        scale = 1.0 if image_width is None else width / image_width
+        px, py = o.px * scale, o.py * scale
+        if -0.5 <= px <= width - 0.5 and -0.5 <= py <= height - 0.5:
+            rows.append((index, px, py, o.x, o.y))
+    if not rows:
+        return None
+    table = np.array(rows, np.float64)
+    return Anchors(table[:, 0].astype(int), table[:, 1:3], table[:, 3:5], np.full(len(rows), float(sigma_m)))
+
+
 def _contradicting_labels(observations: list[Observation], skipped: list[str]) -> list[Observation]:
     """The observations less those where two differently named points are marked on the same pixel of one
     image but lie apart on the ground: one target cannot carry two positions, so both marks are left out."""

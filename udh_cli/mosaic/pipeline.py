@@ -28,13 +28,13 @@ from udh_cli.mosaic.gains import solve_gains
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
 from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
-from udh_cli.mosaic.gcp import fit_gcps, read_gcp_file
+from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file
 from udh_cli.mosaic.geotiff import cog_path, has_rasterio, write_cog, write_combined_cog
 from udh_cli.mosaic.follow import FollowConfig, follow_mosaic
 from udh_cli.mosaic.workers import EstimatorSpec, open_runner
 from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
                                       placement_error_m)
-from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
+from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, to_utm, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairs import Acceptance, PairRequest, PairResult
 from udh_cli.mosaic.pairwise import corner_disagreement_px, estimate_pairs
@@ -71,6 +71,9 @@ class MosaicConfig:
         gps_sigma_m: with GPS in the frames, the fixes join the global solve as anchors of this standard
             error in metres (:class:`~udh_cli.mosaic.solve.Anchors`): they bound the projective drift of long
             chains that loop closures alone leave. 0: off, the solve uses the pairs alone.
+        gcp_sigma_m: with ground-control points (``run_mosaic(gcp=...)``), their observations join the global
+            solve as anchors of this standard error in metres, so that the mosaic bends to them instead of only
+            being placed by them afterwards; 0: off.
         workers: local processes estimating pairs at once (:mod:`.workers`; 1: in this process).
         scheduler: a Dask scheduler's address (``tcp://host:8786``): pairs are estimated on its workers.
         preview: also write a small JPEG preview beside the mosaic.
@@ -88,6 +91,7 @@ class MosaicConfig:
     overlap_per_frame: int = 3
     gps_pairs: int = 0
     gps_sigma_m: float = 0.0
+    gcp_sigma_m: float = 0.0
     workers: int = 1
     scheduler: str | None = None
     max_disagreement: float = 0.1
@@ -173,6 +177,8 @@ def check_config(config: MosaicConfig) -> None:
         raise UdhError(f"--workers {config.workers}: give at least 1 (pairs estimated in this process)")
     if not (config.gps_sigma_m >= 0 and math.isfinite(config.gps_sigma_m)):
         raise UdhError(f"--gps-sigma {config.gps_sigma_m}: give the GPS fixes' error in metres (e.g. 3), or 0 for off")
+    if not (config.gcp_sigma_m >= 0 and math.isfinite(config.gcp_sigma_m)):
+        raise UdhError(f"--gcp-sigma {config.gcp_sigma_m}: give the ground-control points' error in metres (e.g. 0.05), or 0 for off")
     if config.every < 1 or config.overlap_per_frame < 0 or config.gps_pairs < 0:
         raise UdhError("--every must be at least 1, and --overlap-pairs and --gps-pairs at least 0")
 
@@ -284,7 +290,7 @@ def run_mosaic(
     cache.save(prune=True)
     if resume:
         reporter.info(f"{cache.hits} of {len(pairs)} pair estimates taken from {cache.path}")
-    loops = _solve(frameset, parts, pairs, config, reporter)
+    loops = _solve(frameset, parts, pairs, config, reporter, solve_anchors(frameset, config, reporter, gcps, gcp_image_width))
     gains = _gains(frameset, pairs, config, reporter)
     _plan_canvases(frameset, parts, output, config)
     staged = StagedFiles()  # the images of every part appear together, or none of them does
@@ -590,18 +596,38 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
     return results
 
 
-def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], config: MosaicConfig, reporter: Reporter) -> dict[str, Any]:
-    """Global solve per part; fills every pair's consistency figures and returns the loop summaries."""
+def solve_anchors(frameset: FrameSet, config: MosaicConfig, reporter: Reporter, gcps=None, gcp_image_width: int | None = None,
+                  leave_out: str | None = None) -> Anchors | None:
+    """The anchors of the global solve: ground-control observations (``config.gcp_sigma_m``), GPS fixes
+    (``config.gps_sigma_m``), or both when they share a CRS; None for none. ``leave_out``: a ground-control
+    point to leave out (checking it honestly)."""
+    sizes = [f.size for f in frameset.frames]
+    found = None
+    if config.gcp_sigma_m > 0 and gcps is not None:
+        frames = {f.name: (f.index, f.size) for f in frameset.frames}
+        found = gcp_anchors(gcps, frames, config.gcp_sigma_m, gcp_image_width, leave_out)
+    if config.gps_sigma_m > 0:
+        fixes = {f.index: (f.metadata.latitude, f.metadata.longitude) for f in frameset.frames if f.metadata is not None and f.metadata.has_gps}
+        if not fixes:
+            reporter.warn(f"--gps-sigma {config.gps_sigma_m}: no frame carries GPS; the solve does without it")
+        else:
+            epsg, points = to_utm(np.array([v[0] for v in fixes.values()]), np.array([v[1] for v in fixes.values()]))
+            gps = Anchors.frame_centres(dict(zip(fixes, points)), sizes, config.gps_sigma_m)
+            if found is not None and epsg != gcps.epsg:
+                reporter.warn(f"--gps-sigma: the GPS fixes are in EPSG:{epsg}, the ground-control points in EPSG:{gcps.epsg}; "
+                              "the solve is anchored by the ground-control points alone")
+            else:
+                found = gps if found is None else found + gps
+    return found
+
+
+def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], config: MosaicConfig, reporter: Reporter,
+           anchors: Anchors | None = None) -> dict[str, Any]:
+    """Global solve per part (with ``anchors``, :func:`solve_anchors`); fills every pair's consistency figures
+    and returns the loop summaries."""
     sizes = [f.size for f in frameset.frames]
     loops_before, loops_after, all_after = [], [], []
     multi = [p for p in parts if len(p.frames) > 1]
-    anchors = None
-    if config.gps_sigma_m > 0:
-        fixes = {f.index: (f.metadata.latitude, f.metadata.longitude) for f in frameset.frames if f.metadata is not None and f.metadata.has_gps}
-        if fixes:
-            anchors = Anchors(ground_positions(fixes), config.gps_sigma_m)
-        else:
-            reporter.warn(f"--gps-sigma {config.gps_sigma_m}: no frame carries GPS; the solve uses the pairs alone")
     with reporter.stage("global solve", len(multi)) as advance:
         for part in multi:
             members = set(part.frames)

@@ -112,11 +112,15 @@ class Cascade(Estimator):
     """
 
     verifies_itself: ClassVar[bool] = True
-    name: str = "cascade"
-    start: Estimator = field(default=None)  # type: ignore[assignment]
+    name: str = "cascade"  # a default only because Estimator.name is one; build() always names it
+    start: Estimator | None = None
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     opinions: tuple[Opinion, ...] = ()
     policy: Policy = field(default_factory=Policy)
+
+    def __post_init__(self) -> None:
+        if self.start is None:
+            raise ValueError("Cascade: give the estimator that starts it (start=...)")
 
     def settings(self) -> dict[str, Any]:
         def described(estimator: Estimator) -> dict[str, Any]:

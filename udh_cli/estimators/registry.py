@@ -110,7 +110,7 @@ def create_estimator(name: str, **options: Any) -> Estimator:
         raise UdhError(f"method '{name}' does not take {', '.join(unknown)}; it takes: {', '.join(accepted) or 'no options'}")
     _check_option_types(name, cls, options)
     made = cls(**options)
-    return made.build() if hasattr(made, "build") else made
+    return made if isinstance(made, Estimator) else made.build()  # an options record composes its estimator
 
 
 _SIMPLE_TYPES = (bool, int, float, str, type(None))

@@ -30,6 +30,9 @@ GRID_POINTS = 3  # per side: 9 correspondences per pair
 # bend the mosaic. On copr's ground-control points, least squares instead (no Huber) pulled the mosaic 0.6 m
 # closer to the points it was given but 0.4 m further from each point left out (docs/mosaic.md).
 ANCHOR_HUBER_SIGMAS = 2.0
+# Refits of the anchors' ground similarity: fitted to the chained centres alone, its scale and heading carry the
+# chain's drift (seneca with GPS bridges: 46 m RMS from the fixes with one fit, 41 m with four; more changed nothing).
+ANCHOR_ROUNDS = 4
 MIN_ANCHORS = 3  # anchors a part needs before they join its solve: two fix a similarity exactly, a third checks it
 
 
@@ -190,7 +193,7 @@ def solve_part(
         anchor_slots = np.array([slot[i] for i in anchor_frames])
         centres = np.stack([geometry.transform_points(normalisers[i], anchors.pixels[row][None])
                             for i, row in zip(anchor_frames, anchored)])  # A, 1, 2 in each frame's normalised coordinates
-        ground = fit_similarity(_project_with_jacobian(params[anchor_slots], centres)[0][:, 0], targets)[:2]  # 2 x 3, fixed
+        ground = fit_similarity(_project_with_jacobian(params[anchor_slots], centres)[0][:, 0], targets)[:2]  # 2 x 3
 
     def anchor_terms(current: np.ndarray):
         """Anchor residuals (A, 2) and their Jacobians for the frames (A, 2, 8)."""
@@ -239,34 +242,44 @@ def solve_part(
         system = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(8 * free, 8 * free))
         return system, gradient[:free].ravel()
 
-    damping = 1e-3
-    cost = cost_of(params)
-    system, gradient = normal_equations(params)
-    for _ in range(iterations):
-        diagonal = system.diagonal() + 1e-12
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", sparse_linalg.MatrixRankWarning)
-            try:
-                step = sparse_linalg.spsolve((system + sparse.diags(damping * diagonal)).tocsc(), -gradient)
-            except (sparse_linalg.MatrixRankWarning, RuntimeError):
-                step = None
-        if step is None or not np.isfinite(step).all():
-            damping *= 10
-            continue
-        trial = params.copy()
-        trial[:free] += step.reshape(free, 8)
-        trial_cost = cost_of(trial)
-        if trial_cost < cost:
-            improvement = (cost - trial_cost) / max(cost, 1e-30)
-            params, cost = trial, trial_cost
-            system, gradient = normal_equations(params)
-            damping = max(damping / 3, 1e-9)
-            if improvement < 1e-10:
-                break
-        else:
-            damping *= 5
-            if damping > 1e8:
-                break
+    def optimise(params: np.ndarray) -> np.ndarray:
+        """Levenberg-Marquardt from ``params``, with the current ``ground`` similarity."""
+        damping = 1e-3
+        cost = cost_of(params)
+        system, gradient = normal_equations(params)
+        for _ in range(iterations):
+            diagonal = system.diagonal() + 1e-12
+            with warnings.catch_warnings():
+                warnings.simplefilter("error", sparse_linalg.MatrixRankWarning)
+                try:
+                    step = sparse_linalg.spsolve((system + sparse.diags(damping * diagonal)).tocsc(), -gradient)
+                except (sparse_linalg.MatrixRankWarning, RuntimeError):
+                    step = None
+            if step is None or not np.isfinite(step).all():
+                damping *= 10
+                continue
+            trial = params.copy()
+            trial[:free] += step.reshape(free, 8)
+            trial_cost = cost_of(trial)
+            if trial_cost < cost:
+                improvement = (cost - trial_cost) / max(cost, 1e-30)
+                params, cost = trial, trial_cost
+                system, gradient = normal_equations(params)
+                damping = max(damping / 3, 1e-9)
+                if improvement < 1e-10:
+                    break
+            else:
+                damping *= 5
+                if damping > 1e8:
+                    break
+        return params
+
+    params = optimise(params)
+    for _ in range(ANCHOR_ROUNDS - 1 if anchored else 0):
+        # The similarity was fitted to the chained centres, which drift; refitted to the solved ones, it lets
+        # the frames settle at the scale and heading their pairs allow (block coordinate descent).
+        ground = fit_similarity(_project_with_jacobian(params[anchor_slots], centres)[0][:, 0], targets)[:2]
+        params = optimise(params)
     out = {}
     for i in initial:
         g = np.append(params[slot[i]], 1.0).reshape(3, 3)

@@ -322,8 +322,10 @@ def mosaic(
     """Stitch a folder of UAV frames (or a video) into one mosaic, drift-free, with any estimator."""
     from udh_cli.mosaic import FollowConfig, Reporter, run_live, run_mosaic
 
+    # -O reaches the method and the fallback alike: METHOD.KEY for one of them, a bare KEY for each that takes it.
+    options = parse_method_options(method_option, [method.value, *([fallback] if fallback and fallback != method.value else [])])
     config = _MosaicConfig(
-        method=method.value, fallback=fallback, method_options=parse_method_options(method_option, [method.value]).get(method.value, {}), work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
+        method=method.value, fallback=fallback, method_options=options.get(method.value, {}), fallback_options=options.get(fallback, {}) if fallback else {}, work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
         blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, gps_sigma_m=gps_sigma, gcp_sigma_m=gcp_sigma, workers=workers, scheduler=scheduler,
     )
     reporter = Reporter(console=err_console, progress=not quiet)

@@ -193,3 +193,21 @@ def test_the_pair_cache_knows_both_networks_of_a_cascade_inside_auto():
     assert files(precision="fp32") == {"udh-unsupervised.onnx", "udh-unsupervised-refine.onnx"} | {f.replace("-int8", "") for f in flight}
     # The default and an explicit int8 are the same estimator: a resumed mosaic keeps its pairs.
     assert estimator_identity(create_estimator("auto")) == estimator_identity(create_estimator("auto", precision="int8"))
+
+
+def test_options_reach_the_fallback_in_the_one_syntax(small_flight, tmp_path, monkeypatch):
+    """udh mosaic -O: METHOD.KEY reaches that method, the fallback included; the sidecar records what ran."""
+    import sys
+
+    from udh_cli import cli
+
+    out = tmp_path / "m.png"
+    args = ["udh", "mosaic", str(small_flight), "-o", str(out), "-m", "orb", "--fallback", "sift", "-O", "sift.best_features=300",
+            "-O", "orb.orb_features=800", "--overlap-pairs", "0", "-q"]
+    monkeypatch.setattr(sys, "argv", args)
+    with pytest.raises(SystemExit) as stop:
+        cli.main()
+    assert stop.value.code == 0
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["fallback_settings"]["best_features"] == 300 and sidecar["method_settings"]["orb_features"] == 800
+    assert sidecar["config"]["fallback_options"] == {"best_features": 300}

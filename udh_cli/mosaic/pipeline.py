@@ -55,6 +55,7 @@ class MosaicConfig:
         method: registered estimator name for every pair.
         fallback: registered estimator name for pairs ``method`` fails or doubts; ``None`` for none.
         method_options: keyword options for ``create_estimator(method, ...)``, e.g. ``{"model": "x.onnx"}``.
+        fallback_options: the same for ``fallback``.
         work_size: longest side, pixels, of the copies the estimators see.
         order: frame order in a folder: ``"name"`` or ``"time"`` (EXIF capture time).
         every: for a video, keep every N-th frame.
@@ -82,6 +83,7 @@ class MosaicConfig:
     method: str = DEFAULT_METHOD
     fallback: str | None = None
     method_options: dict[str, Any] = field(default_factory=dict)
+    fallback_options: dict[str, Any] = field(default_factory=dict)
     work_size: int = 800
     order: str = "name"
     every: int = 1
@@ -253,9 +255,9 @@ def run_mosaic(
     # Workers build the estimators from their names; estimators handed over as instances run here.
     method_options = mosaic_method_options(config.method, config.method_options)
     spec = None if estimator is not None or fallback is not None else \
-        EstimatorSpec(config.method, method_options, config.fallback, acceptance(config))
+        EstimatorSpec(config.method, method_options, config.fallback, acceptance(config), dict(config.fallback_options))
     estimator = estimator or create_estimator(config.method, **method_options)
-    fallback = fallback or (create_estimator(config.fallback) if config.fallback else None)
+    fallback = fallback or (create_estimator(config.fallback, **config.fallback_options) if config.fallback else None)
 
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter)
     frames = frameset.frames
@@ -780,6 +782,7 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, esti
         "method": estimator.name,
         "method_settings": estimator_identity(estimator)["settings"],  # with the mosaic's defaults (search)
         "fallback": None if fallback is None else fallback.name,
+        "fallback_settings": None if fallback is None else estimator_identity(fallback)["settings"],
         "config": {k: v for k, v in asdict(config).items() if k not in ("method", "fallback")},
         # 16-bit or float frames: the grey range drawn as 0-255 in the 8-bit mosaic (fractions of the type's maximum)
         "display_range": None if frameset.value_range is None else {"low": frameset.value_range[0], "high": frameset.value_range[1]},

@@ -288,3 +288,9 @@ def test_estimate_takes_method_options_in_the_one_syntax(files):
     assert also["homography"] == few["homography"]
     wrong = CliRunner().invoke(cli.app, ["estimate", a, b, "-m", "sift", "-O", "iterations=3"])
     assert wrong.exit_code == 1 and "no method here takes 'iterations'" in str(wrong.exception)
+
+
+def test_a_bad_option_still_prints_one_json_object(files):
+    result = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(files["b16.png"]), "-m", "sift", "-O", "iterations=3", "--json"])
+    payload = json.loads(result.stdout)
+    assert payload["ok"] is False and payload["exit_code"] == 1 and "iterations" in payload["failure"]

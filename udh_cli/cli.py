@@ -100,9 +100,9 @@ def estimate(
              "refine_model": None if refine_model is None else str(refine_model), "refine_rounds": refine_rounds, "search": search,
              "precision": precision, "headings": headings, "tiles": tiles,
              "flight_model": None if flight_model is None else ("" if flight_model.lower() == "none" else flight_model)}
-    options = {**parse_method_options(option, [method.value]).get(method.value, {}),
-               **{key: value for key, value in given.items() if value is not None}}
     try:
+        options = {**parse_method_options(option, [method.value]).get(method.value, {}),
+                   **{key: value for key, value in given.items() if value is not None}}
         report = estimate_report(image_a, image_b, method.value, gt=gt, viz=viz, work_size=None if full_resolution else work_size, **options)
     except UdhError as exc:
         if json_output:  # scripts read stdout: one object, whatever happened

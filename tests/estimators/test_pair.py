@@ -74,3 +74,15 @@ def test_auto_converts_each_image_to_grey_once(conversions):
     hard = auto.estimate(unrelated_a, unrelated_b)
     assert {"fallback", "escalated", "mirrored", "flipped", "swapped"} <= set(hard.details)
     assert len(conversions) == 2
+
+
+def test_a_prepared_image_sent_to_another_process_keeps_its_pixels_and_stays_read_only():
+    import pickle
+
+    prepared = PreparedImage.of(textured_image(320, 240, seed=4))
+    prepared.resized((160, 120))
+    copy = pickle.loads(pickle.dumps(prepared, protocol=4))  # the multiprocessing default
+    np.testing.assert_array_equal(copy.grey, prepared.grey)
+    assert copy.source_dtype == np.uint8 and copy._cache == {}  # the copies are remade, not sent
+    with pytest.raises(ValueError):
+        copy.grey[0, 0] = 1.0

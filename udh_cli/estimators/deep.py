@@ -22,10 +22,10 @@ from udh_cli.estimators.verify import Verifier
 DEFAULT_ITERATIONS = 2  # coarse rounds
 DEFAULT_REFINE_ROUNDS = 2  # measured on the held-out rho-32 bench (models/README.md)
 SEARCH_FINALISTS = 3  # large-motion search: hypotheses of a pair that get the whole cascade after screening
-# How the networks judge their own answers, on their S x S input: the one Verifier, whole (a tile of a 4 x 4 grid
-# at 128 px holds too few pixels to correlate) and with at least 30 % overlap: the check that the heading
-# choice, the search and its search_below were tuned with.
-NETWORK_CHECK = Verifier(side=128, tiles=1, min_overlap=0.3)
+# How the networks judge their own answers, on their S x S input (Verifier.score_grey, at the size given): the
+# one Verifier, whole (a tile of a 4 x 4 grid at 128 px holds too few pixels to correlate) and with at least
+# 30 % overlap: the check that the heading choice, the search and its search_below were tuned with.
+NETWORK_CHECK = Verifier(tiles=1, min_overlap=0.3)
 
 
 @dataclass

@@ -85,6 +85,13 @@ class PreparedImage:
             self._cache["u8"] = _read_only(np.clip(grey * 255.0 + 0.5, 0, 255).astype(np.uint8))
         return self._cache["u8"]
 
+    def __getstate__(self) -> dict:
+        # Sent to another process: the grey image only (the copies are cheaper to remake than to send).
+        return {"grey": np.array(self.grey), "source_dtype": self.source_dtype}
+
+    def __setstate__(self, state: dict) -> None:
+        self.grey, self.source_dtype, self._cache = _read_only(state["grey"]), state["source_dtype"], {}
+
     def flipped(self, code: int) -> "PreparedImage":
         """A new prepared image of the mirrored (``code`` 1) or upside-down (0) picture (``cv2.flip`` codes).
         Converting to grey is per pixel, so this equals preparing the flipped original."""

@@ -263,13 +263,16 @@ class UnsupervisedEccOptions:
     fallback: str | None = None
     fallback_options: dict[str, Any] | None = None
     views: tuple[str, ...] = ()
-    min_score: float = 0.7
-    trusted_inliers: int = 20
+    min_score: float = Policy.min_score
+    trusted_inliers: int = Policy.trusted_inliers
 
     def build(self) -> Cascade:
         """The :class:`Cascade` these options describe (networks and fallback loaded once here)."""
         if self.initial not in LEARNED_STARTS:
             raise UdhError(f"method '{self.name}': initial '{self.initial}' must be a network: {', '.join(LEARNED_STARTS)}")
+        if not isinstance(self.refiner, PyramidEcc):
+            raise UdhError(f"method '{self.name}': refiner takes a PyramidEcc (udh_cli.estimators.refine), not {self.refiner!r}; "
+                           "its settings are not command-line options")
         if isinstance(self.views, str) or not all(isinstance(view, str) for view in self.views):
             raise UdhError(f"method '{self.name}': views takes a list of names ({', '.join(VIEWS)}), not {self.views!r}")
         try:

@@ -463,6 +463,8 @@ def _georeference_by_gcps(frameset: FrameSet, parts: list[Part], report: dict[st
             reporter.warn(f"{part.file.name}: not georeferenced: {exc}")
             continue
         by_number[part.number]["georeference"] = found.to_json()
+        in_solve = report["config"].get("gcp_sigma_m", 0.0) > 0  # then a checkpoint left out of the fit was still in the solve
+        by_number[part.number]["georeference"]["gcp_points_in_solve"] = in_solve
         for name, point in found.points.items():
             if not point["used"]:
                 reporter.warn(f"{name}: contradicts the other ground-control points ({point['checkpoint_m']:.1f} m off when left out); "
@@ -472,7 +474,8 @@ def _georeference_by_gcps(frameset: FrameSet, parts: list[Part], report: dict[st
         _write_georeference(part, found, staged, by_number[part.number], reporter)
         used = sum(p["used"] for p in found.points.values())
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} by {used} ground-control points, "
-                      f"{found.checkpoint_rms_m:.2f} m RMS at checkpoints (each point left out in turn)")
+                      f"{found.checkpoint_rms_m:.2f} m RMS at checkpoints (each point left out of the fit in turn"
+                      + ("; optimistic, as the points also anchor the solve)" if in_solve else ")"))
 
 
 def _relative_to(path: Path, folder: Path) -> str:
@@ -605,6 +608,8 @@ def solve_anchors(frameset: FrameSet, config: MosaicConfig, reporter: Reporter, 
     point to leave out (checking it honestly)."""
     sizes = [f.size for f in frameset.frames]
     found = None
+    if config.gcp_sigma_m > 0 and gcps is None:
+        reporter.warn(f"--gcp-sigma {config.gcp_sigma_m}: no ground-control file (--gcp); the solve does without it")
     if config.gcp_sigma_m > 0 and gcps is not None:
         frames = {f.name: (f.index, f.size) for f in frameset.frames}
         found = gcp_anchors(gcps, frames, config.gcp_sigma_m, gcp_image_width, leave_out)
@@ -642,7 +647,8 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
             for i, residual in dropped.items():  # loop pairs the other pairs contradict
                 inside[i].consistency_px = {"before": pair_rms_px(part.chained, points[i]), "after": residual, "loop": True}
                 inside[i].status, inside[i].b_from_a = "rejected", None
-                inside[i].reason = f"contradicted by the other pairs: {residual:.1f} px from the joint solution, which improved without it"
+                inside[i].reason = (f"contradicted by the other pairs{' and the anchors' if anchors is not None else ''}: "
+                                    f"{residual:.1f} px from the joint solution, which improved without it")
             inside = [p for i, p in enumerate(inside) if i not in dropped]
             points = [p for i, p in enumerate(points) if i not in dropped]
             for pair, pts in zip(inside, points):

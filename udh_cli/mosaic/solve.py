@@ -7,6 +7,9 @@ reference (held at the identity, which fixes the gauge) minimising the Huber-rob
 parameterised by 8 entries (h33 = 1) in Hartley-normalised coordinates, so the normal equations are well
 conditioned. They are 8 (N - 1) square but sparse (a pair ties two frames), and are assembled and solved
 with scipy's sparse matrices, so memory and time grow with the pairs, not with N squared.
+
+With anchors (GPS fixes, ground-control marks: :class:`Anchors`) every frame is free, the reference too; the
+anchors fix the plane instead, and the answer is expressed relative to the reference again (:func:`solve_part`).
 """
 
 from __future__ import annotations
@@ -33,7 +36,14 @@ ANCHOR_HUBER_SIGMAS = 2.0
 # Refits of the anchors' ground similarity: fitted to the chained centres alone, its scale and heading carry the
 # chain's drift (seneca with GPS bridges: 46 m RMS from the fixes with one fit, 41 m with four; more changed nothing).
 ANCHOR_ROUNDS = 4
-MIN_ANCHORS = 3  # anchors a part needs before they join its solve: two fix a similarity exactly, a third checks it
+# Anchors join a part's solve only when they lie on at least this many frames whose positions span an area (not
+# a line). With every frame free, the pairs alone would let the plane shrink or shear; a few anchors cannot hold
+# all of its 8 degrees of freedom: 4 tight anchors at a survey's corners let a test survey blow up to 1e5 px.
+MIN_ANCHOR_FRAMES = 5
+MIN_ANCHOR_SPREAD = 0.05  # the anchored positions' smaller principal extent, as a share of the larger
+# An anchored solution whose pairs disagree by more than this many Huber widths on average is a collapse, not a
+# compromise with the anchors (seneca's anchored pairs: 3.8 px mean): the part is solved from its pairs alone.
+MAX_ANCHORED_PAIR_WIDTHS = 10.0
 
 
 @dataclass(frozen=True)
@@ -149,7 +159,7 @@ def solve_part(
         points: correspondences of every accepted pair inside the part.
         huber_px: residuals beyond this many reference pixels count linearly (robust to bad pairs).
         anchors: map positions of points of the part's frames, GPS fixes or ground-control observations (used
-            when at least :data:`MIN_ANCHORS` are in the part).
+            when they are on at least :data:`MIN_ANCHOR_FRAMES` frames of the part spread over an area).
             Why: the pairs fix every frame relative to its neighbours, but leave the part free to bend by an
             almost global homography that only the reference frame's own pairs resist: the projective drift
             of long chains, invisible in their loop consistency. The fixes lie on the flat ground, where the
@@ -163,7 +173,7 @@ def solve_part(
     """
     frames = [i for i in sorted(initial) if i != reference]
     anchored = [] if anchors is None else [row for row, frame in enumerate(anchors.frames) if int(frame) in initial]
-    if len(anchored) < MIN_ANCHORS:
+    if anchored and not _anchors_hold(anchors, anchored):
         anchored = []
     if not frames or not (points or anchored):
         return dict(initial)
@@ -284,12 +294,24 @@ def solve_part(
     for i in initial:
         g = np.append(params[slot[i]], 1.0).reshape(3, 3)
         out[i] = np.linalg.inv(t_ref) @ g @ normalisers[i]
-    back = np.linalg.inv(out[reference])  # identity unless the anchors moved the reference too
-    for i in out:
-        h = back @ out[i]
-        out[i] = h / h[2, 2]
+    if anchored:  # the reference moved with the others: express every frame relative to it again
+        back = np.linalg.inv(out[reference])
+        for i in out:
+            h = back @ out[i]
+            out[i] = h / h[2, 2]
+        if points and np.mean([pair_rms_px(out, p) for p in points]) > MAX_ANCHORED_PAIR_WIDTHS * huber_px:
+            return solve_part(reference, initial, sizes, points, huber_px, iterations)
     out[reference] = np.eye(3)
     return out
+
+
+def _anchors_hold(anchors: Anchors, rows: list[int]) -> bool:
+    """Whether anchors ``rows`` lie on :data:`MIN_ANCHOR_FRAMES` frames or more, spread over an area."""
+    if len({int(anchors.frames[r]) for r in rows}) < MIN_ANCHOR_FRAMES:
+        return False
+    positions = anchors.positions[rows]
+    extent = np.linalg.svd(positions - positions.mean(0), compute_uv=False)
+    return bool(extent[0] > 0 and extent[-1] >= MIN_ANCHOR_SPREAD * extent[0])
 
 
 def solve_with_rejection(

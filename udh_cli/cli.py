@@ -480,7 +480,7 @@ def _run() -> None:
             sys.exit(exc.exit_code)
         if _state["debug"]:
             raise
-        _fail(f"internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)", 1)
+        _fail(f"internal error: {type(exc).__name__}: {exc} (rerun as 'udh --debug ...' for details)", 1)
     if code == INTERRUPTED:  # Typer turns Ctrl-C into a quiet exit code 130; say what happened
         _fail("interrupted", INTERRUPTED)
     sys.exit(code if isinstance(code, int) else 0)

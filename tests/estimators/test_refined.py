@@ -445,6 +445,7 @@ def test_the_fallback_takes_its_role_options_unless_given_its_own():
     ({"min_score": 0.0}, r"must be in \(0, 1\]"),
     ({"initial": "identity"}, "must be a network: unsupervised, supervised"),
     ({"refiner": 3}, "refiner takes a PyramidEcc"),
+    ({"fallback_options": "abc"}, "fallback_options takes the fallback's options as a JSON object"),
 ])
 def test_bad_auto_options_fail_when_it_is_made(options, message):
     from udh_cli.errors import UdhError

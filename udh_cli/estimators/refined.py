@@ -270,6 +270,9 @@ class UnsupervisedEccOptions:
         """The :class:`Cascade` these options describe (networks and fallback loaded once here)."""
         if self.initial not in LEARNED_STARTS:
             raise UdhError(f"method '{self.name}': initial '{self.initial}' must be a network: {', '.join(LEARNED_STARTS)}")
+        if self.fallback_options is not None and not isinstance(self.fallback_options, dict):
+            raise UdhError(f"method '{self.name}': fallback_options takes the fallback's options as a JSON object, "
+                           f"e.g. -O 'fallback_options={{\"ratio\": 0.8}}', not {self.fallback_options!r}")
         if not isinstance(self.refiner, PyramidEcc):
             raise UdhError(f"method '{self.name}': refiner takes a PyramidEcc (udh_cli.estimators.refine), not {self.refiner!r}; "
                            "its settings are not command-line options")

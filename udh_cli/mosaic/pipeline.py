@@ -181,6 +181,8 @@ def check_config(config: MosaicConfig) -> None:
         raise UdhError(f"--gps-sigma {config.gps_sigma_m}: give the GPS fixes' error in metres (e.g. 3), or 0 for off")
     if not (config.gcp_sigma_m >= 0 and math.isfinite(config.gcp_sigma_m)):
         raise UdhError(f"--gcp-sigma {config.gcp_sigma_m}: give the ground-control points' error in metres (e.g. 0.05), or 0 for off")
+    if config.gps_sigma_m > 0 and importlib.util.find_spec("pyproj") is None:  # fail before the pairs, not after
+        raise UdhError("--gps-sigma needs pyproj to put the GPS fixes on a map: pip install pyproj (or pip install '.[geo]')")
     if config.every < 1 or config.overlap_per_frame < 0 or config.gps_pairs < 0:
         raise UdhError("--every must be at least 1, and --overlap-pairs and --gps-pairs at least 0")
 

@@ -163,10 +163,12 @@ def solve_part(
             Why: the pairs fix every frame relative to its neighbours, but leave the part free to bend by an
             almost global homography that only the reference frame's own pairs resist: the projective drift
             of long chains, invisible in their loop consistency. The fixes lie on the flat ground, where the
-            map is a similarity. So with anchors the frames are solved in a plane that a fixed similarity
-            (fitted to the chained centres first) maps onto the fixes, each frame's centre pulled towards its
-            fix, the reference frame free like the others; the solution is then expressed in the reference
-            frame's pixels again.
+            map is a similarity. So with anchors the frames are solved in a plane that a similarity (fitted
+            to the chained centres, then refitted to the solved ones, :data:`ANCHOR_ROUNDS`) maps onto the
+            fixes, each anchored point pulled towards its position, the reference frame free like the others;
+            the solution is then expressed in the reference frame's pixels again. A solution whose pairs
+            disagree by :data:`MAX_ANCHORED_PAIR_WIDTHS` Huber widths on average is a collapse, and the part is
+            solved from its pairs alone.
 
     Returns:
         frame -> refined ``ref_from_frame`` (3, 3), h33 = 1; the reference stays the identity.

@@ -15,7 +15,7 @@ import argparse
 import time
 from pathlib import Path
 
-from udh_cli.estimators.registry import parse_key_value
+from udh_cli.estimators.registry import parse_method_options
 from udh_cli.mosaic import MosaicConfig, run_mosaic
 
 
@@ -28,13 +28,9 @@ def main() -> None:
     parser.add_argument("flights", type=Path, nargs="+")
     parser.add_argument("--methods", default="unsupervised,auto,sift")
     parser.add_argument("--out", type=Path, default=Path("flight-mosaics"))
-    parser.add_argument("-O", "--option", action="append", default=[], help="METHOD.KEY=VALUE")
+    parser.add_argument("-O", "--option", action="append", default=[], help="[METHOD.]KEY=VALUE, as in udh mosaic")
     args = parser.parse_args()
-    options: dict[str, dict] = {}
-    for item in args.option:
-        method, _, rest = item.partition(".")
-        key, value = parse_key_value(rest)
-        options.setdefault(method, {})[key] = value
+    options = parse_method_options(args.option, args.methods.split(","))
     args.out.mkdir(parents=True, exist_ok=True)
     print("| flight | method | placed | parts | loop consistency after solve (mean / max px) | loops | time (s) |")
     print("|---|---|---:|---:|---|---:|---:|")

@@ -10,7 +10,7 @@ import pytest
 
 from conftest import textured_image, warped_pair
 from udh_cli import geometry, images
-from udh_cli.estimators import create_estimator
+from udh_cli.estimators import create_estimator, estimator_names
 from udh_cli.estimators.pair import PreparedImage, PreparedPair
 
 
@@ -86,3 +86,13 @@ def test_a_prepared_image_sent_to_another_process_keeps_its_pixels_and_stays_rea
     assert copy.source_dtype == np.uint8 and copy._cache == {}  # the copies are remade, not sent
     with pytest.raises(ValueError):
         copy.grey[0, 0] = 1.0
+
+
+@pytest.mark.parametrize("name", estimator_names())
+def test_every_method_converts_each_image_once(name, conversions):
+    estimator = create_estimator(name)
+    truth = np.array([[1.0, 0.01, 6.0], [-0.01, 1.0, -4.0], [0.0, 0.0, 1.0]])
+    a, b = warped_pair(truth, 320, 240, seed=11)
+    conversions.clear()
+    estimator.estimate(a, b)
+    assert len(conversions) == 2

@@ -192,8 +192,7 @@ class DeepEstimator(Estimator):
             return []
         start = time.perf_counter()
         s = self.network.input_size
-        small_a = np.stack([pair.square(s)[0] for pair in pairs])
-        small_b = np.stack([pair.square(s)[1] for pair in pairs])
+        small_a, small_b = (np.stack(side) for side in zip(*(pair.square(s) for pair in pairs)))
         prepared = time.perf_counter()
         small_h, scores = self._predict_headings(small_a, small_b)
         coarse = time.perf_counter()

@@ -47,13 +47,13 @@ class GroundScale:
     pairs_used: int
 
 
-def ground_positions(latitudes_longitudes: dict[int, tuple[float, float]]) -> dict[int, np.ndarray]:
-    """Frame index -> (easting, northing) metres in the UTM zone of the median position (pyproj)."""
+def ground_positions(latitudes_longitudes: dict[int, tuple[float, float]]) -> tuple[int, dict[int, np.ndarray]]:
+    """``(EPSG code, frame index -> (easting, northing) metres)`` in the UTM zone of the median position (pyproj)."""
     if not latitudes_longitudes:
-        return {}
+        return 0, {}
     indices = sorted(latitudes_longitudes)
-    _, points = to_utm(np.array([latitudes_longitudes[i][0] for i in indices]), np.array([latitudes_longitudes[i][1] for i in indices]))
-    return dict(zip(indices, points))
+    epsg, points = to_utm(np.array([latitudes_longitudes[i][0] for i in indices]), np.array([latitudes_longitudes[i][1] for i in indices]))
+    return epsg, dict(zip(indices, points))
 
 
 def centre_distance_px(b_from_a: np.ndarray, size_a: tuple[int, int], size_b: tuple[int, int]) -> float:

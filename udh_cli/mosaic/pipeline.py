@@ -34,7 +34,7 @@ from udh_cli.mosaic.follow import FollowConfig, follow_mosaic
 from udh_cli.mosaic.workers import EstimatorSpec, open_runner
 from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
                                       placement_error_m)
-from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, to_utm, world_file_path, world_file_text
+from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairs import Acceptance, PairRequest, PairResult
 from udh_cli.mosaic.pairwise import corner_disagreement_px, estimate_pairs
@@ -523,11 +523,11 @@ def _bridge_by_gps(frameset: FrameSet, parts: list[Part], pairs: list[PairResult
     frames = frameset.frames
     if config.gps_pairs < 1 or len(parts) < 2:
         return []
-    fixes = {f.index: (f.metadata.latitude, f.metadata.longitude) for f in frames if f.metadata is not None and f.metadata.has_gps}
+    fixes = _gps_fixes(frames)
     if len(fixes) < 2:
         return []
     try:
-        positions = ground_positions(fixes)
+        _, positions = ground_positions(fixes)
     except UdhError:  # no pyproj: the georeferencing step says how to install it
         return []
     sizes = [f.size for f in frames]
@@ -603,6 +603,11 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
     return results
 
 
+def _gps_fixes(frames) -> dict[int, tuple[float, float]]:
+    """Frame index -> (latitude, longitude) of every frame whose EXIF carries GPS."""
+    return {f.index: (f.metadata.latitude, f.metadata.longitude) for f in frames if f.metadata is not None and f.metadata.has_gps}
+
+
 def solve_anchors(frameset: FrameSet, config: MosaicConfig, reporter: Reporter, gcps=None, gcp_image_width: int | None = None,
                   leave_out: str | None = None) -> Anchors | None:
     """The anchors of the global solve: ground-control observations (``config.gcp_sigma_m``), GPS fixes
@@ -616,12 +621,12 @@ def solve_anchors(frameset: FrameSet, config: MosaicConfig, reporter: Reporter, 
         frames = {f.name: (f.index, f.size) for f in frameset.frames}
         found = gcp_anchors(gcps, frames, config.gcp_sigma_m, gcp_image_width, leave_out)
     if config.gps_sigma_m > 0:
-        fixes = {f.index: (f.metadata.latitude, f.metadata.longitude) for f in frameset.frames if f.metadata is not None and f.metadata.has_gps}
+        fixes = _gps_fixes(frameset.frames)
         if not fixes:
             reporter.warn(f"--gps-sigma {config.gps_sigma_m}: no frame carries GPS; the solve does without it")
         else:
-            epsg, points = to_utm(np.array([v[0] for v in fixes.values()]), np.array([v[1] for v in fixes.values()]))
-            gps = Anchors.frame_centres(dict(zip(fixes, points)), sizes, config.gps_sigma_m)
+            epsg, positions = ground_positions(fixes)
+            gps = Anchors.frame_centres(positions, sizes, config.gps_sigma_m)
             if found is not None and epsg != gcps.epsg:
                 reporter.warn(f"--gps-sigma: the GPS fixes are in EPSG:{epsg}, the ground-control points in EPSG:{gcps.epsg}; "
                               "the solve is anchored by the ground-control points alone")

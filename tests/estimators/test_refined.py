@@ -187,6 +187,18 @@ def test_auto_keeps_a_verified_answer_and_refined_alone_does_not_fall_back():
     assert not failed.ok and failed.confidence == 0.0
 
 
+def test_auto_starts_from_the_network_without_its_tile_stage_and_ecc_reaches_the_same_answer():
+    """ECC refines to full resolution anyway: the tile stage before it only cost time (docs/estimators.md)."""
+    a, b, truth = known_pair(7, spread=20.0)
+    plain, tiled = create_estimator("auto"), create_estimator("auto", tiles=True)
+    assert plain.start.tiles is False and tiled.start.tiles is True
+    found, found_tiled = plain.estimate(a, b), tiled.estimate(a, b)
+    assert found.stage == found_tiled.stage == "network"
+    assert "tile_levels" not in plain.start.estimate(a, b).details and "tile_levels" in tiled.start.estimate(a, b).details
+    assert geometry.mace(found.homography, truth, 320, 240) < 0.2
+    assert geometry.mace(found.homography, found_tiled.homography, 320, 240) < 0.05
+
+
 def test_textureless_images_give_a_clear_failure_not_an_answer():
     flat = np.full((240, 320), 128, np.uint8)
     estimate = cascade(create_estimator("identity")).estimate(flat, flat)

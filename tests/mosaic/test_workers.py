@@ -5,9 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from udh_cli import geometry
 from udh_cli.errors import UdhError
+from udh_cli.estimators import Estimator
 from udh_cli.mosaic import MosaicConfig, run_mosaic
-from udh_cli.mosaic.workers import in_order
+from udh_cli.mosaic.pairs import Acceptance
+from udh_cli.mosaic.workers import in_order, judge_opinions
+
+from conftest import textured_image
 
 
 @pytest.fixture(scope="module")
@@ -55,6 +60,31 @@ def test_a_pool_runs_the_fallback_inside_the_same_job_and_matches_this_process(f
     pooled = run_mosaic(flight, tmp_path / "pool.png", MosaicConfig(**{**config.__dict__, "workers": 2}))
     assert sum(len(p["estimates"]) == 2 for p in here["pairs"]) >= 1  # the fallback ran
     assert_same_pairs(pooled, here)
+
+
+class Fixed(Estimator):
+    """Answers a fixed shift with a fixed confidence, and counts the pairs it was asked about."""
+
+    verifies_itself = True  # the acceptance then judges by confidence alone
+
+    def __init__(self, name: str, confidence: float):
+        self.name, self.fixed_confidence, self.asked = name, confidence, 0
+
+    def _estimate(self, pair):
+        self.asked += 1
+        return geometry.translation(3.0, 0.0), self.fixed_confidence, {}
+
+
+def test_each_opinion_is_asked_only_about_the_pairs_every_earlier_one_left_doubted():
+    image = textured_image(96, 128, seed=1)
+    pairs = [(image, image)] * 3
+    doubtful, also_doubtful, sure, never = Fixed("a", 0.1), Fixed("b", 0.15), Fixed("c", 0.9), Fixed("d", 0.9)
+    attempts = judge_opinions([doubtful, also_doubtful, sure, never], Acceptance(min_confidence=0.2), pairs)
+    assert [opinion.asked for opinion in (doubtful, also_doubtful, sure, never)] == [3, 3, 3, 0]
+    for judged in attempts:
+        assert [estimate.method for estimate, _, _ in judged] == ["a", "b", "c"]
+        assert [doubt is None for _, _, doubt in judged] == [False, False, True]
+        assert judged[0][2] == "confidence 0.10 < 0.2"
 
 
 def test_an_unreachable_or_malformed_scheduler_and_no_workers_are_clear_errors(flight, tmp_path):

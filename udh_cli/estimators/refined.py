@@ -233,6 +233,9 @@ class UnsupervisedEccOptions:
             (see :class:`~udh_cli.estimators.deep.DeepEstimator`). ``iterations`` 1: one round of each network is
             enough ahead of ECC; always running the full cascade cost about 25 % more time (held-out rho 32,
             300 pairs). ``refine_rounds`` None: one round when the network has a refinement stage.
+        tiles: the network's own tile stage (:mod:`udh_cli.estimators.tiles`) before ECC. Off: ECC refines
+            to full resolution anyway, and the tile stage cost a quarter of ``auto``'s time for the same answers
+            (docs/estimators.md, "Why the settings").
         refiner: the ECC pyramid and its iteration budget.
         escalate: when the answer is still doubted after the fallback, rerun the network with its own default
             (longer) cascade, sharing its loaded networks: it rescues large-motion pairs at the cost of the few
@@ -258,6 +261,7 @@ class UnsupervisedEccOptions:
     refine_rounds: int | None = None
     search: int = 0
     precision: str | None = None
+    tiles: bool = False
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     escalate: bool = False
     fallback: str | None = None
@@ -289,7 +293,8 @@ class UnsupervisedEccOptions:
             refine_rounds = 1
         network = create_estimator(self.initial, model=self.model, device=self.device, threads=self.threads,
                                    iterations=self.iterations, refine_model=self.refine_model,
-                                   refine_rounds=refine_rounds, search=self.search, precision=self.precision)
+                                   refine_rounds=refine_rounds, search=self.search, precision=self.precision,
+                                   tiles=self.tiles)
         opinions = []
         if self.fallback:
             options = FALLBACK_OPTIONS.get(self.fallback, {}) if self.fallback_options is None else self.fallback_options

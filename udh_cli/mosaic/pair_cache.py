@@ -8,9 +8,9 @@ only when its key matches exactly; anything else is estimated again.
 A pair's key covers everything its estimate depends on:
 - both frames: file name, full-resolution size, and a digest of the working copy the estimator sees (so the
   file's content, EXIF orientation and ``work_size`` are all in it);
-- the method and the fallback: registry name, settings (dataclass fields) and the size and modification
-  time of any model file among them, so a retrained model is a different method;
-- the acceptance thresholds (they decide which estimates are accepted and when the fallback runs);
+- the opinions (the method, then the fallback): registry name, settings and the size and modification time
+  of any model file among them, so a retrained model is a different method;
+- the acceptance thresholds (they decide which estimates are accepted and when the next opinion is asked);
 - for pre-warped loop-closure pairs, the prior (the chained prediction B is warped with), exactly.
 """
 
@@ -89,8 +89,7 @@ class PairCache:
         cls,
         path: str | Path,
         frames: Sequence[Frame],
-        estimator: Estimator,
-        fallback: Estimator | None,
+        opinions: Sequence[Estimator],
         acceptance: Acceptance,
         resume: bool,
         reporter: Reporter,
@@ -104,8 +103,7 @@ class PairCache:
         """
         context = {
             "udh_version": __version__,  # a different release may estimate differently
-            "method": estimator_identity(estimator),
-            "fallback": estimator_identity(fallback),
+            "opinions": [estimator_identity(opinion) for opinion in opinions],
             "acceptance": {"min_confidence": float(acceptance.min_confidence), "min_verified": float(acceptance.min_verified)},
         }
         previous: dict[str, dict] = {}

@@ -1,5 +1,6 @@
-"""Pairwise estimation for the mosaic: batched through the estimators, at the working size, with a fallback
-method for pairs the first method fails or doubts, rescaled exactly to full resolution (types: :mod:`.pairs`)."""
+"""Pairwise estimation for the mosaic: batched through the estimators at the working size, each pair asked of the
+mosaic's opinions in order (its method, then ``--fallback``) until one is accepted, and rescaled exactly to
+full resolution (types: :mod:`.pairs`)."""
 
 from __future__ import annotations
 
@@ -18,8 +19,7 @@ from udh_cli.mosaic.workers import DaskRunner, LocalRunner, PoolRunner, in_order
 def estimate_pairs(
     requests: Sequence[PairRequest],
     frames: Sequence[Frame],
-    estimator: Estimator,
-    fallback: Estimator | None,
+    opinions: Sequence[Estimator],
     acceptance: Acceptance,
     reporter: Reporter,
     stage: str,
@@ -27,13 +27,12 @@ def estimate_pairs(
     cache: Any = None,
     runner: LocalRunner | PoolRunner | DaskRunner | None = None,
 ) -> list[PairResult]:
-    """Estimate every request; a failed or doubtful (see :class:`Acceptance`) pair is retried with
-    ``fallback``. Batches of ``batch_size`` pairs go to ``estimate_many`` so learned methods batch them.
+    """Estimate every request with the first of ``opinions``; a failed or doubtful (see :class:`Acceptance`) pair
+    is asked of the next. Batches of ``batch_size`` pairs go to ``estimate_pairs`` so learned methods batch them.
 
-    ``runner`` (:mod:`.workers`) runs the batches: in this process (the default, with ``estimator`` and
-    ``fallback``), in a process pool or on a Dask cluster, several at once, each with the estimators it builds
-    from their names (``estimator`` and ``fallback`` are then not used); results are taken in batch order, so
-    they are the same either way.
+    ``runner`` (:mod:`.workers`) runs the batches: in this process (the default, with ``opinions``), in a
+    process pool or on a Dask cluster, several at once, each with the estimators it builds from their names
+    (``opinions`` are then not used); results are taken in batch order, so they are the same either way.
 
     With a ``cache`` (a :class:`~udh_cli.mosaic.pair_cache.PairCache`, which depends on this stage's types, so it
     is not imported here), a request whose key the cache holds is
@@ -41,7 +40,7 @@ def estimate_pairs(
     batches in flight. Batches are cut from ``requests`` the same way with or without cached pairs, so a
     resumed run hands the estimator the same batches as an uninterrupted one.
     """
-    runner = runner or LocalRunner(estimator, fallback, acceptance)
+    runner = runner or LocalRunner(opinions, acceptance)
     results = [PairResult(r.a, r.b, r.kind, prior=r.prior) for r in requests]
     batches = []
     with reporter.stage(stage, len(requests)) as advance:
@@ -79,8 +78,8 @@ def estimate_pairs(
 
 
 def _apply(i: int, attempts, requests: Sequence[PairRequest], results: list[PairResult], frames: Sequence[Frame], undo) -> None:
-    """Record request ``i``'s judged attempts (:func:`.workers.judge_with_fallback`: the first method's, then
-    the fallback's when the first was doubted); ``undo`` maps the estimate back to full resolution."""
+    """Record request ``i``'s judged attempts (:func:`.workers.judge_opinions`: the first opinion's, then each
+    next one's while the answers were doubted); ``undo`` maps the estimate back to full resolution."""
     result = results[i]
     for estimate, verified, doubt in attempts:
         result.estimates.append(estimate)

@@ -53,7 +53,8 @@ class MosaicConfig:
 
     Attributes:
         method: registered estimator name for every pair.
-        fallback: registered estimator name for pairs ``method`` fails or doubts; ``None`` for none.
+        fallback: registered estimator name of the second opinion, asked about the pairs ``method`` fails or
+            doubts (:func:`.workers.judge_opinions`); ``None`` for none.
         method_options: keyword options for ``create_estimator(method, ...)``, e.g. ``{"model": "x.onnx"}``.
         fallback_options: the same for ``fallback``.
         work_size: longest side, pixels, of the copies the estimators see.
@@ -256,10 +257,12 @@ def run_mosaic(
     truth = _load_truth(source, ground_truth)
     # Workers build the estimators from their names; estimators handed over as instances run here.
     method_options = mosaic_method_options(config.method, config.method_options)
-    spec = None if estimator is not None or fallback is not None else \
-        EstimatorSpec(config.method, method_options, config.fallback, acceptance(config), dict(config.fallback_options))
+    # The opinions every pair is asked of, in order, while the answers are doubted: the method, then the fallback.
+    named = [(config.method, method_options)] + ([(config.fallback, dict(config.fallback_options))] if config.fallback else [])
+    spec = None if estimator is not None or fallback is not None else EstimatorSpec(tuple(named), acceptance(config))
     estimator = estimator or create_estimator(config.method, **method_options)
     fallback = fallback or (create_estimator(config.fallback, **config.fallback_options) if config.fallback else None)
+    opinions = (estimator,) if fallback is None else (estimator, fallback)
 
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter)
     frames = frameset.frames
@@ -270,18 +273,18 @@ def run_mosaic(
             raise UdhError(f"{gcp}: none of the images it names is among the frames of {source} (e.g. {missing[0]})")
         if missing:
             reporter.warn(f"{gcp}: {len(missing)} image(s) it names are not among the frames, their observations are skipped: {', '.join(missing[:5])}")
-    cache = PairCache.open(pair_cache_file, frames, estimator, fallback, acceptance(config), resume, reporter,
+    cache = PairCache.open(pair_cache_file, frames, opinions, acceptance(config), resume, reporter,
                            keep=resume or cache_dir is not None)
-    runner = open_runner(estimator, fallback, acceptance(config), spec, config.workers, config.scheduler, warn=reporter.warn)
+    runner = open_runner(opinions, acceptance(config), spec, config.workers, config.scheduler, warn=reporter.warn)
     aborted = True
     try:
-        pairs = _estimate_sequence(frameset, estimator, fallback, config, reporter, cache, runner)
+        pairs = _estimate_sequence(frameset, opinions, config, reporter, cache, runner)
         parts = _chain_parts(frameset, pairs)
-        bridged = _bridge_by_gps(frameset, parts, pairs, estimator, fallback, config, reporter, cache, runner)
+        bridged = _bridge_by_gps(frameset, parts, pairs, opinions, config, reporter, cache, runner)
         pairs += bridged
         if any(p.ok for p in bridged):
             parts = _chain_parts(frameset, pairs)
-        pairs += _close_loops(frameset, parts, pairs, estimator, fallback, config, reporter, cache, runner)
+        pairs += _close_loops(frameset, parts, pairs, opinions, config, reporter, cache, runner)
         aborted = False
     except KeyboardInterrupt:
         if cache.entries and cache.keep:
@@ -302,7 +305,7 @@ def run_mosaic(
         for part in parts:
             _composite_part(frameset, part, gains, config, reporter, staged)
         _warn_about_earlier_output(output, parts, reporter)
-        report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter, sidecar_path(output).parent)
+        report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, opinions, reporter, sidecar_path(output).parent)
         _georeference(frameset, parts, report, staged, reporter, gcps, gcp_image_width, output)
         report["pair_cache"] = _relative_to(cache.path, sidecar_path(output).parent) if cache.keep else None
         report["summary"]["pairs_from_cache"] = cache.hits
@@ -502,10 +505,10 @@ def _load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:
     return load_ground_truth(auto) if source.is_dir() and auto.is_file() else None
 
 
-def _estimate_sequence(frameset: FrameSet, estimator, fallback, config: MosaicConfig, reporter: Reporter, cache: PairCache, runner) -> list[PairResult]:
+def _estimate_sequence(frameset: FrameSet, opinions, config: MosaicConfig, reporter: Reporter, cache: PairCache, runner) -> list[PairResult]:
     """Consecutive pairs, then a bridge over each broken link (i-1 -> i+1 and i -> i+2)."""
     frames = frameset.frames
-    args = (frames, estimator, fallback, acceptance(config), reporter)
+    args = (frames, opinions, acceptance(config), reporter)
     pairs = estimate_pairs([PairRequest(i, i + 1, "consecutive") for i in range(len(frames) - 1)], *args, "consecutive pairs", config.batch_size, cache, runner)
     broken = [p for p in pairs if not p.ok]
     for pair in broken:
@@ -516,7 +519,7 @@ def _estimate_sequence(frameset: FrameSet, estimator, fallback, config: MosaicCo
     return pairs
 
 
-def _bridge_by_gps(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], estimator, fallback, config: MosaicConfig,
+def _bridge_by_gps(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], opinions, config: MosaicConfig,
                    reporter: Reporter, cache: PairCache, runner) -> list[PairResult]:
     """Pairs between parts (lone frames included) that GPS puts close together on the ground; an estimate that
     disagrees with GPS about the frames' distance is rejected (:mod:`.gps_pairs`)."""
@@ -539,7 +542,7 @@ def _bridge_by_gps(frameset: FrameSet, parts: list[Part], pairs: list[PairResult
     candidates = bridge_candidates(positions, [part.frames for part in parts], known, scale.reach_m, config.gps_pairs)
     if not candidates:
         return []
-    results = estimate_pairs([PairRequest(a, b, "gps") for a, b, _ in candidates], frames, estimator, fallback, acceptance(config),
+    results = estimate_pairs([PairRequest(a, b, "gps") for a, b, _ in candidates], frames, opinions, acceptance(config),
                              reporter, "GPS bridges between parts", config.batch_size, cache, runner)
     part_of = {i: part for part in parts for i in part.frames}
     placed = {id(part): part_map(positions, part.chained, sizes) for part in parts if len(part.frames) >= 3}
@@ -575,7 +578,7 @@ def _chain_parts(frameset: FrameSet, pairs: list[PairResult]) -> list[Part]:
     return parts
 
 
-def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], estimator, fallback, config: MosaicConfig, reporter: Reporter, cache: PairCache,
+def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], opinions, config: MosaicConfig, reporter: Reporter, cache: PairCache,
                  runner) -> list[PairResult]:
     """Estimate non-consecutive overlapping pairs, pre-warped by the chain; reject those that contradict it."""
     frames = frameset.frames
@@ -590,7 +593,7 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
             requests.append(PairRequest(a, b, "overlap", prior / prior[2, 2]))
     if not requests:
         return []
-    results = estimate_pairs(requests, frames, estimator, fallback, acceptance(config), reporter, "loop-closure pairs", config.batch_size, cache, runner)
+    results = estimate_pairs(requests, frames, opinions, acceptance(config), reporter, "loop-closure pairs", config.batch_size, cache, runner)
     for result in results:
         if not result.ok:
             continue
@@ -757,9 +760,10 @@ def _remove_stale_parts(output: Path, parts: list[Part], reporter: Reporter, rep
         reporter.info(f"removed {len(stale)} part files of an earlier run: {', '.join(p.name for p in stale)}")
 
 
-def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, estimator, fallback, reporter: Reporter,
+def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, opinions, reporter: Reporter,
              folder: Path) -> dict[str, Any]:
     """The sidecar's content; its paths are relative to ``folder``, where it is written."""
+    method, fallback = opinions[0], (opinions[1] if len(opinions) > 1 else None)
     frames = frameset.frames
     part_of = {i: part for part in parts for i in part.frames}
     dropped = {i: reason for part in parts for i, reason in part.dropped.items()}
@@ -792,8 +796,8 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, esti
         "format": SIDECAR_FORMAT,
         "udh_version": __version__,
         "source": _relative_to(frameset.source, folder),
-        "method": estimator.name,
-        "method_settings": estimator_identity(estimator)["settings"],  # with the mosaic's defaults (search)
+        "method": method.name,
+        "method_settings": estimator_identity(method)["settings"],  # with the mosaic's defaults (search)
         "fallback": None if fallback is None else fallback.name,
         "fallback_settings": None if fallback is None else estimator_identity(fallback)["settings"],
         "config": {k: v for k, v in asdict(config).items() if k not in ("method", "fallback")},

@@ -1,7 +1,8 @@
 """Where the mosaic's pair estimates run: in this process, in a pool of local processes, or on a Dask cluster.
 
-A job is one batch of working-size image pairs: the first method on all of them, then the fallback on those
-it left doubted; it comes back as the estimates and the acceptance verdicts, matrices and scores only. Workers build each estimator
+A job is one batch of working-size image pairs and the mosaic's opinions (its method, then ``--fallback``): the
+first on all of them, each next one on those still doubted; it comes back as the estimates and the acceptance
+verdicts, matrices and scores only. Workers build each estimator
 once, from its registry name and options, and keep it for every later batch: the networks load once per
 worker, not once per pair.
 
@@ -29,25 +30,23 @@ from udh_cli.estimators.pair import PreparedPair
 
 ImagePair = tuple[np.ndarray, np.ndarray]  # working-size images A and B, as sent to a worker
 Judged = tuple[Estimate, "float | None", "str | None"]  # the estimate, its verification score, why it is doubted
-# Per pair: the first method's judged answer, then the fallback's when the first was doubted.
+# Per pair: the first opinion's judged answer, then each next opinion's while the answers were doubted.
 Attempts = list[Judged]
+Opinion = tuple[str, dict[str, Any]]  # an estimator by registry name and options
 
 
 @dataclass(frozen=True)
 class EstimatorSpec:
-    """How a worker builds the mosaic's estimators: registry names and options, and the acceptance test.
+    """How a worker builds the mosaic's opinions, in order: registry names and options; and the acceptance test.
 
     ``acceptance`` is a :class:`~udh_cli.mosaic.pairs.Acceptance`."""
 
-    method: str
-    options: dict[str, Any] = field(default_factory=dict)
-    fallback: str | None = None
+    opinions: tuple[Opinion, ...]
     acceptance: Any = None
-    fallback_options: dict[str, Any] = field(default_factory=dict)
 
     def estimators_key(self) -> str:
         """What the estimators depend on (not the acceptance test, which is applied to their answers)."""
-        return repr((self.method, sorted(self.options.items()), self.fallback, sorted(self.fallback_options.items())))
+        return repr([(name, sorted(options.items())) for name, options in self.opinions])
 
 
 def judge_batch(method: Estimator, acceptance, pairs: Sequence[PreparedPair]) -> list[Judged]:
@@ -60,17 +59,20 @@ def judge_batch(method: Estimator, acceptance, pairs: Sequence[PreparedPair]) ->
     return out
 
 
-def judge_with_fallback(method: Estimator, fallback: Estimator | None, acceptance, pairs: Sequence[ImagePair]) -> list[Attempts]:
-    """One job: ``method`` on every pair, then ``fallback`` on the pairs it left doubted. Both in the same job,
-    so that a doubted batch never waits in the queue behind other batches for its second opinion. Each pair
-    is prepared once (:mod:`udh_cli.estimators.pair`) for both methods and the acceptance test."""
+def judge_opinions(opinions: Sequence[Estimator], acceptance, pairs: Sequence[ImagePair]) -> list[Attempts]:
+    """One job: the first opinion on every pair, then each next one on the pairs every earlier one left doubted.
+    All in the same job, so that a doubted batch never waits in the queue behind other batches for its second
+    opinion. Each pair is prepared once (:mod:`udh_cli.estimators.pair`) for every opinion and the acceptance
+    test."""
     pairs = [PreparedPair.of(a, b) for a, b in pairs]
-    first = judge_batch(method, acceptance, pairs)
-    out = [[judged] for judged in first]
-    doubted = [i for i, (_, _, doubt) in enumerate(first) if doubt is not None]
-    if fallback is not None and doubted:
-        for i, judged in zip(doubted, judge_batch(fallback, acceptance, [pairs[i] for i in doubted])):
+    out: list[Attempts] = [[] for _ in pairs]
+    doubted = list(range(len(pairs)))
+    for opinion in opinions:
+        if not doubted:
+            break
+        for i, judged in zip(doubted, judge_batch(opinion, acceptance, [pairs[i] for i in doubted])):
             out[i].append(judged)
+        doubted = [i for i in doubted if out[i][-1][2] is not None]
     return out
 
 
@@ -98,12 +100,12 @@ def estimate_many_safely(method: Estimator, pairs: list[PreparedPair]) -> list[E
 
 # The estimators a worker process has built, newest last; a long-lived Dask worker serving runs with other
 # settings keeps only the last few, and the lock keeps two of its threads from building the same one twice.
-_WORKER_ESTIMATORS: dict[str, tuple[Estimator, Estimator | None]] = {}
+_WORKER_ESTIMATORS: dict[str, tuple[Estimator, ...]] = {}
 _WORKER_LOCK = threading.Lock()
 _KEPT_SPECS = 2
 
 
-def _worker_estimators(spec: EstimatorSpec) -> tuple[Estimator, Estimator | None]:
+def _worker_estimators(spec: EstimatorSpec) -> tuple[Estimator, ...]:
     """The spec's estimators, built once per worker process."""
     from udh_cli.estimators import create_estimator
 
@@ -113,18 +115,15 @@ def _worker_estimators(spec: EstimatorSpec) -> tuple[Estimator, Estimator | None
             import cv2
 
             cv2.setNumThreads(1)  # one worker per core: OpenCV's own threads would fight the other workers
-            method = create_estimator(spec.method, **spec.options)
-            fallback = create_estimator(spec.fallback, **spec.fallback_options) if spec.fallback else None
-            _WORKER_ESTIMATORS[key] = (method, fallback)
+            _WORKER_ESTIMATORS[key] = tuple(create_estimator(name, **options) for name, options in spec.opinions)
             while len(_WORKER_ESTIMATORS) > _KEPT_SPECS:
                 _WORKER_ESTIMATORS.pop(next(iter(_WORKER_ESTIMATORS)))
         return _WORKER_ESTIMATORS[key]
 
 
 def judge_on_worker(spec: EstimatorSpec, pairs: Sequence[ImagePair]) -> list[Attempts]:
-    """A worker's job: :func:`judge_with_fallback` with the spec's estimators."""
-    method, fallback = _worker_estimators(spec)
-    return judge_with_fallback(method, fallback, spec.acceptance, list(pairs))
+    """A worker's job: :func:`judge_opinions` with the spec's estimators."""
+    return judge_opinions(_worker_estimators(spec), spec.acceptance, list(pairs))
 
 
 def _ignore_interrupts() -> None:
@@ -137,12 +136,12 @@ class LocalRunner:
 
     window = 1  # one job at a time, so an interrupt loses only the batch it stopped
 
-    def __init__(self, estimator: Estimator, fallback: Estimator | None, acceptance):
-        self.estimator, self.fallback, self.acceptance = estimator, fallback, acceptance
+    def __init__(self, opinions: Sequence[Estimator], acceptance):
+        self.opinions, self.acceptance = tuple(opinions), acceptance
 
     def submit(self, pairs: Sequence[ImagePair]) -> Future:
         done: Future = Future()
-        done.set_result(judge_with_fallback(self.estimator, self.fallback, self.acceptance, pairs))
+        done.set_result(judge_opinions(self.opinions, self.acceptance, pairs))
         return done
 
     def result(self, future: Future) -> list[Attempts]:
@@ -221,15 +220,15 @@ def _single_threaded(spec: EstimatorSpec) -> EstimatorSpec:
 
     from udh_cli.estimators.registry import estimator_options
 
-    def one_thread(name: str | None, options: dict[str, Any]) -> dict[str, Any]:
-        if name and "threads" in estimator_options(name) and options.get("threads") is None:
+    def one_thread(name: str, options: dict[str, Any]) -> dict[str, Any]:
+        if "threads" in estimator_options(name) and options.get("threads") is None:
             return {**options, "threads": 1}
         return options
 
-    return replace(spec, options=one_thread(spec.method, spec.options), fallback_options=one_thread(spec.fallback, spec.fallback_options))
+    return replace(spec, opinions=tuple((name, one_thread(name, options)) for name, options in spec.opinions))
 
 
-def open_runner(estimator: Estimator, fallback: Estimator | None, acceptance, spec: EstimatorSpec | None, workers: int,
+def open_runner(opinions: Sequence[Estimator], acceptance, spec: EstimatorSpec | None, workers: int,
                 scheduler: str | None, warn: Callable[[str], None] = lambda message: None) -> LocalRunner | PoolRunner | DaskRunner:
     """The runner for a mosaic: Dask with a ``scheduler``, a process pool with ``workers`` > 1, else local.
     Without a ``spec`` (estimators given as instances, not by name) only the local runner can run them."""
@@ -241,7 +240,7 @@ def open_runner(estimator: Estimator, fallback: Estimator | None, acceptance, sp
         return DaskRunner(spec, scheduler)
     workers = min(workers, os.cpu_count() or 1)
     if spec is None or workers <= 1:
-        return LocalRunner(estimator, fallback, acceptance)
+        return LocalRunner(opinions, acceptance)
     return PoolRunner(spec, workers)
 
 

@@ -279,12 +279,16 @@ def simulate(
 
 
 from udh_cli.mosaic.composite import BLENDS as _BLENDS  # noqa: E402 - the --blend choices live there
+from udh_cli.mosaic.gains import EXPOSURES as _EXPOSURES  # noqa: E402 - the --exposure choices live there
+from udh_cli.mosaic.seams import SEAM_FINDERS as _SEAM_FINDERS  # noqa: E402 - the --seams choices live there
 from udh_cli.mosaic.pipeline import MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
 from udh_cli.mosaic.follow import FollowConfig as _FollowConfig  # noqa: E402
 
 _MOSAIC = _MosaicConfig()
 _FOLLOW = _FollowConfig()
 Blend = _choices("Blend", _BLENDS)
+Exposure = _choices("Exposure", _EXPOSURES)
+SeamFinder = _choices("SeamFinder", _SEAM_FINDERS)
 
 
 @app.command()
@@ -302,7 +306,8 @@ def mosaic(
     blend: Annotated[Blend, typer.Option("--blend", case_sensitive=False, help="How overlapping frames are mixed.")] = Blend(_MOSAIC.blend),
     max_size: Annotated[Optional[int], typer.Option("--max-size", help="Downscale the mosaic so its longest side is at most this many pixels.")] = _MOSAIC.max_size,
     max_frame_scale: Annotated[float, typer.Option("--max-frame-scale", help="Report (leave out) frames the solve draws more than this many times larger or smaller than the reference frame.")] = _MOSAIC.max_frame_scale,
-    no_gain: Annotated[bool, typer.Option("--no-gain", help="Skip gain (exposure) compensation.", metavar="")] = False,
+    exposure: Annotated[Exposure, typer.Option("--exposure", case_sensitive=False, help="Exposure compensation (OpenCV's): per-channel gain maps over blocks, per-channel gains, one gain, or none.")] = Exposure(_MOSAIC.exposure),
+    seams: Annotated[SeamFinder, typer.Option("--seams", case_sensitive=False, help="Seam finder (OpenCV's): dynamic programming or graph cut on colour, or central (each pixel from the frame that sees it nearest its centre).")] = SeamFinder(_MOSAIC.seams),
     overlap_per_frame: Annotated[int, typer.Option("--overlap-pairs", help="Loop-closure pairs per frame at most (0: plain chaining).")] = _MOSAIC.overlap_per_frame,
     gcp_sigma: Annotated[float, typer.Option("--gcp-sigma", min=0.0, help="With --gcp: the points' error in metres, e.g. 0.05; their observations then anchor the global solve (0: they only place the finished mosaic).")] = _MOSAIC.gcp_sigma_m,
     gps_sigma: Annotated[float, typer.Option("--gps-sigma", min=0.0, help="With GPS in the frames: the fixes' error in metres, e.g. 3; they then anchor the global solve and bound long-chain drift (0: off).")] = _MOSAIC.gps_sigma_m,
@@ -326,7 +331,7 @@ def mosaic(
     options = parse_method_options(method_option, [method.value, *([fallback] if fallback and fallback != method.value else [])])
     config = _MosaicConfig(
         method=method.value, fallback=fallback, method_options=options.get(method.value, {}), fallback_options=options.get(fallback, {}) if fallback else {}, work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
-        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, gain_compensation=not no_gain, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, gps_sigma_m=gps_sigma, gcp_sigma_m=gcp_sigma, workers=workers, scheduler=scheduler,
+        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, exposure=exposure.value, seams=seams.value, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, gps_sigma_m=gps_sigma, gcp_sigma_m=gcp_sigma, workers=workers, scheduler=scheduler,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
     if follow:

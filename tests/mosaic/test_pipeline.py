@@ -135,7 +135,7 @@ def test_compositing_memory_is_the_canvas_plus_one_frame(small_flight, blend):
     to_mosaic = {i: geometry.translation(150.0 * i, 40.0 * (i % 2)) for i in range(len(frames.frames))}
     size = (150 * len(frames.frames) + 340, 300)
     tracemalloc.start()
-    out = composite(frames, to_mosaic, size, np.ones(len(frames.frames)), blend, Reporter(quiet=True))
+    out = composite(frames, to_mosaic, size, blend, Reporter(quiet=True))
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     assert out.shape == (300, size[0], 4) and out[..., 3].mean() > 100
@@ -143,8 +143,11 @@ def test_compositing_memory_is_the_canvas_plus_one_frame(small_flight, blend):
     assert peak < BYTES_PER_PIXEL[blend] * size[0] * size[1] + 12 * frame_bytes
 
 
-@pytest.mark.parametrize("blend", ["feather", "multiband", "none"])
-def test_every_blend_reproduces_the_ground_with_true_homographies(small_flight, blend):
+@pytest.mark.parametrize("blend, seam_finder", [("feather", None), ("multiband", None), ("none", None), ("multiband", "dp"), ("none", "graphcut")])
+def test_every_blend_reproduces_the_ground_with_true_homographies(small_flight, blend, seam_finder):
+    from udh_cli.mosaic.gains import exposure_gains
+    from udh_cli.mosaic.seams import find_seams
+    from udh_cli.mosaic.small import draw_small
     from udh_cli.simulate import simulate_flight
 
     frames = open_frames(small_flight, 800)
@@ -152,7 +155,12 @@ def test_every_blend_reproduces_the_ground_with_true_homographies(small_flight, 
     ground = simulate_flight(SMALL, seed=4)[1]
     to_ground = {f.index: truth["ground_from_frame"][f.name] for f in frames.frames}
     size = (ground.shape[1], ground.shape[0])
-    out = composite(frames, to_ground, size, np.ones(len(frames.frames)), blend, Reporter(quiet=True))
+    gains = seams = None
+    if seam_finder is not None:  # OpenCV's seams and per-channel gains, found on the part drawn small
+        small = draw_small(frames, to_ground, 1.0, Reporter(quiet=True))
+        gains, seams = exposure_gains("channels", small), find_seams(seam_finder, small)
+        assert small.scale == 1.0 and len(seams.masks) == len(frames.frames)  # 320x240 frames are small already
+    out = composite(frames, to_ground, size, blend, Reporter(quiet=True), gains=gains, seams=seams)
     covered = cv2.erode(out[..., 3], np.ones((9, 9), np.uint8)) > 0
     assert covered.mean() > 0.3
     mosaic_grey = cv2.cvtColor(out[..., :3], cv2.COLOR_BGR2GRAY)[covered].astype(np.float32)

@@ -16,7 +16,9 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.mosaic.frames import FrameSet
+from udh_cli.mosaic.gains import apply_gain
 from udh_cli.mosaic.report import Reporter
+from udh_cli.mosaic.seams import Seams
 
 BLENDS = ("feather", "multiband", "none")  # the --blend choices
 # Peak memory per canvas pixel while blending, accumulators and output together: the rise in peak RSS measured
@@ -94,18 +96,20 @@ def composite(
     frames: FrameSet,
     mosaic_from_frame: dict[int, np.ndarray],
     canvas_size: tuple[int, int],
-    gains: np.ndarray,
     blend: str,
     reporter: Reporter,
     label: str = "compositing",
+    gains: dict[int, np.ndarray] | None = None,
+    seams: Seams | None = None,
 ) -> np.ndarray:
     """Warp and blend the frames of one part into a (H, W, 4) BGRA uint8 canvas; alpha 255 where covered.
 
-    ``mosaic_from_frame`` maps each frame's full-resolution pixels to canvas pixels; ``gains`` is indexed
-    by frame. ``feather`` averages with weights that fall to 0 at frame borders; ``none`` and ``multiband``
-    first give every canvas pixel to the frame whose weight is highest there (its most central view), then
-    copy (``none``) or blend the seams band by band (``multiband``, OpenCV's MultiBandBlender). ``label``
-    names the progress bar (the time adds up under "compositing").
+    ``mosaic_from_frame`` maps each frame's full-resolution pixels to canvas pixels; ``gains`` gives each
+    frame's exposure gains (:func:`.gains.exposure_gains`; none: as they are). ``feather`` averages with
+    weights that fall to 0 at frame borders; ``none`` and ``multiband`` first give every canvas pixel to one
+    frame, then copy (``none``) or blend the seams band by band (``multiband``, OpenCV's MultiBandBlender):
+    the frame whose ``seams`` mask holds the pixel (:mod:`.seams`), else the one that sees it nearest its
+    centre. ``label`` names the progress bar (the time adds up under "compositing").
     """
     if blend not in BLENDS:
         raise UdhError(f"unknown blend '{blend}'; choose one of: {', '.join(BLENDS)}")
@@ -121,6 +125,8 @@ def composite(
         for i, roi in rois.items():
             x0, y0, x1, y1 = roi
             weight = _warp(weights[sizes[i]], mosaic_from_frame[i], roi)
+            if seams is not None:  # the seam mask first; centrality (weights below 1) only where no mask holds the pixel
+                weight += 2.0 * seams.in_box(i, roi) * (weight > 0)
             better = weight > best[y0:y1, x0:x1]
             best[y0:y1, x0:x1][better] = weight[better]
             labels[y0:y1, x0:x1][better] = i
@@ -137,7 +143,9 @@ def composite(
         for i, image in frames.full_images(rois):
             roi = rois[i]
             x0, y0, x1, y1 = roi
-            warped = _warp(image.astype(np.float32) * np.float32(gains[i]), mosaic_from_frame[i], roi)
+            warped = _warp(image.astype(np.float32), mosaic_from_frame[i], roi)
+            if gains is not None:
+                warped = apply_gain(warped, gains[i])
             if blend == "feather":
                 weight = _warp(weights[sizes[i]], mosaic_from_frame[i], roi)
                 total[y0:y1, x0:x1] += warped * weight[..., None]

@@ -1,55 +1,60 @@
-"""Gain (exposure) compensation: one multiplier per frame so that overlapping frames agree in brightness.
+"""Exposure compensation of one part with OpenCV's compensators (``cv2.detail``), found on the part drawn small
+(:mod:`.small`) and applied at full resolution while compositing (``--exposure``):
 
-The model is OpenCV's GainCompensator (Brown & Lowe): minimise over gains ``g``
-``sum_pairs N_ab [ (g_a I_ab - g_b I_ba)^2 / sigma_n^2 + ((1 - g_a)^2 + (1 - g_b)^2) / sigma_g^2 ]``
-where ``I_ab`` is the mean grey level of A where it overlaps B and ``N_ab`` the overlap in pixels; the
-prior term keeps the gains near 1. It is linear in ``g``; means are measured on the working copies.
+- ``gain``: one multiplier per frame (Brown & Lowe), ``channels``: one per colour channel (white balance too);
+- ``blocks``: a smooth per-channel gain map over 32 px blocks of each frame (vignetting, uneven light);
+- ``none``: the frames as they are.
 """
 
 from __future__ import annotations
 
-from typing import Sequence
-
 import cv2
 import numpy as np
 
-from udh_cli import geometry
-from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.pairs import PairResult
+from udh_cli.errors import UdhError
+from udh_cli.mosaic.small import SmallPart
 
-SIGMA_N = 10.0  # grey levels: how closely overlapping means should agree
-SIGMA_G = 0.1  # how far a gain may stray from 1 at the same cost
+EXPOSURES = ("blocks", "channels", "gain", "none")  # the --exposure choices
 
 
-def overlap_means(pair: PairResult, frames: Sequence[Frame]) -> tuple[float, float, float]:
-    """``(N_ab, I_ab, I_ba)``: overlap size as a share of A's working pixels, and both mean grey levels."""
-    fa, fb = frames[pair.a], frames[pair.b]
-    work_b_from_a = geometry.rescale_homography(pair.b_from_a, fa.size, fa.work_size, fb.size, fb.work_size)
-    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    b_in_a = cv2.warpPerspective(fb.work, work_b_from_a, fa.work_size, flags=flags)
-    inside = cv2.warpPerspective(np.full(fb.work.shape, 255, np.uint8), work_b_from_a, fa.work_size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP) > 0
-    count = int(inside.sum())
-    if count == 0:
-        return 0.0, 0.0, 0.0
-    return count / inside.size, float(fa.work[inside].mean()), float(b_in_a[inside].mean())
+def _compensator(kind: str):
+    if kind == "gain":
+        return cv2.detail.GainCompensator()
+    if kind == "channels":
+        return cv2.detail.ChannelsCompensator()
+    if kind == "blocks":
+        return cv2.detail.BlocksChannelsCompensator()
+    raise UdhError(f"unknown exposure compensation '{kind}'; choose one of: {', '.join(EXPOSURES)}")
 
 
-def solve_gains(n_frames: int, pairs: Sequence[PairResult], frames: Sequence[Frame]) -> np.ndarray:
-    """(n_frames,) gains from every accepted pair; frames without pairs keep gain 1."""
-    system = np.zeros((n_frames, n_frames))
-    rhs = np.zeros(n_frames)
-    for pair in pairs:
-        if not pair.ok:
-            continue
-        n, i_ab, i_ba = overlap_means(pair, frames)
-        a, b = pair.a, pair.b
-        system[a, a] += n * (i_ab**2 / SIGMA_N**2 + 1 / SIGMA_G**2)
-        system[b, b] += n * (i_ba**2 / SIGMA_N**2 + 1 / SIGMA_G**2)
-        system[a, b] -= n * i_ab * i_ba / SIGMA_N**2
-        system[b, a] -= n * i_ab * i_ba / SIGMA_N**2
-        rhs[a] += n / SIGMA_G**2
-        rhs[b] += n / SIGMA_G**2
-    lonely = np.diag(system) == 0
-    system[lonely, lonely] = 1.0
-    rhs[lonely] = 1.0
-    return np.linalg.solve(system, rhs)
+def exposure_gains(kind: str, small: SmallPart) -> dict[int, np.ndarray]:
+    """Per frame: (3,) gains for ``gain`` and ``channels`` (B, G, R), or a (rows, cols, 3) gain map over the
+    frame's warped box for ``blocks``; all ones for ``none``."""
+    if kind == "none" or len(small.indices) < 2:
+        return {i: np.ones(3) for i in small.indices}
+    compensator = _compensator(kind)
+    compensator.feed(corners=small.corners, images=[cv2.UMat(image) for image in small.images],
+                     masks=[cv2.UMat(mask) for mask in small.masks])
+    gains = {}
+    for i, found in zip(small.indices, compensator.getMatGains()):
+        found = np.asarray(found, np.float64)
+        if kind == "blocks":
+            gains[i] = found if found.ndim == 3 else np.repeat(found[..., None], 3, axis=2)
+        else:
+            gains[i] = np.resize(found.ravel()[:3] if found.size >= 3 else found.ravel(), 3)
+        if not np.isfinite(gains[i]).all():  # a frame with no usable overlap: leave it as it is
+            gains[i] = np.ones(3)
+    return gains
+
+
+def apply_gain(warped: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """(h, w, 3) float32 warped frame times its gains; a gain map is stretched over the warped box."""
+    if gain.ndim == 1:
+        return warped * gain.astype(np.float32)
+    height, width = warped.shape[:2]
+    return warped * cv2.resize(gain.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
+
+
+def mean_gain(gain: np.ndarray) -> list[float]:
+    """(3,) mean gain per channel (B, G, R), for the sidecar."""
+    return [float(v) for v in gain.reshape(-1, 3).mean(0)]

@@ -24,7 +24,9 @@ from udh_cli.estimators.registry import estimator_options
 from udh_cli.images import atomic_write_bytes, check_output_path, write_image
 from udh_cli.mosaic import composite as compositing
 from udh_cli.mosaic.frames import ORDERS, FrameSet, open_frames
-from udh_cli.mosaic.gains import solve_gains
+from udh_cli.mosaic.gains import EXPOSURES, exposure_gains, mean_gain
+from udh_cli.mosaic.seams import SEAM_FINDERS, find_seams
+from udh_cli.mosaic.small import draw_small
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
 from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
@@ -78,6 +80,9 @@ class MosaicConfig:
             being placed by them afterwards; 0: off.
         workers: local processes estimating pairs at once (:mod:`.workers`; 1: in this process).
         scheduler: a Dask scheduler's address (``tcp://host:8786``): pairs are estimated on its workers.
+        exposure: exposure compensation of each part (:mod:`.gains`: ``blocks``, ``channels``, ``gain``, ``none``).
+        seams: where one frame gives way to the next (:mod:`.seams`: ``dp``, ``graphcut``, ``central``); with
+            ``blend`` ``feather`` the frames are averaged and there are no seams.
         preview: also write a small JPEG preview beside the mosaic.
     """
 
@@ -101,7 +106,8 @@ class MosaicConfig:
     huber_px: float = 2.0
     outlier_px: float = 5.0
     blend: str = "multiband"  # hard seams blended band by band: no ghosts where parallax defeats the homographies
-    gain_compensation: bool = True
+    exposure: str = "channels"
+    seams: str = "dp"
     max_frame_scale: float = 3.0
     max_size: int | None = None
     max_canvas_bytes: int = compositing.DEFAULT_MAX_CANVAS_BYTES
@@ -164,6 +170,10 @@ def check_config(config: MosaicConfig) -> None:
     """Fail before any work on a setting that could only fail later (a typo in --blend, a zero size)."""
     if config.blend not in compositing.BLENDS:
         raise UdhError(f"unknown blend '{config.blend}'; choose one of: {', '.join(compositing.BLENDS)}")
+    if config.exposure not in EXPOSURES:
+        raise UdhError(f"unknown exposure compensation '{config.exposure}'; choose one of: {', '.join(EXPOSURES)}")
+    if config.seams not in SEAM_FINDERS:
+        raise UdhError(f"unknown seam finder '{config.seams}'; choose one of: {', '.join(SEAM_FINDERS)}")
     if config.order not in ORDERS:
         raise UdhError(f"unknown order '{config.order}'; choose one of: {', '.join(ORDERS)}")
     if config.work_size < 32:
@@ -298,12 +308,12 @@ def run_mosaic(
     if resume:
         reporter.info(f"{cache.hits} of {len(pairs)} pair estimates taken from {cache.path}")
     loops = _solve(frameset, parts, pairs, config, reporter, solve_anchors(frameset, config, reporter, gcps, gcp_image_width))
-    gains = _gains(frameset, pairs, config, reporter)
+    gains: dict[int, list[float]] = {}  # per placed frame, its mean gain per channel (B, G, R)
     _plan_canvases(frameset, parts, output, config)
     staged = StagedFiles()  # the images of every part appear together, or none of them does
     try:
         for part in parts:
-            _composite_part(frameset, part, gains, config, reporter, staged)
+            gains.update(_composite_part(frameset, part, config, reporter, staged))
         _warn_about_earlier_output(output, parts, reporter)
         report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, opinions, reporter, sidecar_path(output).parent)
         _georeference(frameset, parts, report, staged, reporter, gcps, gcp_image_width, output)
@@ -677,16 +687,6 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
     }
 
 
-def _gains(frameset: FrameSet, pairs: list[PairResult], config: MosaicConfig, reporter: Reporter) -> np.ndarray:
-    n = len(frameset.frames)
-    if not config.gain_compensation:
-        return np.ones(n)
-    with reporter.stage("gain compensation", 1) as advance:
-        gains = solve_gains(n, pairs, frameset.frames)
-        advance(1)
-    return gains
-
-
 def _plan_canvases(frameset: FrameSet, parts: list[Part], output: Path, config: MosaicConfig) -> None:
     """Every canvas is planned (and a too-big one refused) before any pixel is written."""
     sizes = [f.size for f in frameset.frames]
@@ -706,13 +706,22 @@ def _plan_canvases(frameset: FrameSet, parts: list[Part], output: Path, config: 
         part.file = path
 
 
-def _composite_part(frameset: FrameSet, part: Part, gains: np.ndarray, config: MosaicConfig, reporter: Reporter, staged: StagedFiles) -> None:
-    """Composite one part and write its image and preview under the temporary names of ``staged``."""
+def _composite_part(frameset: FrameSet, part: Part, config: MosaicConfig, reporter: Reporter, staged: StagedFiles) -> dict[int, list[float]]:
+    """Composite one part and write its image and preview under the temporary names of ``staged``; returns
+    each frame's mean exposure gain per channel."""
     if part.canvas is None:
-        return
+        return {}
     to_mosaic = {i: part.canvas.mosaic_from_ref @ part.solved[i] for i in part.frames}
-    label = "compositing" if part.number == 1 else f"compositing part {part.number}"
-    mosaic = compositing.composite(frameset, to_mosaic, part.canvas.size, gains, config.blend, reporter, label)
+    suffix = "" if part.number == 1 else f" part {part.number}"
+    gains, seams = None, None
+    want_seams = config.seams != "central" and config.blend != "feather"
+    if config.exposure != "none" or want_seams:
+        small = draw_small(frameset, to_mosaic, part.canvas.scale, reporter, f"small copies{suffix}")
+        with reporter.stage("colour and seams", 1, f"colour and seams{suffix}") as advance:
+            gains = exposure_gains(config.exposure, small)
+            seams = find_seams(config.seams, small) if want_seams else None
+            advance(1)
+    mosaic = compositing.composite(frameset, to_mosaic, part.canvas.size, config.blend, reporter, f"compositing{suffix}", gains, seams)
     with reporter.stage("writing", 1) as advance:
         if part.file.suffix.lower() in (".jpg", ".jpeg"):
             reporter.warn(f"{part.file.name}: JPEG has no alpha channel; uncovered areas are black (use .png or .tif to keep the mask)")
@@ -723,6 +732,7 @@ def _composite_part(frameset: FrameSet, part: Part, gains: np.ndarray, config: M
             part.preview = preview_path(part.file)
             write_image(staged.path_for(part.preview), compositing.preview(mosaic))
         advance(1)
+    return {i: mean_gain(gains[i]) if gains is not None else [1.0, 1.0, 1.0] for i in part.frames}
 
 
 def _warn_about_earlier_output(output: Path, parts: list[Part], reporter: Reporter) -> None:
@@ -784,7 +794,8 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, opin
                 "status": "placed" if placed else "unplaced",
                 "reason": reason,
                 "part": part.number if placed else None,
-                "gain": float(gains[frame.index]),
+                "gain": float(np.mean(gains.get(frame.index, [1.0]))),
+                "gain_bgr": gains.get(frame.index),
                 "metadata": None if frame.metadata is None else frame.metadata.to_json(),
                 "mosaic_from_frame": None if mosaic_from_frame is None else (mosaic_from_frame / mosaic_from_frame[2, 2]).tolist(),
             }

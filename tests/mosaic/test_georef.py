@@ -215,3 +215,30 @@ def test_a_geotiff_too_large_is_a_warning_and_nothing_half_written(tmp_path, mon
     assert report["summary"]["placed"] == 4 and (out / "m.png").is_file() and (out / "m.pgw").is_file()
     assert not (out / "m.cog.tif").exists() and not [p for p in out.iterdir() if p.name.startswith(".")]
     assert any("no north-up GeoTIFF" in w for w in reporter.warnings)
+
+
+def test_a_north_up_geotiff_drawn_strip_by_strip_equals_the_whole_warp(tmp_path):
+    """Several strips high, turned 30 degrees: the COG read back is the mosaic warped north-up in one go."""
+    rasterio = pytest.importorskip("rasterio")
+    import cv2
+
+    from conftest import textured_image
+    from udh_cli.mosaic import geotiff
+
+    grey = textured_image(900, 700, seed=2)
+    bgra = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGRA)
+    turn, pixel = math.radians(30.0), 0.05  # metres per mosaic pixel; image y runs south
+    map_from_mosaic = np.array([[pixel * math.cos(turn), pixel * math.sin(turn), 500000.0],
+                                [pixel * math.sin(turn), -pixel * math.cos(turn), 4000000.0], [0.0, 0.0, 1.0]])
+    written = geotiff.write_cog(bgra, map_from_mosaic, 32633, tmp_path / "m.cog.tif")
+    assert written["height"] > 2 * geotiff.STRIP_ROWS
+    assert [p.name for p in tmp_path.iterdir()] == ["m.cog.tif"]  # the strips file is gone
+    with rasterio.open(tmp_path / "m.cog.tif") as dataset:
+        assert dataset.crs.to_epsg() == 32633 and (dataset.width, dataset.height) == (written["width"], written["height"])
+        assert dataset.overviews(1)  # a COG: overviews inside
+        rgba = dataset.read().transpose(1, 2, 0)
+    out_from_map = np.array([[1 / pixel, 0, -written["west"] / pixel - 0.5], [0, -1 / pixel, written["north"] / pixel - 0.5], [0, 0, 1]])
+    whole = cv2.warpAffine(bgra, (out_from_map @ map_from_mosaic)[:2], (written["width"], written["height"]), flags=cv2.INTER_LINEAR)
+    assert np.abs(rgba[..., 3].astype(int) - whole[..., 3]).max() <= 1  # OpenCV's fixed-point rounding
+    inside = whole[..., 3] == 255
+    assert np.abs(rgba[..., 0][inside].astype(int) - whole[..., 2][inside]).max() <= 1

@@ -51,13 +51,19 @@ def write_combined_cog(layers: list[tuple[np.ndarray, np.ndarray]], epsg: int, p
     if columns * rows > max_pixels:
         raise UdhError(f"the north-up GeoTIFF would be {columns}x{rows} pixels; use --max-size to make the mosaic smaller")
     out_from_map = np.array([[1 / pixel, 0, -west / pixel - 0.5], [0, -1 / pixel, north / pixel - 0.5], [0, 0, 1]])
-    canvas = np.zeros((rows, columns, 4), np.uint8)
-    for bgra, map_from_mosaic in layers:
-        drawn = cv2.warpAffine(bgra, (out_from_map @ map_from_mosaic)[:2], (columns, rows), flags=cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
-        empty = (canvas[..., 3] == 0) & (drawn[..., 3] > 0)
-        canvas[empty] = drawn[empty]
-    _write_rgba_cog(canvas, west, north, pixel, epsg, path)
+
+    def strip(top: int, height: int) -> np.ndarray:
+        """Rows ``top`` to ``top + height`` of the north-up grid, (height, columns, 4) BGRA, earlier layers on top."""
+        canvas = np.zeros((height, columns, 4), np.uint8)
+        strip_from_out = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -top], [0.0, 0.0, 1.0]])
+        for bgra, map_from_mosaic in layers:
+            drawn = cv2.warpAffine(bgra, (strip_from_out @ out_from_map @ map_from_mosaic)[:2], (columns, height),
+                                   flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+            empty = (canvas[..., 3] == 0) & (drawn[..., 3] > 0)
+            canvas[empty] = drawn[empty]
+        return canvas
+
+    _write_rgba_cog(strip, rows, columns, west, north, pixel, epsg, path)
     return {"file": path.name, "width": columns, "height": rows, "pixel_size_m": float(pixel), "west": float(west), "north": float(north)}
 
 
@@ -66,20 +72,33 @@ def _require_rasterio() -> None:
         raise UdhError("a GeoTIFF needs rasterio: pip install rasterio (from the udh checkout: pip install '.[geo]')")
 
 
-def _write_rgba_cog(bgra: np.ndarray, west: float, north: float, pixel: float, epsg: int, path: Path) -> None:
-    """An (H, W, 4) BGRA north-up image to a Cloud-Optimised GeoTIFF: RGBA with an alpha band, tiled, DEFLATE,
-    overviews; (west, north) is the outer corner of the top-left pixel."""
+STRIP_ROWS = 512  # rows of the north-up grid drawn at a time: one COG block high
+
+
+def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, pixel: float, epsg: int, path: Path) -> None:
+    """A north-up image drawn strip by strip (``strip(top, height)`` -> (height, columns, 4) BGRA) to a
+    Cloud-Optimised GeoTIFF: RGBA with an alpha band, tiled, DEFLATE, overviews; (west, north) is the outer
+    corner of the top-left pixel.
+
+    Memory stays at one strip: the strips go to a tiled GeoTIFF beside ``path``, which GDAL's COG driver then
+    copies block by block, adding the overviews, and which is removed afterwards whatever happens.
+    """
     import rasterio
     from affine import Affine
-    from rasterio.io import MemoryFile
     from rasterio.shutil import copy as raster_copy
+    from rasterio.windows import Window
 
-    rows, columns = bgra.shape[:2]
     profile = {"driver": "GTiff", "width": columns, "height": rows, "count": 4, "dtype": "uint8", "crs": f"EPSG:{epsg}",
-               "transform": Affine(pixel, 0.0, west, 0.0, -pixel, north), "photometric": "RGB", "alpha": "YES"}
-    with rasterio.Env(GDAL_NUM_THREADS="1"):
-        with MemoryFile() as memory:
-            with memory.open(**profile) as dataset:
-                dataset.write(bgra[..., [2, 1, 0, 3]].transpose(2, 0, 1))
-            with memory.open() as dataset:
-                raster_copy(dataset, str(path), driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=512, OVERVIEWS="AUTO")
+               "transform": Affine(pixel, 0.0, west, 0.0, -pixel, north), "photometric": "RGB", "alpha": "YES",
+               "tiled": True, "blockxsize": STRIP_ROWS, "blockysize": STRIP_ROWS, "compress": "DEFLATE", "BIGTIFF": "IF_SAFER"}
+    # Named like a staged file (outputs.remove_stale_staged), so that one a killed run leaves is removed by the next.
+    strips = path.with_name(f"{path.stem}.strips.staged{path.suffix}")
+    try:
+        with rasterio.Env(GDAL_NUM_THREADS="1"):
+            with rasterio.open(strips, "w", **profile) as dataset:
+                for top in range(0, rows, STRIP_ROWS):
+                    height = min(STRIP_ROWS, rows - top)
+                    dataset.write(strip(top, height)[..., [2, 1, 0, 3]].transpose(2, 0, 1), window=Window(0, top, columns, height))
+            raster_copy(str(strips), str(path), driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=512, OVERVIEWS="AUTO")
+    finally:
+        strips.unlink(missing_ok=True)

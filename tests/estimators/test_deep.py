@@ -239,7 +239,11 @@ def test_the_flight_network_joins_the_cascade_and_follows_large_whole_frame_moti
     both = create_estimator("unsupervised", device="cpu")
     assert len(both.first_stages) == 2
     found = both.estimate(a, b)
-    paper_only = create_estimator("unsupervised", device="cpu", flight_model="").estimate(a, b)
     error = float(geometry.mace(found.homography, truth, 640, 480))
     assert error < 3.0, error
-    assert not paper_only.ok or float(geometry.mace(paper_only.homography, truth, 640, 480)) > error
+    # The whole-frame networks alone (no tile stage, which can rescue either start): the flight network's
+    # answer is the nearer one.
+    both_untiled = create_estimator("unsupervised", device="cpu", tiles=False).estimate(a, b)
+    paper_untiled = create_estimator("unsupervised", device="cpu", flight_model="", tiles=False).estimate(a, b)
+    untiled_error = float(geometry.mace(both_untiled.homography, truth, 640, 480))
+    assert not paper_untiled.ok or float(geometry.mace(paper_untiled.homography, truth, 640, 480)) > untiled_error

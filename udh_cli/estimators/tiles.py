@@ -38,8 +38,11 @@ class TileRefinement:
         coarse_side: longer side of a first level where the coarse network runs on the tiles (0: none). Why:
             a whole frame squashed to 128x128 leaves the coarse answer up to 10-15 px off in that view on
             low-overlap, repetitive scenes (tree canopy), beyond the refinement network's reach; tiles of a
-            256 px level see the scene twice as large, and the coarse network reaches 32 px and more.
-        coarse_move: largest corner move, pixels of the coarse level, that it may make.
+            384 px level see the scene three times as large. 384 rather than 256: a 16:9 or 3:2 frame gives
+            twice as many tiles to outvote the bad ones; on the consecutive pairs of copr (at 800 px, against
+            SIFT references) under 3 px went from 65 to 78 % of pairs (under 10 px 85 -> 95 %), on seneca's
+            under 10 px 9 -> 17 %, at 5 ms more a pair; 512 was no better (docs/estimators.md).
+        coarse_move: largest corner move, pixels of the coarse level, that it may make (3/16 of the level).
     """
 
     levels: tuple[int, ...] = (480, 0)
@@ -47,8 +50,8 @@ class TileRefinement:
     inlier_px: float = 3.0
     max_move: float = 16.0
     min_tiles: int = 3
-    coarse_side: int = 256
-    coarse_move: float = 48.0
+    coarse_side: int = 384
+    coarse_move: float = 72.0
 
 
 @dataclass(frozen=True)

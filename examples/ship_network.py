@@ -8,7 +8,9 @@ are the weights that ship) becomes ``models/NAME.onnx`` (checked for
 parity against torch on synthetic pairs of the first ``--data`` folder) and ``models/NAME-int8.onnx``
 (``udh quantize``, calibrated on ``--data``). The run's ``checkpoint.pt``, ``metrics.jsonl`` and
 ``config.json`` go to ``models/training/TRAINING_NAME/``: ``udh train --out ... --resume`` continues it
-exactly, and ``udh train --init`` fine-tunes from it (``models_catalog.SHIPPED_RUNS``). The learning curves,
+exactly, and ``udh train --init`` fine-tunes from it (``models_catalog.SHIPPED_RUNS``). With ``--weights-only``
+the run's weights alone go there as ``weights.pt`` (a third of the checkpoint: no optimiser state, so it
+fine-tunes but does not resume), which keeps ``models/`` under its 50 MB. The learning curves,
 ``models/learning_curves.png``, are redrawn from every shipped run's log.
 """
 
@@ -30,7 +32,8 @@ from udh_cli.train.quantize import quantize_from_folders
 MODELS = Path(__file__).resolve().parents[1] / "models"
 # Logs drawn in models/learning_curves.png: the runs behind the shipped networks.
 CURVES = {"coarse, flight motion": "unsupervised-flight", "coarse, paper motion": "unsupervised",
-          "refinement": "unsupervised-refine-occluders"}
+          "refinement": "unsupervised-refine-tiles"}
+WEIGHT_KEYS = ("format", "model", "config", "step", "normalization")  # what --weights-only keeps of a checkpoint
 
 
 def main() -> None:
@@ -39,6 +42,7 @@ def main() -> None:
     parser.add_argument("--name", default="udh-unsupervised-flight", help="file stem in models/")
     parser.add_argument("--training-name", default="unsupervised-flight", help="folder in models/training/")
     parser.add_argument("--data", type=Path, action="append", required=True, help="training image folders (calibration)")
+    parser.add_argument("--weights-only", action="store_true", help="keep the weights, not the resumable checkpoint")
     args = parser.parse_args()
 
     sources = load_sources(list_images(args.data[0])[:20], min_count=1)
@@ -50,12 +54,17 @@ def main() -> None:
 
     kept = MODELS / "training" / args.training_name
     kept.mkdir(parents=True, exist_ok=True)
-    for name in ("checkpoint.pt", "metrics.jsonl", "config.json"):
+    for name in ("metrics.jsonl", "config.json") if args.weights_only else ("checkpoint.pt", "metrics.jsonl", "config.json"):
         shutil.copy2(args.run / name, kept / name)
+    if args.weights_only:
+        import torch
+
+        state = torch.load(args.run / "checkpoint.pt", map_location="cpu", weights_only=True)
+        torch.save({key: state[key] for key in WEIGHT_KEYS}, kept / "weights.pt")
     runs = {label: read_metrics(MODELS / "training" / folder / "metrics.jsonl") for label, folder in CURVES.items()
             if (MODELS / "training" / folder / "metrics.jsonl").is_file()}
     write_image(MODELS / "learning_curves.png", learning_curve_plot(runs, title="held-out median corner error, single pass"))
-    print(f"{kept}: resumable run; {MODELS / 'learning_curves.png'} redrawn ({', '.join(runs)})")
+    print(f"{kept}: {'weights' if args.weights_only else 'resumable run'}; {MODELS / 'learning_curves.png'} redrawn ({', '.join(runs)})")
 
 
 if __name__ == "__main__":

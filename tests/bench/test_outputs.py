@@ -171,3 +171,10 @@ def test_cli_refuses_a_bad_out_folder_before_running(image_folder, tmp_path, mon
 def test_graf_pair_from_the_shared_data(shared_data, tmp_path):
     result = run_pairs_bench(shared_data / "pairs" / "opencv-samples", methods=["sift"], prefix="graf", show_progress=False)
     assert result.runs[0].summary.mace_mean < 3.0
+
+
+def test_the_flight_motion_set_refuses_saved_pairs_instead_of_ignoring_them(tmp_path):
+    for given in ({"save_pairs": tmp_path / "p.npz"}, {"load_pairs": tmp_path / "p.npz"}):
+        with pytest.raises(UdhError, match="drawn again from --seed"):
+            run_synthetic_bench(images=tmp_path, count=4, methods=["identity"], motion="flight", **given)
+    assert list(tmp_path.iterdir()) == []

@@ -103,6 +103,9 @@ def run_synthetic_bench(
     if motion not in ("paper", "flight"):
         raise UdhError(f"--motion {motion}: choose paper or flight")
     if motion == "flight":
+        if save_pairs is not None or load_pairs is not None:
+            raise UdhError("--save-pairs and --load-pairs hold the paper-motion pairs; the flight-motion set is drawn "
+                           "again from --seed (the same seed gives the same pairs)")
         return _run_flight_bench(images, count, seed, methods, options, show_progress)
     methods = methods or runner.parse_methods(default_methods())
     jobs = runner.make_jobs(methods, _inputs_for(mode), full_methods, options)

@@ -319,6 +319,7 @@ def mosaic(
     resume: Annotated[bool, typer.Option("--resume", help="Keep every pair estimate in NAME.pairs.json as it is made, and reuse an earlier (interrupted) run's where frames, methods and settings match. Without it no cache file is written.", metavar="")] = False,
     gcp: Annotated[Optional[Path], typer.Option("--gcp", help="Ground-control points (OpenDroneMap's gcp_list.txt format) that place the mosaic on the map; each is checked by leaving it out.")] = None,
     gcp_image_width: Annotated[Optional[int], typer.Option("--gcp-image-width", help="Width in pixels of the images the --gcp file's pixels refer to, when not the frames' own (originals before downscaling).")] = None,
+    camera: Annotated[Optional[Path], typer.Option("--camera", help="OpenSfM/OpenDroneMap cameras.json of the camera that took the frames: every frame is undistorted by its lens model.")] = None,
     cache_dir: Annotated[Optional[Path], typer.Option("--cache-dir", help="Write the pair cache (NAME.pairs.json) in this folder instead of beside the mosaic; it is read only with --resume.")] = None,
     follow: Annotated[bool, typer.Option("--follow", help="Live: keep watching SOURCE (a folder) as frames arrive, refresh the mosaic every --refresh-every frames, finish when a DONE file appears or no frame comes for --idle-timeout.", metavar="")] = False,
     refresh_every: Annotated[int, typer.Option("--refresh-every", min=1, help="Live: rewrite the mosaic after this many new frames.")] = _FOLLOW.refresh_every,
@@ -336,10 +337,11 @@ def mosaic(
     reporter = Reporter(console=err_console, progress=not quiet)
     if follow:
         live = FollowConfig(refresh_every=refresh_every, idle_timeout_s=idle_timeout)
-        report = run_live(source, output, config, live, reporter, cache_dir=cache_dir, ground_truth=gt, gcp=gcp, gcp_image_width=gcp_image_width)
+        report = run_live(source, output, config, live, reporter, cache_dir=cache_dir, ground_truth=gt, gcp=gcp, gcp_image_width=gcp_image_width,
+                          camera=camera)
     else:
         report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume, cache_dir=cache_dir, gcp=gcp,
-                            gcp_image_width=gcp_image_width)
+                            gcp_image_width=gcp_image_width, camera=camera)
     _print_mosaic(report)
 
 

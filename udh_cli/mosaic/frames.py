@@ -18,6 +18,7 @@ import numpy as np
 
 from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES, _native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
+from udh_cli.mosaic.lens import Lens
 from udh_cli.mosaic.metadata import FrameMetadata, read_metadata
 from udh_cli.mosaic.report import Reporter
 
@@ -64,6 +65,7 @@ class FrameSet:
     # For 16-bit or float frames: the flight-wide (low, high) grey range, in units where the type's maximum
     # is 1, that maps to 0-255 in the work copies and the mosaic. None for 8-bit frames, used as they are.
     value_range: tuple[float, float] | None = None
+    lens: Lens | None = None  # every frame is undistorted by it as it is read (:mod:`.lens`)
 
     @property
     def is_video(self) -> bool:
@@ -77,7 +79,7 @@ class FrameSet:
         wanted = sorted(set(indices))
         if not self.is_video:
             for index in wanted:
-                yield index, display_u8(read_image(self.frames[index].path), self.value_range)
+                yield index, display_u8(_undistorted(read_image(self.frames[index].path), self.lens), self.value_range)
             return
         by_video_frame = {self.frames[i].video_frame: i for i in wanted}
         capture = _open_capture(self.source)
@@ -88,10 +90,14 @@ class FrameSet:
                 if not ok:
                     raise UdhError(f"{self.source}: the video ended early on the second pass (frame {number}); extract its frames to a folder")
                 if number in by_video_frame:
-                    yield by_video_frame[number], image
+                    yield by_video_frame[number], _undistorted(image, self.lens)
                 number += 1
         finally:
             capture.release()
+
+
+def _undistorted(image: np.ndarray, lens: Lens | None) -> np.ndarray:
+    return image if lens is None else lens.undistort(image)
 
 
 def work_copy(image: np.ndarray, work_size: int) -> np.ndarray:
@@ -159,6 +165,7 @@ def open_frames(
     every: int = 1,
     exclude: Iterable[Path] = (),
     reporter: Reporter | None = None,
+    lens: Lens | None = None,
 ) -> FrameSet:
     """Read a folder of frames or a video into a :class:`FrameSet`.
 
@@ -168,6 +175,8 @@ def open_frames(
         order: ``"name"`` (natural sort of file names) or ``"time"`` (EXIF capture time, then name).
         every: for a video, keep every N-th frame.
         exclude: files to leave out (the run's own outputs, when they are written into the folder).
+        lens: a camera model: every frame is undistorted by it as it is read (:mod:`.lens`); frames of another
+            shape than its calibration are refused.
 
     Corrupt frames and non-image files are skipped with a warning and listed in ``skipped``.
     Raises :class:`UdhError` when fewer than two usable frames remain or the video cannot be decoded.
@@ -180,12 +189,13 @@ def open_frames(
         raise UdhError(f"--every {every}: give a positive number of frames")
     if not source.exists():
         raise UdhError(f"{source}: no such folder or video; check the path")
-    frames = _open_video(source, work_size, every, reporter) if source.is_file() else _open_folder(source, work_size, order, exclude, reporter)
+    frames = _open_video(source, work_size, every, reporter, lens) if source.is_file() else _open_folder(source, work_size, order, exclude, reporter, lens)
     _check_sizes(frames, reporter)
+    frames.lens = lens
     return frames
 
 
-def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Path], reporter: Reporter) -> FrameSet:
+def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Path], reporter: Reporter, lens: Lens | None) -> FrameSet:
     excluded = {Path(p).resolve() for p in exclude}
     try:
         listing = list(folder.iterdir())
@@ -220,7 +230,9 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
                 reporter.warn(f"skipping {path.name}: cannot be decoded (corrupt or not an image)")
                 advance(1)
                 continue
-            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(image, work_size), path, None,
+            if lens is not None:
+                lens.check((image.shape[1], image.shape[0]), path.name)
+            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(_undistorted(image, lens), work_size), path, None,
                                 metadata[path].capture_time if order == "time" else None, metadata[path]))
             advance(1)
     if len(frames) < 2:
@@ -252,7 +264,7 @@ def _open_capture(path: Path) -> cv2.VideoCapture:
     return capture
 
 
-def _open_video(path: Path, work_size: int, every: int, reporter: Reporter) -> FrameSet:
+def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens: Lens | None) -> FrameSet:
     if path.suffix.lower() in IMAGE_SUFFIXES:
         raise UdhError(f"{path}: is a single image; give a folder of frames or a video")
     capture = _open_capture(path)
@@ -268,7 +280,10 @@ def _open_video(path: Path, work_size: int, every: int, reporter: Reporter) -> F
                 if not ok:
                     break
                 if number % every == 0:
-                    frames.append(Frame(len(frames), f"{path.name}#{number}", (image.shape[1], image.shape[0]), work_copy(image, work_size), None, number))
+                    if lens is not None:
+                        lens.check((image.shape[1], image.shape[0]), f"{path.name}#{number}")
+                    frames.append(Frame(len(frames), f"{path.name}#{number}", (image.shape[1], image.shape[0]),
+                                        work_copy(_undistorted(image, lens), work_size), None, number))
                 number += 1
                 advance(1)
     finally:

@@ -14,7 +14,7 @@ on one pixel). The map placement is fitted to the points, and every point is che
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -249,3 +249,19 @@ def _leave_one_out(mosaic: np.ndarray, ground: np.ndarray, used: np.ndarray) -> 
     return errors
 
 
+
+
+def undistorted_observations(gcps: GcpFile, lens, sizes: dict[str, tuple[int, int]], image_width: int | None = None) -> GcpFile:
+    """The file with every observation's pixel moved where the camera model (:class:`.lens.Lens`) undistorts it,
+    in the same units as the file's (``image_width``: see :func:`fit_gcps`); observations of frames not in
+    ``sizes`` (file name -> full (width, height)) are kept as they are, and reported later."""
+    moved = []
+    for o in gcps.observations:
+        if o.image not in sizes:
+            moved.append(o)
+            continue
+        width, height = sizes[o.image]
+        scale = 1.0 if image_width is None else width / image_width
+        px, py = lens.undistort_points(np.array([[o.px * scale, o.py * scale]]), (width, height))[0] / scale
+        moved.append(replace(o, px=float(px), py=float(py)))
+    return GcpFile(gcps.epsg, moved)

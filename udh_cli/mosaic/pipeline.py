@@ -30,7 +30,8 @@ from udh_cli.mosaic.small import draw_small
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
 from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
-from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file
+from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
+from udh_cli.mosaic.lens import read_cameras
 from udh_cli.mosaic.geotiff import cog_path, has_rasterio, write_cog, write_combined_cog
 from udh_cli.mosaic.follow import FollowConfig, follow_mosaic
 from udh_cli.mosaic.workers import EstimatorSpec, open_runner
@@ -232,6 +233,7 @@ def run_mosaic(
     cache_dir: str | Path | None = None,
     gcp: str | Path | None = None,
     gcp_image_width: int | None = None,
+    camera: str | Path | None = None,
 ) -> dict[str, Any]:
     """Mosaic a folder of frames (or a video) into ``output``; returns the sidecar dict (also written).
 
@@ -248,6 +250,9 @@ def run_mosaic(
     ``gcp`` is a ground-control file in OpenDroneMap's format (:mod:`.gcp`; ``gcp_image_width``: the width of
     the images its pixels refer to, when not the frames'): the mosaic is placed on the map by its points,
     else (frames with EXIF GPS) by their GPS, and a world file and a .prj are written beside each part.
+
+    ``camera`` is an OpenSfM/OpenDroneMap ``cameras.json``: every frame, and every ground-control pixel, is
+    undistorted by its lens model (:mod:`.lens`) before anything else.
     """
     reporter = reporter or Reporter(quiet=True)
     source, output = Path(source), Path(output)
@@ -261,6 +266,7 @@ def run_mosaic(
                                           "projection file": output.with_suffix(".prj")}, sidecar_path(output))
     remove_stale_staged(output)
     gcps = read_gcp_file(gcp) if gcp is not None else None  # a bad file fails before any work
+    lens = read_cameras(camera) if camera is not None else None
     if gcp_image_width is not None and gcp_image_width < 1:
         raise UdhError(f"--gcp-image-width {gcp_image_width}: give the width in pixels of the images the GCP file refers to")
     started = time.perf_counter()
@@ -274,7 +280,7 @@ def run_mosaic(
     fallback = fallback or (create_estimator(config.fallback, **config.fallback_options) if config.fallback else None)
     opinions = (estimator,) if fallback is None else (estimator, fallback)
 
-    frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter)
+    frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter, lens=lens)
     frames = frameset.frames
     if gcps is not None:
         names = {f.name for f in frames}
@@ -283,6 +289,8 @@ def run_mosaic(
             raise UdhError(f"{gcp}: none of the images it names is among the frames of {source} (e.g. {missing[0]})")
         if missing:
             reporter.warn(f"{gcp}: {len(missing)} image(s) it names are not among the frames, their observations are skipped: {', '.join(missing[:5])}")
+        if lens is not None:  # the points were measured on the distorted frames
+            gcps = undistorted_observations(gcps, lens, {f.name: f.size for f in frames}, gcp_image_width)
     cache = PairCache.open(pair_cache_file, frames, opinions, acceptance(config), resume, reporter,
                            keep=resume or cache_dir is not None)
     runner = open_runner(opinions, acceptance(config), spec, config.workers, config.scheduler, warn=reporter.warn)
@@ -817,6 +825,7 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, opin
         "config": {k: v for k, v in asdict(config).items() if k not in ("method", "fallback")},
         # 16-bit or float frames: the grey range drawn as 0-255 in the 8-bit mosaic (fractions of the type's maximum)
         "display_range": None if frameset.value_range is None else {"low": frameset.value_range[0], "high": frameset.value_range[1]},
+        "camera": None if frameset.lens is None else frameset.lens.to_json(),  # the lens every frame was undistorted by
         "parts": [
             {
                 "part": p.number,

@@ -41,7 +41,8 @@ class TileRefinement:
             384 px level see the scene three times as large. 384 rather than 256: a 16:9 or 3:2 frame gives
             twice as many tiles to outvote the bad ones; on the consecutive pairs of copr (at 800 px, against
             SIFT references) under 3 px went from 65 to 78 % of pairs (under 10 px 85 -> 95 %), on seneca's
-            under 10 px 9 -> 17 %, at 5 ms more a pair; 512 was no better (docs/estimators.md).
+            under 10 px 9 -> 17 %, at 5 ms more a pair at 800 px (about 20 ms at 1600x1200); 512 was no better
+            (docs/estimators.md).
         coarse_move: largest corner move, pixels of the coarse level, that it may make (3/16 of the level).
     """
 

@@ -35,6 +35,10 @@ class TileRefinement:
         max_move: largest corner move, pixels of the level, that a level may make: a tile network trained on
             small residuals is not trusted with more (its training motion was 16 px).
         min_tiles: fewest agreeing tiles for a level's fit to replace the current estimate.
+        min_share: fewest share of a level's tiles that must agree as well. Why: with 12 tiles, 3 can agree by
+            chance on a start far beyond reach (a test-made 1600x1200 pair 270 px off: the refinement network
+            shipped on 2026-11-24, in int8, confirmed such a level once in five starts); on the consecutive pairs
+            of copr and brighton-beach 0.3 changed no answer, on seneca's it took the median from 45.9 to 40.6 px.
         coarse_side: longer side of a first level where the coarse network runs on the tiles (0: none). Why:
             a whole frame squashed to 128x128 leaves the coarse answer up to 10-15 px off in that view on
             low-overlap, repetitive scenes (tree canopy), beyond the refinement network's reach; tiles of a
@@ -51,6 +55,7 @@ class TileRefinement:
     inlier_px: float = 3.0
     max_move: float = 16.0
     min_tiles: int = 3
+    min_share: float = 0.3
     coarse_side: int = 384
     coarse_move: float = 72.0
 
@@ -143,7 +148,7 @@ def refine_level(network: OnnxHomographyModel, level_a: np.ndarray, level_b: np.
     if fitted is None or mask is None:
         return None
     per_tile = mask.reshape(-1, 4).sum(1) >= 3  # a tile agrees when three of its four corners do
-    if per_tile.sum() < config.min_tiles or not geometry.is_valid_homography(fitted, *size_a):
+    if per_tile.sum() < max(config.min_tiles, config.min_share * len(origins)) or not geometry.is_valid_homography(fitted, *size_a):
         return None
     move = geometry.corner_errors(fitted, b_from_a, *size_a).max()
     if not move <= (config.max_move if max_move is None else max_move):

@@ -324,10 +324,11 @@ def run_mosaic(
             gains.update(_composite_part(frameset, part, config, reporter, staged))
         _warn_about_earlier_output(output, parts, reporter)
         report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, opinions, reporter, sidecar_path(output).parent)
-        with reporter.stage("georeferencing", 1) as advance:  # world files and the north-up GeoTIFFs
-            _georeference(frameset, parts, report, staged, reporter, gcps, gcp_image_width, output)
-            advance(1)
-        report["timings_s"]["georeferencing"] = reporter.timings_s["georeferencing"]
+        if gcps is not None or any(f.metadata is not None and f.metadata.has_gps for f in frameset.frames):
+            with reporter.stage("georeferencing", 1) as advance:  # world files and the north-up GeoTIFFs
+                _georeference(frameset, parts, report, staged, reporter, gcps, gcp_image_width, output)
+                advance(1)
+            report["timings_s"]["georeferencing"] = reporter.timings_s["georeferencing"]
         report["pair_cache"] = _relative_to(cache.path, sidecar_path(output).parent) if cache.keep else None
         report["summary"]["pairs_from_cache"] = cache.hits
         report["timings_s"]["total"] = time.perf_counter() - started

@@ -112,3 +112,24 @@ def test_ground_control_pixels_are_undistorted_in_the_file_s_own_units():
     twice = lens.undistort_points(np.array([[80.0, 60.0]]), (640, 480))[0] / 2
     assert (moved.observations[1].px, moved.observations[1].py) == pytest.approx(tuple(twice), abs=1e-9)
     assert moved.observations[2] == seen[2]  # not among the frames: left for the fit to report
+
+
+def test_a_pincushion_lens_leaves_its_empty_rim_out_of_the_mosaic(tmp_path):
+    folder = tmp_path / "flight"
+    make_flight(folder, SMALL, seed=4)
+    pincushion = Lens(320, 240, 0.8, 0.8, k1=0.25)
+    valid = pincushion.valid_mask((320, 240))
+    assert valid[120, 160] == 1 and valid[0, 0] == 0 and valid[0, 160] == 0  # its rim falls outside its field
+    assert 0.01 < 1 - valid.mean() < 0.2
+    assert Lens(320, 240, 0.8, 0.8, k1=-0.15).valid_mask((320, 240)).all()  # a barrel lens fills the frame
+    cameras = write_cameras(tmp_path / "cameras.json", cam={**BARREL, "k1": 0.25, "k2": 0.0, "c_x": 0.0, "c_y": 0.0})
+    report = run_mosaic(folder, tmp_path / "m.png", MosaicConfig(method="sift"), camera=cameras)
+    mosaic = cv2.imread(str(tmp_path / "m.png"), cv2.IMREAD_UNCHANGED)
+    # Every frame's corner pixel is empty in the mosaic unless another frame's real pixels cover it; the
+    # outermost corners of the flight are covered by one frame only.
+    first = next(f for f in report["frames"] if f["index"] == 0)
+    corner = cv2.perspectiveTransform(np.array([[[1.0, 1.0]]]), np.array(first["mosaic_from_frame"]))[0, 0]
+    x, y = int(round(corner[0])), int(round(corner[1]))
+    assert mosaic[y, x, 3] == 0
+    inside = cv2.perspectiveTransform(np.array([[[160.0, 120.0]]]), np.array(first["mosaic_from_frame"]))[0, 0]
+    assert mosaic[int(round(inside[1])), int(round(inside[0])), 3] == 255

@@ -116,6 +116,8 @@ def composite(
     width, height = canvas_size
     sizes = {i: frames.frames[i].size for i in mosaic_from_frame}
     weights = {size: _edge_weight(size) for size in set(sizes.values())}
+    if frames.lens is not None:  # a pincushion lens's rim has no real pixels: no frame owns it there
+        weights = {size: weight * frames.lens.valid_mask(size) for size, weight in weights.items()}
     rois = {i: _roi(h, sizes[i], canvas_size) for i, h in mosaic_from_frame.items()}
     rois = {i: r for i, r in rois.items() if r is not None}
     labels = None

@@ -75,13 +75,24 @@ class Lens:
     def undistort(self, image: np.ndarray) -> np.ndarray:
         """The image as a pinhole camera with the same K would have seen it, same size and type. The same K
         keeps every frame's geometry (GPS, ground-control pixels, ground truth) where it was; a barrel lens then
-        fills the whole frame, and a pincushion lens leaves the rim beyond its field repeated from its edge."""
+        fills the whole frame, and a pincushion lens leaves the rim beyond its field repeated from its edge
+        (for the estimators; compositing leaves it out, :meth:`valid_mask`)."""
         height, width = image.shape[:2]
         if (width, height) not in self._maps:
             k = self.matrix((width, height))
             self._maps[(width, height)] = cv2.initUndistortRectifyMap(k, self.coefficients(), None, k, (width, height), cv2.CV_32FC2)
         map_xy, _ = self._maps[(width, height)]
         return cv2.remap(image, map_xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def valid_mask(self, size: tuple[int, int]) -> np.ndarray:
+        """(h, w) float32: 1 where :meth:`undistort` has real pixels of a frame of ``size``, 0 on the rim a
+        pincushion lens leaves beyond its field (all ones for a barrel lens)."""
+        width, height = size
+        if (width, height) not in self._maps:
+            self.undistort(np.zeros((height, width), np.uint8))
+        map_xy, _ = self._maps[(width, height)]
+        inside = (map_xy[..., 0] >= -0.5) & (map_xy[..., 0] <= width - 0.5) & (map_xy[..., 1] >= -0.5) & (map_xy[..., 1] <= height - 0.5)
+        return inside.astype(np.float32)
 
     def undistort_points(self, points: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """(N, 2) pixels of a distorted frame of ``size`` -> where :meth:`undistort` puts them."""

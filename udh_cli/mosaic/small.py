@@ -74,7 +74,11 @@ def draw_small(frameset: FrameSet, mosaic_from_frame: dict[int, np.ndarray], can
                 (shrunk.shape[1], shrunk.shape[0]), (width, height))
             box = (int(x1 - x0), int(y1 - y0))
             small.images.append(cv2.warpPerspective(shrunk, from_shrunk, box, flags=cv2.INTER_LINEAR))
-            small.masks.append(cv2.warpPerspective(np.full(shrunk.shape[:2], 255, np.uint8), from_shrunk, box, flags=cv2.INTER_NEAREST))
+            covered = np.full(shrunk.shape[:2], 255, np.uint8)
+            if frameset.lens is not None:  # the rim a pincushion lens leaves empty
+                valid = frameset.lens.valid_mask((width, height))
+                covered = (cv2.resize(valid, (shrunk.shape[1], shrunk.shape[0]), interpolation=cv2.INTER_NEAREST) * 255).astype(np.uint8)
+            small.masks.append(cv2.warpPerspective(covered, from_shrunk, box, flags=cv2.INTER_NEAREST))
             small.corners.append((int(x0), int(y0)))
             small.indices.append(i)
             advance(1)

@@ -36,9 +36,9 @@ class TileRefinement:
             small residuals is not trusted with more (its training motion was 16 px).
         min_tiles: fewest agreeing tiles for a level's fit to replace the current estimate.
         min_share: fewest share of a level's tiles that must agree as well. Why: with 12 tiles, 3 can agree by
-            chance on a start far beyond reach (a test-made 1600x1200 pair 270 px off: the refinement network
-            shipped on 2026-11-24, in int8, confirmed such a level once in five starts); on the consecutive pairs
-            of copr and brighton-beach 0.3 changed no answer, on seneca's it took the median from 45.9 to 40.6 px.
+            chance on a start far beyond reach (a test-made 1600x1200 pair 270 px off: the shipped int8
+            refinement network confirmed such a level once in five starts); on the consecutive pairs of copr and
+            brighton-beach 0.3 changed no answer, on seneca's it took the median from 45.9 to 40.6 px.
         coarse_side: longer side of a first level where the coarse network runs on the tiles (0: none). Why:
             a whole frame squashed to 128x128 leaves the coarse answer up to 10-15 px off in that view on
             low-overlap, repetitive scenes (tree canopy), beyond the refinement network's reach; tiles of a

@@ -1,8 +1,9 @@
 """UAV mosaicking over the Estimator interface: ``run_mosaic(folder_or_video, "mosaic.png", MosaicConfig())``.
 
-Stages, one module each: :mod:`.frames` (input), :mod:`.pairwise` (batched estimation with fallback),
-:mod:`.graph` (parts, chaining, overlap candidates), :mod:`.solve` (global least squares),
-:mod:`.gains` (exposure), :mod:`.composite` (canvas and blending), :mod:`.truth` (simulator ground truth);
+Stages, one module each: :mod:`.frames` (input; :mod:`.lens` undistorts it), :mod:`.pairwise` (batched
+estimation, the method then the fallback), :mod:`.graph` (parts, chaining, overlap candidates), :mod:`.solve`
+(global least squares), :mod:`.small` (each part drawn small) for :mod:`.gains` (exposure) and :mod:`.seams`,
+:mod:`.composite` (canvas and blending), :mod:`.truth` (simulator ground truth);
 :mod:`.pipeline` wires them; :mod:`.follow` runs them live on a folder being written.
 """
 

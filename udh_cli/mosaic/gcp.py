@@ -150,8 +150,7 @@ def fit_gcps(gcps: GcpFile, frames: dict[str, tuple[tuple[int, int], np.ndarray 
             skipped.append(f"{o.name} (line {o.line}): image {o.image} is not among the frames")
             continue
         (width, height), mosaic_from_frame = frames[o.image]
-        scale = 1.0 if image_width is None else width / image_width
-        px, py = o.px * scale, o.py * scale
+        px, py = _frame_pixel(o, width, image_width)
         if not (-0.5 <= px <= width - 0.5 and -0.5 <= py <= height - 0.5):
             skipped.append(f"{o.name} (line {o.line}): pixel ({o.px:g}, {o.py:g}) is outside {o.image}'s {width}x{height} pixels"
                            + ("" if image_width else "; if the file refers to the original images, give their width (--gcp-image-width)"))
@@ -213,14 +212,24 @@ def gcp_anchors(gcps: GcpFile, frames: dict[str, tuple[int, tuple[int, int]]], s
         if o.image not in frames or o.name == leave_out:
             continue
         index, (width, height) = frames[o.image]
-        scale = 1.0 if image_width is None else width / image_width
-        px, py = o.px * scale, o.py * scale
+        px, py = _frame_pixel(o, width, image_width)
         if -0.5 <= px <= width - 0.5 and -0.5 <= py <= height - 0.5:
             rows.append((index, px, py, o.x, o.y))
     if not rows:
         return None
     table = np.array(rows, np.float64)
     return Anchors(table[:, 0].astype(int), table[:, 1:3], table[:, 3:5], np.full(len(rows), float(sigma_m)))
+
+
+def _file_to_frame(width: int, image_width: int | None) -> float:
+    """Frame pixels per pixel of the file (``image_width``: the width its pixels refer to; None: the frame's)."""
+    return 1.0 if image_width is None else width / image_width
+
+
+def _frame_pixel(o: Observation, width: int, image_width: int | None) -> tuple[float, float]:
+    """An observation's pixel in the full-resolution frame of ``width``."""
+    scale = _file_to_frame(width, image_width)
+    return o.px * scale, o.py * scale
 
 
 def _contradicting_labels(observations: list[Observation], skipped: list[str]) -> list[Observation]:
@@ -249,8 +258,6 @@ def _leave_one_out(mosaic: np.ndarray, ground: np.ndarray, used: np.ndarray) -> 
     return errors
 
 
-
-
 def undistorted_observations(gcps: GcpFile, lens, sizes: dict[str, tuple[int, int]], image_width: int | None = None) -> GcpFile:
     """The file with every observation's pixel moved where the camera model (:class:`.lens.Lens`) undistorts it,
     in the same units as the file's (``image_width``: see :func:`fit_gcps`); observations of frames not in
@@ -261,7 +268,7 @@ def undistorted_observations(gcps: GcpFile, lens, sizes: dict[str, tuple[int, in
             moved.append(o)
             continue
         width, height = sizes[o.image]
-        scale = 1.0 if image_width is None else width / image_width
-        px, py = lens.undistort_points(np.array([[o.px * scale, o.py * scale]]), (width, height))[0] / scale
+        scale = _file_to_frame(width, image_width)
+        px, py = lens.undistort_points(np.array([_frame_pixel(o, width, image_width)]), (width, height))[0] / scale
         moved.append(replace(o, px=float(px), py=float(py)))
     return GcpFile(gcps.epsg, moved)

@@ -324,7 +324,7 @@ def run_mosaic(
             gains.update(_composite_part(frameset, part, config, reporter, staged))
         _warn_about_earlier_output(output, parts, reporter)
         report = _sidecar(frameset, parts, pairs, gains, loops, truth, config, opinions, reporter, sidecar_path(output).parent)
-        if gcps is not None or any(f.metadata is not None and f.metadata.has_gps for f in frameset.frames):
+        if gcps is not None or _gps_fixes(frameset.frames):
             with reporter.stage("georeferencing", 1) as advance:  # world files and the north-up GeoTIFFs
                 _georeference(frameset, parts, report, staged, reporter, gcps, gcp_image_width, output)
                 advance(1)

@@ -217,8 +217,10 @@ def test_a_geotiff_too_large_is_a_warning_and_nothing_half_written(tmp_path, mon
     assert any("no north-up GeoTIFF" in w for w in reporter.warnings)
 
 
-def test_a_north_up_geotiff_drawn_strip_by_strip_equals_the_whole_warp(tmp_path):
-    """Several strips high, turned 30 degrees: the COG read back is the mosaic warped north-up in one go."""
+@pytest.mark.parametrize("held", ["in memory", "streamed to a tiled TIFF"])
+def test_a_north_up_geotiff_drawn_strip_by_strip_equals_the_whole_warp(tmp_path, held):
+    """Several strips high, turned 30 degrees: the COG read back is the mosaic warped north-up in one go, whether
+    the mosaic is held whole or read window by window from the tiled TIFF it was streamed to."""
     rasterio = pytest.importorskip("rasterio")
     import cv2
 
@@ -230,9 +232,16 @@ def test_a_north_up_geotiff_drawn_strip_by_strip_equals_the_whole_warp(tmp_path)
     turn, pixel = math.radians(30.0), 0.05  # metres per mosaic pixel; image y runs south
     map_from_mosaic = np.array([[pixel * math.cos(turn), pixel * math.sin(turn), 500000.0],
                                 [pixel * math.sin(turn), -pixel * math.cos(turn), 4000000.0], [0.0, 0.0, 1.0]])
-    written = geotiff.write_cog(bgra, map_from_mosaic, 32633, tmp_path / "m.cog.tif")
+    if held == "in memory":
+        image = geotiff.MosaicImage(array=bgra)
+    else:
+        tiles = [((x, y, min(x + 256, 900), min(y + 256, 700)), bgra[y : y + 256, x : x + 256]) for y in range(0, 700, 256) for x in range(0, 900, 256)]
+        geotiff.write_tiled_tiff(tmp_path / "m.tif", (900, 700), iter(tiles))
+        image = geotiff.MosaicImage(path=tmp_path / "m.tif")
+        assert image.size == (900, 700) and (image.window(0, 0, 900, 700) == bgra).all()  # the TIFF holds the mosaic exactly
+    written = geotiff.write_cog(image, map_from_mosaic, 32633, tmp_path / "m.cog.tif")
     assert written["height"] > 2 * geotiff.STRIP_ROWS
-    assert [p.name for p in tmp_path.iterdir()] == ["m.cog.tif"]  # the strips file is gone
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.cog.tif"] + (["m.tif"] if held != "in memory" else [])  # the strips file is gone
     with rasterio.open(tmp_path / "m.cog.tif") as dataset:
         assert dataset.crs.to_epsg() == 32633 and (dataset.width, dataset.height) == (written["width"], written["height"])
         assert dataset.overviews(1)  # a COG: overviews inside

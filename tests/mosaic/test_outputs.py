@@ -35,15 +35,15 @@ def snapshot(folder: Path) -> dict[str, bytes]:
 
 def fail_in_part(monkeypatch, number: int) -> None:
     """Make the compositing of part ``number`` (1-based, in order) fail, as a full disk or a bug would."""
-    real, calls = compositing.composite, []
+    real, calls = compositing.composite_tiles, []
 
-    def composite(*args, **kwargs):
+    def composite_tiles(*args, **kwargs):
         calls.append(1)
         if len(calls) == number:
             raise UdhError("made to fail by the test")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(compositing, "composite", composite)
+    monkeypatch.setattr(compositing, "composite_tiles", composite_tiles)
 
 
 def test_a_failing_later_part_leaves_no_part_behind(flight, tmp_path, monkeypatch):

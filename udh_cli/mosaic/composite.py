@@ -1,14 +1,18 @@
-"""Compositing: the canvas, and warping + blending frames into it one at a time (bounded memory).
+"""Compositing: the canvas, and warping + blending frames into it tile by tile (bounded memory).
 
-Only the canvas accumulators and one full-resolution frame are in memory at once; each frame is warped
-into its own bounding box on the canvas, never into a full-canvas buffer.
+The canvas is blended in square tiles (:data:`TILE_SIDE`), each with a margin that multiband blending needs to
+see across the tile's edge, and each tile only from the frames that reach it. Only one tile's accumulators and
+a few decoded frames are in memory at once, so the working set depends on the tile and frame sizes, not on the
+map's area: :func:`composite_tiles` yields the tiles for a writer that streams them to a file, and
+:func:`composite` assembles them into one (H, W, 4) array (4 bytes per canvas pixel).
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -21,11 +25,20 @@ from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.seams import Seams
 
 BLENDS = ("feather", "multiband", "none")  # the --blend choices
-# Peak memory per canvas pixel while blending, accumulators and output together: the rise in peak RSS measured
-# on brighton-beach's 9.3 MP canvas (it includes one 1600x900 frame's buffers, so large canvases need less).
+# Peak memory per pixel of a tile (with its margin) while blending, accumulators and output together: the rise in
+# peak RSS measured on brighton-beach's 9.3 MP canvas blended whole (it includes one 1600x900 frame's buffers).
 BYTES_PER_PIXEL = {"feather": 28, "multiband": 36, "none": 20}
-DEFAULT_MAX_CANVAS_BYTES = 3 * 2**30  # refuse canvases that would need more than this to blend
+OUTPUT_BYTES_PER_PIXEL = 4  # an assembled BGRA canvas (PNG and JPEG outputs are encoded from it whole)
+DEFAULT_MAX_CANVAS_BYTES = 3 * 2**30  # refuse canvases whose assembled image would need more than this
 MULTIBAND_LEVELS = 5
+TILE_SIDE = 2048  # canvas pixels per tile side; a canvas that fits in one tile is blended whole
+# Canvas pixels each tile also blends beyond its edges, then drops. Multiband blending mixes each band over a
+# reach that doubles per level (the 5th level's 5x5 kernel spans about 2^5 * 4 px): with 256 px the tiled
+# result differs from the whole canvas blended at once by at most 1 grey level (tests/mosaic/test_composite.py).
+TILE_MARGIN = {"feather": 0, "none": 0, "multiband": 256}
+# A streamed canvas costs no memory, but one this large (64k x 64k) comes from a homography gone astray, not a survey.
+MAX_STREAMED_PIXELS = 2**32
+DECODED_CACHE_BYTES = 256 * 2**20  # decoded full-resolution frames kept for the next tiles that need them
 
 
 @dataclass(frozen=True)
@@ -38,16 +51,26 @@ class Canvas:
     scale: float
 
 
+def working_bytes(blend: str) -> int:
+    """Peak bytes of blending one tile with its margin (whatever the canvas's size)."""
+    side = TILE_SIDE + 2 * TILE_MARGIN[blend]
+    return side * side * BYTES_PER_PIXEL[blend] + DECODED_CACHE_BYTES
+
+
 def plan_canvas(
     ref_from: dict[int, np.ndarray],
     sizes: Sequence[tuple[int, int]],
     blend: str,
     max_size: int | None = None,
     max_bytes: int = DEFAULT_MAX_CANVAS_BYTES,
+    assembled: bool = True,
 ) -> Canvas:
     """Bounds of every frame's footprint; downscaled to ``max_size`` on the longest side if given.
 
-    Raises :class:`UdhError` when blending the canvas would take more than ``max_bytes``.
+    ``assembled``: the mosaic is held whole (4 bytes per pixel) to be encoded, as PNG and JPEG outputs are;
+    False when its tiles stream to a file (a tiled TIFF), so its area costs no memory.
+
+    Raises :class:`UdhError` when an assembled canvas would take more than ``max_bytes``.
     """
     corners = np.concatenate([geometry.transform_points(h, geometry.image_corners(*sizes[i])) for i, h in ref_from.items()])
     if not np.isfinite(corners).all():
@@ -59,14 +82,20 @@ def plan_canvas(
         scale = max_size / max(full)
     size = (max(1, round(full[0] * scale)), max(1, round(full[1] * scale)))
     mosaic_from_ref = geometry.resize_matrix(full, size) @ geometry.translation(-low[0], -low[1])
-    needed = size[0] * size[1] * BYTES_PER_PIXEL[blend]
-    if needed > max_bytes:
+    pixels = size[0] * size[1]
+    if assembled and pixels * OUTPUT_BYTES_PER_PIXEL > max_bytes:
+        needed = pixels * OUTPUT_BYTES_PER_PIXEL
         fit = int(max(size) * math.sqrt(max_bytes / needed))
         raise UdhError(
-            f"the mosaic canvas would be {size[0]}x{size[1]} px ({needed / 2**20:,.0f} MiB to blend, limit {max_bytes / 2**20:,.0f} MiB); "
-            f"pass --max-size {fit} or smaller to downscale it"
+            f"the mosaic canvas would be {size[0]}x{size[1]} px ({needed / 2**20:,.0f} MiB to hold, limit {max_bytes / 2**20:,.0f} MiB); "
+            f"pass --max-size {fit} or smaller to downscale it, or write a .tif, whose tiles stream to the file"
         )
+    if pixels > MAX_STREAMED_PIXELS:
+        fit = int(max(size) * math.sqrt(MAX_STREAMED_PIXELS / pixels))
+        raise UdhError(f"the mosaic canvas would be {size[0]}x{size[1]} px, more than a survey's homographies place sensibly; "
+                       f"check the estimates, or pass --max-size {fit} or smaller")
     return Canvas(size, mosaic_from_ref, scale)
+
 
 
 def _edge_weight(size: tuple[int, int]) -> np.ndarray:
@@ -92,7 +121,7 @@ def _warp(image: np.ndarray, mosaic_from_frame: np.ndarray, roi: tuple[int, int,
     return cv2.warpPerspective(image, roi_from_frame, (x1 - x0, y1 - y0), flags=interpolation, borderMode=cv2.BORDER_CONSTANT)
 
 
-def composite(
+def composite_tiles(
     frames: FrameSet,
     mosaic_from_frame: dict[int, np.ndarray],
     canvas_size: tuple[int, int],
@@ -101,15 +130,19 @@ def composite(
     label: str = "compositing",
     gains: dict[int, np.ndarray] | None = None,
     seams: Seams | None = None,
-) -> np.ndarray:
-    """Warp and blend the frames of one part into a (H, W, 4) BGRA uint8 canvas; alpha 255 where covered.
+    tile_side: int | None = None,
+) -> Iterator[tuple[tuple[int, int, int, int], np.ndarray]]:
+    """Warp and blend the frames of one part, tile by tile: yields ``((x0, y0, x1, y1), (h, w, 4) BGRA uint8)``
+    per canvas tile in row-major order; alpha 255 where covered.
 
     ``mosaic_from_frame`` maps each frame's full-resolution pixels to canvas pixels; ``gains`` gives each
     frame's exposure gains (:func:`.gains.exposure_gains`; none: as they are). ``feather`` averages with
     weights that fall to 0 at frame borders; ``none`` and ``multiband`` first give every canvas pixel to one
     frame, then copy (``none``) or blend the seams band by band (``multiband``, OpenCV's MultiBandBlender):
     the frame whose ``seams`` mask holds the pixel (:mod:`.seams`), else the one that sees it nearest its
-    centre. ``label`` names the progress bar (the time adds up under "compositing").
+    centre. Every rule is per pixel except multiband's, which each tile blends with :data:`TILE_MARGIN` more
+    canvas around it. ``label`` names the progress bar (the time adds up under "compositing"); ``tile_side``:
+    canvas pixels per tile side (None: :data:`TILE_SIDE`).
     """
     if blend not in BLENDS:
         raise UdhError(f"unknown blend '{blend}'; choose one of: {', '.join(BLENDS)}")
@@ -120,15 +153,95 @@ def composite(
         weights = {size: weight * frames.lens.valid_mask(size) for size, weight in weights.items()}
     rois = {i: _roi(h, sizes[i], canvas_size) for i, h in mosaic_from_frame.items()}
     rois = {i: r for i, r in rois.items() if r is not None}
+    # A video is decoded sequentially from its start on every read, so it is blended in one tile.
+    side = max(width, height) if frames.is_video else (tile_side or TILE_SIDE)
+    if width <= side and height <= side:
+        tiles = [(0, 0, width, height)]
+    else:
+        tiles = [(x, y, min(x + side, width), min(y + side, height)) for y in range(0, height, side) for x in range(0, width, side)]
+    margin = TILE_MARGIN[blend] if len(tiles) > 1 else 0
+    plan = []  # per tile: its box, the region blended for it, and the frames reaching that region
+    for tx0, ty0, tx1, ty1 in tiles:
+        region = (max(0, tx0 - margin), max(0, ty0 - margin), min(width, tx1 + margin), min(height, ty1 + margin))
+        plan.append(((tx0, ty0, tx1, ty1), region, {i: box for i, roi in rois.items() if (box := _intersect(roi, region)) is not None}))
+    decoded = _DecodedFrames(frames)
+    # The progress counts frames blended into tiles, so that a canvas of one tile still shows its progress.
+    with reporter.stage("compositing", sum(len(inside) for _, _, inside in plan), label) as advance:
+        for (tx0, ty0, tx1, ty1), region, inside in plan:
+            blended = _blend_region(decoded, inside, mosaic_from_frame, region, blend, weights, sizes, gains, seams, advance)
+            rx0, ry0 = region[:2]
+            yield (tx0, ty0, tx1, ty1), np.ascontiguousarray(blended[ty0 - ry0 : ty1 - ry0, tx0 - rx0 : tx1 - rx0])
+
+
+def composite(
+    frames: FrameSet,
+    mosaic_from_frame: dict[int, np.ndarray],
+    canvas_size: tuple[int, int],
+    blend: str,
+    reporter: Reporter,
+    label: str = "compositing",
+    gains: dict[int, np.ndarray] | None = None,
+    seams: Seams | None = None,
+    tile_side: int | None = None,
+) -> np.ndarray:
+    """The tiles of :func:`composite_tiles` assembled into one (H, W, 4) BGRA uint8 canvas."""
+    width, height = canvas_size
+    out = np.zeros((height, width, 4), np.uint8)
+    for (x0, y0, x1, y1), tile in composite_tiles(frames, mosaic_from_frame, canvas_size, blend, reporter, label, gains, seams, tile_side):
+        out[y0:y1, x0:x1] = tile
+    return out
+
+
+class _DecodedFrames:
+    """Full-resolution frames as :meth:`FrameSet.full_images` gives them, the most recently used kept up to
+    :data:`DECODED_CACHE_BYTES`: a frame reaching several tiles is mostly decoded once."""
+
+    def __init__(self, frames: FrameSet) -> None:
+        self.frames = frames
+        self.kept: OrderedDict[int, np.ndarray] = OrderedDict()
+
+    def get(self, indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
+        """``(index, (H, W, 3) BGR uint8)`` for ``indices``, in sequence order; the frames not kept are decoded one
+        at a time as they are reached."""
+        missing = sorted(i for i in set(indices) if i not in self.kept)
+        fresh = self.frames.full_images(missing)  # yields in sequence order too
+        for i in sorted(set(indices)):
+            if i in self.kept:
+                image = self.kept[i]
+            else:
+                index, image = next(fresh)
+                assert index == i
+            self.kept[i] = image
+            self.kept.move_to_end(i)
+            while len(self.kept) > 1 and sum(kept.nbytes for kept in self.kept.values()) > DECODED_CACHE_BYTES:
+                self.kept.popitem(last=False)
+            yield i, image
+
+
+def _intersect(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int] | None:
+    x0, y0, x1, y1 = max(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), min(a[3], b[3])
+    return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
+
+
+def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int, int]], mosaic_from_frame: dict[int, np.ndarray],
+                  region: tuple[int, int, int, int], blend: str, weights: dict, sizes: dict, gains, seams: Seams | None,
+                  advance=lambda n=1: None) -> np.ndarray:
+    """The canvas ``region`` (x0, y0, x1, y1) blended from the frames whose canvas ``boxes`` (inside it) are
+    given: (h, w, 4) BGRA uint8. ``advance(1)`` is called per frame blended."""
+    rx0, ry0, rx1, ry1 = region
+    width, height = rx1 - rx0, ry1 - ry0
+    region_from_mosaic = geometry.translation(-rx0, -ry0)
+    local = {i: (x0 - rx0, y0 - ry0, x1 - rx0, y1 - ry0) for i, (x0, y0, x1, y1) in boxes.items()}
+    to_region = {i: region_from_mosaic @ mosaic_from_frame[i] for i in boxes}
     labels = None
     if blend != "feather":  # seams: the frame with the highest weight owns the pixel
         best = np.zeros((height, width), np.float32)
         labels = np.full((height, width), -1, np.int32)
-        for i, roi in rois.items():
-            x0, y0, x1, y1 = roi
-            weight = _warp(weights[sizes[i]], mosaic_from_frame[i], roi)
+        for i, box in local.items():
+            x0, y0, x1, y1 = box
+            weight = _warp(weights[sizes[i]], to_region[i], box)
             if seams is not None:  # the seam mask first; centrality (weights below 1) only where no mask holds the pixel
-                weight += 2.0 * seams.in_box(i, roi) * (weight > 0)
+                weight += 2.0 * seams.in_box(i, boxes[i]) * (weight > 0)
             better = weight > best[y0:y1, x0:x1]
             best[y0:y1, x0:x1][better] = weight[better]
             labels[y0:y1, x0:x1][better] = i
@@ -141,29 +254,30 @@ def composite(
     else:
         blender = cv2.detail_MultiBandBlender(0, MULTIBAND_LEVELS)
         blender.prepare((0, 0, width, height))
-    with reporter.stage("compositing", len(rois), label) as advance:
-        for i, image in frames.full_images(rois):
-            roi = rois[i]
-            x0, y0, x1, y1 = roi
-            warped = _warp(image.astype(np.float32), mosaic_from_frame[i], roi)
-            if gains is not None:
-                warped = apply_gain(warped, gains[i])
-            if blend == "feather":
-                weight = _warp(weights[sizes[i]], mosaic_from_frame[i], roi)
-                total[y0:y1, x0:x1] += warped * weight[..., None]
-                weight_sum[y0:y1, x0:x1] += weight
-            else:
-                owned = labels[y0:y1, x0:x1] == i
-                if blend == "none":
-                    out[y0:y1, x0:x1, :3][owned] = np.clip(warped[owned] + 0.5, 0, 255).astype(np.uint8)
-                    out[y0:y1, x0:x1, 3][owned] = 255
-                else:
-                    blender.feed(np.clip(warped, 0, 255).astype(np.int16), owned.astype(np.uint8) * 255, (x0, y0))
-            advance(1)
+        fed = 0
+    for i, image in decoded.get(list(local)):
+        box = local[i]
+        x0, y0, x1, y1 = box
+        warped = _warp(image.astype(np.float32), to_region[i], box)
+        if gains is not None:
+            warped = apply_gain(warped, gains[i])
+        if blend == "feather":
+            weight = _warp(weights[sizes[i]], to_region[i], box)
+            total[y0:y1, x0:x1] += warped * weight[..., None]
+            weight_sum[y0:y1, x0:x1] += weight
+        else:
+            owned = labels[y0:y1, x0:x1] == i
+            if blend == "none":
+                out[y0:y1, x0:x1, :3][owned] = np.clip(warped[owned] + 0.5, 0, 255).astype(np.uint8)
+                out[y0:y1, x0:x1, 3][owned] = 255
+            elif owned.any():
+                blender.feed(np.clip(warped, 0, 255).astype(np.int16), owned.astype(np.uint8) * 255, (x0, y0))
+                fed += 1
+        advance(1)
     if blend == "feather":
         out = np.zeros((height, width, 4), np.uint8)
-        strip = max(1, 2**18 // width)  # rows per strip: temporaries stay at a few MB whatever the canvas
-        for top in range(0, height, strip):  # in strips, so the division needs no full-canvas temporaries
+        strip = max(1, 2**18 // width)  # rows per strip: temporaries stay at a few MB whatever the region
+        for top in range(0, height, strip):  # in strips, so the division needs no region-sized temporaries
             rows = slice(top, top + strip)
             strip_weight = weight_sum[rows]
             covered = strip_weight > 1e-6
@@ -171,17 +285,41 @@ def composite(
             out[rows, :, 3] = np.where(covered, 255, 0).astype(np.uint8)
             out[rows, :, :3][~covered] = 0
     elif blend == "multiband":
-        result, mask = blender.blend(None, None)
         out = np.zeros((height, width, 4), np.uint8)
-        out[..., :3] = np.clip(result, 0, 255).astype(np.uint8)
-        out[..., 3] = np.where(mask > 0, 255, 0).astype(np.uint8)
+        if fed:  # a tile no frame reaches stays transparent (OpenCV's blender needs at least one image)
+            result, mask = blender.blend(None, None)
+            out[..., :3] = np.clip(result, 0, 255).astype(np.uint8)
+            out[..., 3] = np.where(mask > 0, 255, 0).astype(np.uint8)
     return out
 
 
-def preview(mosaic_bgra: np.ndarray, max_side: int = 1200, background: int = 40) -> np.ndarray:
+PREVIEW_SIDE = 1200  # longest side of a mosaic's preview, pixels
+
+
+class PreviewDrawer:
+    """A small copy of a mosaic drawn from its tiles as they are blended (:func:`composite_tiles`), so that a
+    mosaic streamed to a file gets its preview without being held whole."""
+
+    def __init__(self, canvas_size: tuple[int, int], max_side: int = PREVIEW_SIDE) -> None:
+        width, height = canvas_size
+        self.scale = min(1.0, max_side / max(width, height))
+        self.small = np.zeros((max(1, round(height * self.scale)), max(1, round(width * self.scale)), 4), np.uint8)
+
+    def add(self, box: tuple[int, int, int, int], tile: np.ndarray) -> None:
+        """Draw the canvas tile at ``box`` (x0, y0, x1, y1); tiles that share an edge share it here too."""
+        x0, y0, x1, y1 = (round(v * self.scale) for v in box)
+        if x1 > x0 and y1 > y0:
+            self.small[y0:y1, x0:x1] = cv2.resize(tile, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
+
+    def image(self, background: int = 40) -> np.ndarray:
+        """(h, w, 3) BGR uint8 on a dark background where nothing is drawn."""
+        alpha = self.small[..., 3:4].astype(np.float32) / 255.0
+        return (self.small[..., :3] * alpha + background * (1 - alpha) + 0.5).astype(np.uint8)
+
+
+def preview(mosaic_bgra: np.ndarray, max_side: int = PREVIEW_SIDE, background: int = 40) -> np.ndarray:
     """(h, w, 3) BGR uint8 small copy of the mosaic on a dark background, for a quick look."""
     height, width = mosaic_bgra.shape[:2]
-    scale = min(1.0, max_side / max(width, height))
-    small = cv2.resize(mosaic_bgra, (max(1, round(width * scale)), max(1, round(height * scale))), interpolation=cv2.INTER_AREA)
-    alpha = small[..., 3:4].astype(np.float32) / 255.0
-    return (small[..., :3] * alpha + background * (1 - alpha) + 0.5).astype(np.uint8)
+    drawer = PreviewDrawer((width, height), max_side)
+    drawer.add((0, 0, width, height), mosaic_bgra)
+    return drawer.image(background)

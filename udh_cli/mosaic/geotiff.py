@@ -1,9 +1,10 @@
-"""A georeferenced mosaic as a north-up Cloud-Optimised GeoTIFF (rasterio, whose wheels bundle GDAL).
+"""GeoTIFFs (rasterio, whose wheels bundle GDAL): a mosaic streamed tile by tile, and the north-up COG.
 
-The mosaic is drawn in its reference frame's pixels; the georeference (:mod:`.georef`, :mod:`.gcp`) maps
-them to map metres. Here the mosaic is resampled onto a north-up grid of the same pixel size and written as
-a COG: tiled, with overviews and an alpha band, in the map's CRS, which QGIS, GDAL and web map servers read
-directly.
+The mosaic is drawn in its reference frame's pixels; a ``.tif`` mosaic is written tile by tile as it is blended
+(:func:`write_tiled_tiff`), so that its area costs no memory. The georeference (:mod:`.georef`, :mod:`.gcp`)
+maps those pixels to map metres. Here the mosaic is resampled onto a north-up grid of the same pixel size,
+strip by strip, and written as a COG: tiled, with overviews and an alpha band, in the map's CRS, which QGIS,
+GDAL and web map servers read directly.
 """
 
 from __future__ import annotations
@@ -30,19 +31,77 @@ def has_rasterio() -> bool:
     return importlib.util.find_spec("rasterio") is not None
 
 
-def write_cog(mosaic_bgra: np.ndarray, map_from_mosaic: np.ndarray, epsg: int, path: Path, max_pixels: int = 400_000_000) -> dict:
-    """Resample an (H, W, 4) BGRA mosaic north-up and write it as a COG at ``path``; returns its size and grid."""
-    return write_combined_cog([(mosaic_bgra, map_from_mosaic)], epsg, path, max_pixels)
+class MosaicImage:
+    """A written mosaic to resample north-up, read window by window: held in memory, or in a tiled TIFF that
+    :func:`write_tiled_tiff` streamed (so that a map larger than memory is never held whole)."""
+
+    def __init__(self, array: np.ndarray | None = None, path: Path | None = None) -> None:
+        if (array is None) == (path is None):
+            raise ValueError("give the mosaic as an array or as a tiled TIFF's path")
+        self.array, self.path = array, path
+        if array is not None:
+            self.size = (array.shape[1], array.shape[0])
+        else:
+            with _open_tiff(path) as dataset:
+                self.size = (dataset.width, dataset.height)
+
+    def window(self, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+        """Pixels ``x0:x1``, ``y0:y1`` as (h, w, 4) BGRA uint8 (inside the image)."""
+        if self.array is not None:
+            return self.array[y0:y1, x0:x1]
+        from rasterio.windows import Window
+
+        with _open_tiff(self.path) as dataset:
+            rgba = dataset.read(window=Window(x0, y0, x1 - x0, y1 - y0))
+        return np.ascontiguousarray(rgba.transpose(1, 2, 0)[..., [2, 1, 0, 3]])
 
 
-def write_combined_cog(layers: list[tuple[np.ndarray, np.ndarray]], epsg: int, path: Path, max_pixels: int = 400_000_000) -> dict:
-    """Several mosaics (``(bgra, map_from_mosaic)``, earlier ones on top) resampled onto one north-up grid of
-    the finest pixel size among them, written as one COG: the parts of a split flight in one map."""
+def _open_tiff(path: Path):
+    import warnings
+
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+
+    with warnings.catch_warnings():  # the mosaic in reference-frame pixels has no CRS of its own: that is expected
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        return rasterio.open(path)
+
+
+def write_tiled_tiff(path: Path, size: tuple[int, int], tiles) -> None:
+    """Stream ``tiles`` (``((x0, y0, x1, y1), (h, w, 4) BGRA uint8)``, as :func:`.composite.composite_tiles`
+    yields them) into a tiled RGBA TIFF of ``size`` (width, height) with an alpha band, DEFLATE-compressed:
+    only one tile is in memory at a time. GDAL, QGIS and OpenCV read it."""
+    _require_rasterio()
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.windows import Window
+    import warnings
+
+    width, height = size
+    profile = {"driver": "GTiff", "width": width, "height": height, "count": 4, "dtype": "uint8", "photometric": "RGB",
+               "alpha": "YES", "tiled": True, "blockxsize": STRIP_ROWS, "blockysize": STRIP_ROWS, "compress": "DEFLATE",
+               "BIGTIFF": "IF_SAFER"}
+    with warnings.catch_warnings(), rasterio.Env(GDAL_NUM_THREADS="1"):
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        with rasterio.open(path, "w", **profile) as dataset:
+            for (x0, y0, x1, y1), tile in tiles:
+                dataset.write(tile[..., [2, 1, 0, 3]].transpose(2, 0, 1), window=Window(x0, y0, x1 - x0, y1 - y0))
+
+
+def write_cog(mosaic: MosaicImage, map_from_mosaic: np.ndarray, epsg: int, path: Path, max_pixels: int = 400_000_000) -> dict:
+    """Resample a mosaic north-up and write it as a COG at ``path``; returns its size and grid."""
+    return write_combined_cog([(mosaic, map_from_mosaic)], epsg, path, max_pixels)
+
+
+def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, path: Path, max_pixels: int = 400_000_000) -> dict:
+    """Several mosaics (``(image, map_from_mosaic)``, earlier ones on top) resampled onto one north-up grid of
+    the finest pixel size among them, written as one COG: the parts of a split flight in one map. Each strip
+    of the grid reads only the window of each mosaic it covers."""
     _require_rasterio()
     pixel = min(math.hypot(m[0, 0], m[1, 0]) for _, m in layers)
     edges = []
-    for bgra, map_from_mosaic in layers:
-        height, width = bgra.shape[:2]
+    for image, map_from_mosaic in layers:
+        width, height = image.size
         corners = np.array([[-0.5, -0.5, 1], [width - 0.5, -0.5, 1], [width - 0.5, height - 0.5, 1], [-0.5, height - 0.5, 1]]).T
         edges.append((map_from_mosaic @ corners)[:2])
     mapped = np.hstack(edges)
@@ -56,8 +115,16 @@ def write_combined_cog(layers: list[tuple[np.ndarray, np.ndarray]], epsg: int, p
         """Rows ``top`` to ``top + height`` of the north-up grid, (height, columns, 4) BGRA, earlier layers on top."""
         canvas = np.zeros((height, columns, 4), np.uint8)
         strip_from_out = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -top], [0.0, 0.0, 1.0]])
-        for bgra, map_from_mosaic in layers:
-            drawn = cv2.warpAffine(bgra, (strip_from_out @ out_from_map @ map_from_mosaic)[:2], (columns, height),
+        strip_corners = np.array([[-1, -1, 1], [columns, -1, 1], [columns, height, 1], [-1, height, 1]], float).T
+        for image, map_from_mosaic in layers:
+            strip_from_mosaic = strip_from_out @ out_from_map @ map_from_mosaic
+            seen = (np.linalg.inv(strip_from_mosaic) @ strip_corners)[:2]  # the strip's outline in mosaic pixels
+            x0, y0 = np.maximum(np.floor(seen.min(1)).astype(int) - 1, 0)
+            x1, y1 = np.minimum(np.ceil(seen.max(1)).astype(int) + 2, image.size)
+            if x1 <= x0 or y1 <= y0:
+                continue
+            window_to_strip = strip_from_mosaic @ np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+            drawn = cv2.warpAffine(image.window(x0, y0, x1, y1), window_to_strip[:2], (columns, height),
                                    flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
             empty = (canvas[..., 3] == 0) & (drawn[..., 3] > 0)
             canvas[empty] = drawn[empty]

@@ -32,7 +32,7 @@ from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, o
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.lens import read_cameras
-from udh_cli.mosaic.geotiff import cog_path, has_rasterio, write_cog, write_combined_cog
+from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
 from udh_cli.mosaic.follow import FollowConfig, follow_mosaic
 from udh_cli.mosaic.workers import EstimatorSpec, open_runner
 from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
@@ -444,13 +444,18 @@ def _write_combined_map(placed: list, frameset: FrameSet, report: dict[str, Any]
                   f"rest on GPS alone (outside the largest part)")
 
 
-def _staged_bgra(staged: StagedFiles, part: Part) -> np.ndarray | None:
-    """A part's mosaic as written this run (its staged file), as (H, W, 4) BGRA; None if it cannot be read."""
+def _staged_bgra(staged: StagedFiles, part: Part) -> MosaicImage | None:
+    """A part's mosaic as written this run (its staged file): a streamed TIFF read window by window, else the
+    image read whole as (H, W, 4) BGRA; None if it cannot be read."""
     temporary = staged.temporary_of(part.file)
-    image = None if temporary is None else cv2.imread(str(temporary), cv2.IMREAD_UNCHANGED)
+    if temporary is None:
+        return None
+    if streams_to_file(part.file):
+        return MosaicImage(path=temporary)
+    image = cv2.imread(str(temporary), cv2.IMREAD_UNCHANGED)
     if image is None or image.ndim != 3 or image.dtype != np.uint8:
         return None
-    return image if image.shape[2] == 4 else cv2.cvtColor(image, cv2.COLOR_BGR2BGRA)  # a JPEG mosaic has no alpha
+    return MosaicImage(array=image if image.shape[2] == 4 else cv2.cvtColor(image, cv2.COLOR_BGR2BGRA))  # a JPEG mosaic has no alpha
 
 
 def _write_georeference(part: Part, found, staged: StagedFiles, entry: dict[str, Any], reporter: Reporter) -> None:
@@ -714,7 +719,8 @@ def _plan_canvases(frameset: FrameSet, parts: list[Part], output: Path, config: 
         raise UdhError("no pair of frames could be matched, so nothing can be mosaicked; try --fallback sift or a larger --work-size")
     for number, (part, path) in enumerate(zip(multi, output_paths(output, len(multi))), start=1):
         part.number = number
-        part.canvas = compositing.plan_canvas({i: part.solved[i] for i in part.frames}, sizes, config.blend, config.max_size, config.max_canvas_bytes)
+        part.canvas = compositing.plan_canvas({i: part.solved[i] for i in part.frames}, sizes, config.blend, config.max_size,
+                                              config.max_canvas_bytes, assembled=not streams_to_file(path))
         part.file = path
 
 
@@ -733,18 +739,40 @@ def _composite_part(frameset: FrameSet, part: Part, config: MosaicConfig, report
             gains = exposure_gains(config.exposure, small)
             seams = find_seams(config.seams, small) if want_seams else None
             advance(1)
-    mosaic = compositing.composite(frameset, to_mosaic, part.canvas.size, config.blend, reporter, f"compositing{suffix}", gains, seams)
-    with reporter.stage("writing", 1) as advance:
-        if part.file.suffix.lower() in (".jpg", ".jpeg"):
-            reporter.warn(f"{part.file.name}: JPEG has no alpha channel; uncovered areas are black (use .png or .tif to keep the mask)")
-            write_image(staged.path_for(part.file), mosaic[..., :3])
-        else:
-            write_image(staged.path_for(part.file), mosaic)
-        if config.preview:
-            part.preview = preview_path(part.file)
-            write_image(staged.path_for(part.preview), compositing.preview(mosaic))
-        advance(1)
+    tiles = compositing.composite_tiles(frameset, to_mosaic, part.canvas.size, config.blend, reporter, f"compositing{suffix}", gains, seams)
+    drawer = compositing.PreviewDrawer(part.canvas.size)
+    if streams_to_file(part.file):  # blended and written tile by tile: the map's area costs no memory
+        write_tiled_tiff(staged.path_for(part.file), part.canvas.size, _drawn(tiles, drawer))
+    else:
+        width, height = part.canvas.size
+        mosaic = np.zeros((height, width, 4), np.uint8)
+        for (x0, y0, x1, y1), tile in _drawn(tiles, drawer):
+            mosaic[y0:y1, x0:x1] = tile
+        with reporter.stage("writing", 1) as advance:
+            if part.file.suffix.lower() in (".jpg", ".jpeg"):
+                reporter.warn(f"{part.file.name}: JPEG has no alpha channel; uncovered areas are black (use .png or .tif to keep the mask)")
+                write_image(staged.path_for(part.file), mosaic[..., :3])
+            else:
+                write_image(staged.path_for(part.file), mosaic)
+            advance(1)
+        del mosaic
+    if config.preview:
+        part.preview = preview_path(part.file)
+        write_image(staged.path_for(part.preview), drawer.image())
     return {i: mean_gain(gains[i]) if gains is not None else [1.0, 1.0, 1.0] for i in part.frames}
+
+
+def streams_to_file(path: Path) -> bool:
+    """Whether a mosaic written to ``path`` streams tile by tile (a TIFF, with rasterio) rather than being held
+    whole to be encoded (PNG, JPEG)."""
+    return path.suffix.lower() in (".tif", ".tiff") and has_rasterio()
+
+
+def _drawn(tiles, drawer: "compositing.PreviewDrawer"):
+    """``tiles`` passed on, each also drawn into the preview."""
+    for box, tile in tiles:
+        drawer.add(box, tile)
+        yield box, tile
 
 
 def _warn_about_earlier_output(output: Path, parts: list[Part], reporter: Reporter) -> None:

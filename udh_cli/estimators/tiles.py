@@ -59,6 +59,12 @@ class TileRefinement:
     coarse_side: int = 384
     coarse_move: float = 72.0
 
+    def can_confirm(self, size_b: tuple[int, int], tile: int) -> bool:
+        """Whether B (``(width, height)`` pixels) holds enough tiles of side ``tile`` at full resolution for a
+        level to confirm an answer. A pair at the network's own size (the paper's 128x128 patches) has none,
+        so finding no confirmation there says nothing about the answer."""
+        return min(size_b) >= tile and len(_tile_origins(size_b, tile)) >= self.min_tiles
+
 
 @dataclass(frozen=True)
 class TileResult:

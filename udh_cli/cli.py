@@ -321,7 +321,7 @@ def mosaic(
     gcp_image_width: Annotated[Optional[int], typer.Option("--gcp-image-width", help="Width in pixels of the images the --gcp file's pixels refer to, when not the frames' own (originals before downscaling).")] = None,
     camera: Annotated[Optional[Path], typer.Option("--camera", help="OpenSfM/OpenDroneMap cameras.json of the camera that took the frames: every frame is undistorted by its lens model.")] = None,
     cache_dir: Annotated[Optional[Path], typer.Option("--cache-dir", help="Write the pair cache (NAME.pairs.json) in this folder instead of beside the mosaic; it is read only with --resume.")] = None,
-    follow: Annotated[bool, typer.Option("--follow", help="Live: keep watching SOURCE (a folder) as frames arrive, refresh the mosaic every --refresh-every frames, finish when a DONE file appears or no frame comes for --idle-timeout.", metavar="")] = False,
+    follow: Annotated[bool, typer.Option("--follow", help="Live: keep watching SOURCE (a folder) as frames arrive, draw each into NAME.live.jpg as it lands, refresh the mosaic every --refresh-every frames, finish when a DONE file appears or no frame comes for --idle-timeout.", metavar="")] = False,
     refresh_every: Annotated[int, typer.Option("--refresh-every", min=1, help="Live: rewrite the mosaic after this many new frames.")] = _FOLLOW.refresh_every,
     idle_timeout: Annotated[float, typer.Option("--idle-timeout", min=0.1, help="Live: seconds without a new frame that end the flight.")] = _FOLLOW.idle_timeout_s,
 ) -> None:

@@ -10,7 +10,7 @@ import pytest
 
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
-from udh_cli.estimators import Estimate, Estimator, create_estimator, estimator_names, require_ok
+from udh_cli.estimators import Estimator, create_estimator, estimator_names, require_ok
 from udh_cli.estimators.ecc import EccEstimator
 from udh_cli.images import to_gray_float, to_gray_u8
 

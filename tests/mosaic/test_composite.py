@@ -10,8 +10,7 @@ import pytest
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.composite import (BYTES_PER_PIXEL, OUTPUT_BYTES_PER_PIXEL, TILE_MARGIN, composite, composite_tiles,
-                                      plan_canvas)
+from udh_cli.mosaic.composite import BYTES_PER_PIXEL, OUTPUT_BYTES_PER_PIXEL, composite, composite_tiles, plan_canvas
 from udh_cli.mosaic.frames import open_frames
 from udh_cli.mosaic.report import Reporter
 from udh_cli.simulate import load_ground_truth

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -71,6 +70,11 @@ def test_a_flight_written_while_it_is_followed_gives_the_mosaic_of_the_whole_fol
     for frame, expected in zip(report["frames"], whole["frames"], strict=True):
         np.testing.assert_allclose(frame["mosaic_from_frame"], expected["mosaic_from_frame"], atol=1e-6)
     assert not any(p.name.startswith(".udh-follow") for p in (tmp_path / "out").iterdir())  # the staging folder is gone
+    # The quick look drew every frame as it came, each within a second of its last byte (here 0.05 s polls).
+    look = json.loads((tmp_path / "out" / "live.live.json").read_text())
+    assert [f["name"] for f in look["frames"]] == [p.name for p in frames] and look["frames_placed"] == len(frames)
+    assert max(f["latency_s"] for f in look["frames"]) < 1.0
+    assert (tmp_path / "out" / "live.live.jpg").is_file()
 
 
 def test_a_flight_that_never_starts_ends_with_a_clear_error(tmp_path):

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import time
 from pathlib import Path
 
 import pytest
@@ -10,7 +12,7 @@ import pytest
 from udh_cli.errors import UdhError
 from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
 from udh_cli.mosaic import composite as compositing
-from udh_cli.mosaic.outputs import StagedFiles, stale_part_files
+from udh_cli.mosaic.outputs import STALE_AFTER_S, StagedFiles, stale_part_files
 
 from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
 
@@ -137,8 +139,10 @@ def test_temporary_files_of_a_killed_run_are_removed_by_the_next(flight, tmp_pat
     folder, _ = flight
     leftovers = [tmp_path / ".m.0a1b2c3d.staged.png", tmp_path / ".m.json.x7_k2m9q.part", tmp_path / ".m.part2.preview.0a1b2c3d.staged.jpg"]
     unrelated = [tmp_path / ".other.0a1b2c3d.staged.png", tmp_path / "m.part"]
+    long_ago = time.time() - STALE_AFTER_S - 5  # killed a while ago (a fresh one may be a live writer's)
     for path in leftovers + unrelated:
         path.write_bytes(b"x" * 100)
+        os.utime(path, (long_ago, long_ago))
     report = run_mosaic(folder, tmp_path / "m.png", FAST)
     assert report["summary"]["placed"] >= 2
     assert not any(p.exists() for p in leftovers)
@@ -160,3 +164,16 @@ def test_the_pair_cache_is_written_only_when_asked_and_the_sidecar_paths_are_rel
     assert json.loads((tmp_path / "n.json").read_text())["pair_cache"] == "caches/n.pairs.json"
     with pytest.raises(UdhError, match="no such folder"):
         run_mosaic(folder, tmp_path / "o.png", FAST, cache_dir=tmp_path / "missing")
+
+
+def test_stale_temporaries_go_but_a_writer_s_fresh_one_stays(tmp_path):
+    from udh_cli.mosaic.outputs import remove_stale_staged
+
+    old, fresh, other = tmp_path / ".m.abcd.staged.png", tmp_path / ".m.live.jpg.x1y2.part", tmp_path / ".other.abcd.staged.png"
+    for path in (old, fresh, other):
+        path.write_bytes(b"x")
+    long_ago = time.time() - STALE_AFTER_S - 5
+    os.utime(old, (long_ago, long_ago))
+    os.utime(other, (long_ago, long_ago))
+    assert remove_stale_staged(tmp_path / "m.png") == [old]  # a killed run's leftover
+    assert fresh.exists() and other.exists()  # a writer at work (the quick look), and another output's file

@@ -4,11 +4,13 @@ Stages, one module each: :mod:`.frames` (input; :mod:`.lens` undistorts it), :mo
 estimation, the method then the fallback), :mod:`.graph` (parts, chaining, overlap candidates), :mod:`.solve`
 (global least squares), :mod:`.small` (each part drawn small) for :mod:`.gains` (exposure) and :mod:`.seams`,
 :mod:`.composite` (canvas and blending), :mod:`.truth` (simulator ground truth);
-:mod:`.pipeline` wires them; :mod:`.follow` runs them live on a folder being written.
+:mod:`.pipeline` wires them; :mod:`.live` runs them on a folder being written (:mod:`.follow` watches it,
+:mod:`.quicklook` draws each frame as it lands).
 """
 
 from udh_cli.mosaic.follow import FollowConfig
-from udh_cli.mosaic.pipeline import DEFAULT_METHOD, MosaicConfig, run_live, run_mosaic
+from udh_cli.mosaic.live import run_live
+from udh_cli.mosaic.pipeline import DEFAULT_METHOD, MosaicConfig, run_mosaic
 from udh_cli.mosaic.report import Reporter
 
 __all__ = ["DEFAULT_METHOD", "FollowConfig", "MosaicConfig", "Reporter", "run_live", "run_mosaic"]

@@ -13,6 +13,7 @@ import json
 import os
 import re
 import secrets
+import time
 from pathlib import Path
 
 from udh_cli.errors import UdhError
@@ -76,19 +77,31 @@ def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: 
             raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
 
 
-def remove_stale_staged(output: Path) -> list[Path]:
+STALE_AFTER_S = 60.0  # a temporary younger than this may be another writer's at work (live mode's quick look)
+
+
+def remove_stale_staged(output: Path, now: float | None = None) -> list[Path]:
     """Hidden temporary files of ``output``'s names (``.staged`` and ``.part``) that a run killed while
-    writing left behind; removed. Only hidden files named after ``output``'s stem match."""
+    writing left behind; removed. Only hidden files named after ``output``'s stem match, and only those last
+    written :data:`STALE_AFTER_S` or more before ``now``: a live run's quick look writes its picture beside the
+    refresh that runs this."""
     pattern = re.compile(rf"\.+{re.escape(output.stem)}\..*(\.staged\.[A-Za-z0-9]+|\.part)")
+    now = time.time() if now is None else now
     removed = []
     try:
         candidates = list(output.parent.iterdir())
     except OSError:
         return removed
     for path in candidates:
-        if pattern.fullmatch(path.name) and path.is_file() and not path.is_symlink():
-            path.unlink(missing_ok=True)
-            removed.append(path)
+        if not (pattern.fullmatch(path.name) and path.is_file() and not path.is_symlink()):
+            continue
+        try:
+            if now - path.stat().st_mtime < STALE_AFTER_S:
+                continue
+        except OSError:  # gone meanwhile: its writer renamed it
+            continue
+        path.unlink(missing_ok=True)
+        removed.append(path)
     return removed
 
 

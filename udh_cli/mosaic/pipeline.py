@@ -33,13 +33,13 @@ from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, o
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.lens import read_cameras
 from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
-from udh_cli.mosaic.follow import FollowConfig, follow_mosaic
 from udh_cli.mosaic.workers import EstimatorSpec, open_runner
 from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
                                       placement_error_m)
 from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
 from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
 from udh_cli.mosaic.pairs import Acceptance, PairRequest, PairResult
+from udh_cli.mosaic.quicklook import live_picture_path, live_record_path
 from udh_cli.mosaic.pairwise import corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.solve import Anchors, pair_points, pair_rms_px, solve_with_rejection, summarise
@@ -280,7 +280,7 @@ def run_mosaic(
     fallback = fallback or (create_estimator(config.fallback, **config.fallback_options) if config.fallback else None)
     opinions = (estimator,) if fallback is None else (estimator, fallback)
 
-    frameset = open_frames(source, config.work_size, config.order, config.every, exclude=_own_files(output), reporter=reporter, lens=lens)
+    frameset = open_frames(source, config.work_size, config.order, config.every, exclude=own_files(output), reporter=reporter, lens=lens)
     frames = frameset.frames
     if gcps is not None:
         names = {f.name for f in frames}
@@ -340,32 +340,6 @@ def run_mosaic(
         staged.discard()  # after a failure; nothing is left to discard after publish()
     _remove_stale_parts(output, parts, reporter, report)
     report["sidecar"] = str(sidecar_path(output))
-    return report
-
-
-def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = MosaicConfig(), follow: FollowConfig = FollowConfig(),
-             reporter: Reporter | None = None, cache_dir: str | Path | None = None, **options: Any) -> dict[str, Any]:
-    """Live mode (:mod:`.follow`): mosaic ``folder`` while frames are still being written into it, refreshing
-    ``output`` every ``follow.refresh_every`` frames, until the flight ends; returns the final sidecar.
-
-    The pair cache is always on (``NAME.pairs.json``, kept afterwards), so each refresh estimates only what
-    is new. ``options`` go to every :func:`run_mosaic` call (``ground_truth``, ``gcp``, ...)."""
-    reporter = reporter or Reporter(quiet=True)
-    output = Path(output)
-    check_output(output)
-    check_config(config)
-    cache_file = cache_path(output) if cache_dir is None else Path(cache_dir) / cache_path(output).name
-
-    def run(source: Path) -> dict[str, Any]:
-        reporter.timings_s.clear()  # each run's stage times are its own, as its total is
-        # The cache is kept from the first refresh on, and read once there is one.
-        return run_mosaic(source, output, config, reporter, resume=cache_file.is_file(), cache_dir=cache_file.parent, **options)
-
-    report = follow_mosaic(folder, output, run, follow, reporter, exclude=lambda: {p.resolve() for p in _own_files(output)})
-    sidecar = Path(report["sidecar"])
-    written = json.loads(sidecar.read_text())
-    written["live"] = report["live"]
-    atomic_write_bytes(sidecar, (json.dumps(written, indent=1) + "\n").encode())
     return report
 
 
@@ -519,10 +493,10 @@ def _relative_to(path: Path, folder: Path) -> str:
         return str(Path(path).absolute())
 
 
-def _own_files(output: Path) -> list[Path]:
+def own_files(output: Path) -> list[Path]:
     """Outputs of this run (or an earlier one), which must never be read back as frames."""
-    return ([output, sidecar_path(output), preview_path(output), cache_path(output), cog_path(output)]
-            + [p for p in output.parent.glob(f"{output.stem}.part*")])
+    return ([output, sidecar_path(output), preview_path(output), cache_path(output), cog_path(output), live_picture_path(output),
+             live_record_path(output)] + [p for p in output.parent.glob(f"{output.stem}.part*")])
 
 
 def _load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:

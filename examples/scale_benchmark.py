@@ -1,7 +1,7 @@
 """Scale benchmark: simulated lawn-mower surveys of growing size, mosaicked, against their ground truth.
 
     python examples/scale_benchmark.py [--frames 100,500,2000] [--method auto] [--frame-size 320x240] [--keep DIR]
-        [--gps-sigma 2]
+        [--gps-sigma 2] [--format png|tif]
 
 For each size the simulator writes a survey with ground truth into a temporary folder (or ``--keep DIR``) in
 one process, and `udh mosaic` runs on it in another, so that each size's peak memory is the mosaic's own.
@@ -41,13 +41,13 @@ def simulate(frames: int, frame_size: tuple[int, int], folder: Path) -> Path:
     return flight
 
 
-def mosaic(flight: Path, method: str, workers: int, gps_sigma: float) -> dict:
+def mosaic(flight: Path, method: str, workers: int, gps_sigma: float, suffix: str = ".png") -> dict:
     """Mosaic one simulated survey in this process; the figures of one table row."""
     from udh_cli.mosaic import MosaicConfig, run_mosaic
 
     started = time.perf_counter()
     config = MosaicConfig(method=method, workers=workers, gps_sigma_m=gps_sigma)
-    report = run_mosaic(flight, flight.parent / f"{flight.name}-gps{gps_sigma:g}.png", config)
+    report = run_mosaic(flight, flight.parent / f"{flight.name}-gps{gps_sigma:g}{suffix}", config)
     elapsed = time.perf_counter() - started
     timings = report["timings_s"]
     pair_s = sum(v for k, v in timings.items() if "pairs" in k or "bridg" in k)
@@ -74,6 +74,7 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, help="write the surveys and mosaics here instead of a temporary folder")
     parser.add_argument("--workers", type=int, default=1, help="local processes estimating pairs (udh mosaic --workers)")
     parser.add_argument("--gps-sigma", type=float, default=0.0, help="udh mosaic --gps-sigma: GPS anchors in the solve (0: off)")
+    parser.add_argument("--format", choices=("png", "tif"), default="png", help="the mosaic's file: png (held whole to be encoded) or tif (streamed tile by tile)")
     parser.add_argument("--simulate", type=int, help=argparse.SUPPRESS)  # internal: write one survey, in a fresh process
     parser.add_argument("--mosaic", type=Path, help=argparse.SUPPRESS)  # internal: mosaic one survey, in a fresh process
     args = parser.parse_args()
@@ -82,7 +83,7 @@ def main() -> None:
         print(simulate(args.simulate, frame_size, args.keep))
         return
     if args.mosaic is not None:
-        print(json.dumps(mosaic(args.mosaic, args.method, args.workers, args.gps_sigma)))
+        print(json.dumps(mosaic(args.mosaic, args.method, args.workers, args.gps_sigma, f".{args.format}")))
         return
     print("| frames | placed | parts | wall time (s) | per frame (ms) | pairs (s) | solve (s) | peak memory (MB) | corner error vs truth, mean / max (px) |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---|")
@@ -92,7 +93,7 @@ def main() -> None:
         for frames in (int(v) for v in args.frames.split(",")):
             flight = _child(["--simulate", str(frames), "--frame-size", args.frame_size, "--keep", str(folder)])
             row = json.loads(_child(["--mosaic", flight, "--method", args.method, "--workers", str(args.workers),
-                                     "--gps-sigma", str(args.gps_sigma)]))
+                                     "--gps-sigma", str(args.gps_sigma), "--format", args.format]))
             error = "n/a" if row["error_mean_px"] is None else f"{row['error_mean_px']:.2f} / {row['error_max_px']:.2f}"
             print(f"| {row['frames']} | {row['placed']} | {row['parts']} | {row['time_s']:.1f} | {1e3 * row['time_s'] / row['frames']:.0f} | "
                   f"{row['pairs_s']:.1f} | {row['solve_s']:.2f} | {row['peak_mb']:.0f} | {error} |", flush=True)

@@ -25,6 +25,17 @@ def make_flight(folder: Path, config: FlightConfig = SMALL, seed: int = 3) -> li
     return sorted(folder.glob("frame_*.jpg"))
 
 
+def distort(image: np.ndarray, lens) -> np.ndarray:
+    """What ``lens`` (a :class:`~udh_cli.mosaic.lens.Lens`) makes of a pinhole image: distorted pixel d shows the
+    pinhole pixel its undistortion gives."""
+    import cv2
+
+    height, width = image.shape[:2]
+    grid = np.stack(np.meshgrid(np.arange(width), np.arange(height)), -1).reshape(-1, 2).astype(np.float64)
+    source = lens.undistort_points(grid, (width, height)).reshape(height, width, 2).astype(np.float32)
+    return cv2.remap(image, source[..., 0], source[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
 def fingerprint(image) -> str:
     """The same text for an image array and for that image prepared (its grey pixels)."""
     return hashlib.sha1(np.ascontiguousarray(PreparedImage.of(image).grey).tobytes()).hexdigest()

@@ -12,7 +12,7 @@ from udh_cli.errors import UdhError
 from udh_cli.mosaic import MosaicConfig, run_mosaic
 from udh_cli.mosaic.lens import Lens, read_cameras
 
-from mosaic_flights import SMALL, make_flight
+from mosaic_flights import SMALL, distort, make_flight
 
 BARREL = {"projection_type": "brown", "width": 320, "height": 240, "focal_x": 0.8, "focal_y": 0.8, "c_x": 0.01, "c_y": -0.01,
           "k1": -0.15, "k2": 0.02, "p1": 0.0, "p2": 0.0, "k3": 0.0}
@@ -21,14 +21,6 @@ BARREL = {"projection_type": "brown", "width": 320, "height": 240, "focal_x": 0.
 def write_cameras(path, **cameras):
     path.write_text(json.dumps(cameras))
     return path
-
-
-def distort(image: np.ndarray, lens: Lens) -> np.ndarray:
-    """What the lens makes of a pinhole image: distorted pixel d shows the pinhole pixel its undistortion gives."""
-    height, width = image.shape[:2]
-    grid = np.stack(np.meshgrid(np.arange(width), np.arange(height)), -1).reshape(-1, 2).astype(np.float64)
-    source = lens.undistort_points(grid, (width, height)).reshape(height, width, 2).astype(np.float32)
-    return cv2.remap(image, source[..., 0], source[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
 
 
 def test_a_cameras_json_is_read_in_opensfm_units(tmp_path):

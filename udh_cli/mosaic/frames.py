@@ -66,6 +66,7 @@ class FrameSet:
     # is 1, that maps to 0-255 in the work copies and the mosaic. None for 8-bit frames, used as they are.
     value_range: tuple[float, float] | None = None
     lens: Lens | None = None  # every frame is undistorted by it as it is read (:mod:`.lens`)
+    lens_fit: dict | None = None  # how the lens was estimated from the flight (``--camera estimate``, :mod:`.lens_fit`)
 
     @property
     def is_video(self) -> bool:

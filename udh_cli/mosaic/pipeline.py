@@ -32,6 +32,7 @@ from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, o
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.lens import read_cameras
+from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, undistort_by_fitted_lens
 from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
 from udh_cli.mosaic.workers import EstimatorSpec, open_runner
 from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
@@ -252,7 +253,8 @@ def run_mosaic(
     else (frames with EXIF GPS) by their GPS, and a world file and a .prj are written beside each part.
 
     ``camera`` is an OpenSfM/OpenDroneMap ``cameras.json``: every frame, and every ground-control pixel, is
-    undistorted by its lens model (:mod:`.lens`) before anything else.
+    undistorted by its lens model (:mod:`.lens`) before anything else; ``"estimate"`` fits one k1 for the flight
+    from its own frames first (:mod:`.lens_fit`).
     """
     reporter = reporter or Reporter(quiet=True)
     source, output = Path(source), Path(output)
@@ -266,7 +268,8 @@ def run_mosaic(
                                           "projection file": output.with_suffix(".prj")}, sidecar_path(output))
     remove_stale_staged(output)
     gcps = read_gcp_file(gcp) if gcp is not None else None  # a bad file fails before any work
-    lens = read_cameras(camera) if camera is not None else None
+    estimate_lens = camera is not None and str(camera) == CAMERA_ESTIMATE
+    lens = read_cameras(camera) if camera is not None and not estimate_lens else None
     if gcp_image_width is not None and gcp_image_width < 1:
         raise UdhError(f"--gcp-image-width {gcp_image_width}: give the width in pixels of the images the GCP file refers to")
     started = time.perf_counter()
@@ -282,6 +285,11 @@ def run_mosaic(
 
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=own_files(output), reporter=reporter, lens=lens)
     frames = frameset.frames
+    if estimate_lens:
+        with reporter.stage("lens", 1) as advance:
+            undistort_by_fitted_lens(frameset, reporter)
+            advance(1)
+        lens = frameset.lens
     if gcps is not None:
         names = {f.name for f in frames}
         missing = sorted({o.image for o in gcps.observations} - names)
@@ -828,7 +836,9 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, opin
         "config": {k: v for k, v in asdict(config).items() if k not in ("method", "fallback")},
         # 16-bit or float frames: the grey range drawn as 0-255 in the 8-bit mosaic (fractions of the type's maximum)
         "display_range": None if frameset.value_range is None else {"low": frameset.value_range[0], "high": frameset.value_range[1]},
-        "camera": None if frameset.lens is None else frameset.lens.to_json(),  # the lens every frame was undistorted by
+        # the lens every frame was undistorted by, and (--camera estimate) how it was fitted
+        "camera": None if frameset.lens is None and frameset.lens_fit is None else
+                  {**(frameset.lens.to_json() if frameset.lens is not None else {}), "estimated": frameset.lens_fit},
         "parts": [
             {
                 "part": p.number,

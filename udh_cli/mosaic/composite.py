@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Iterator, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -26,7 +26,8 @@ from udh_cli.mosaic.seams import Seams
 
 BLENDS = ("feather", "multiband", "none")  # the --blend choices
 # Peak memory per pixel of a tile (with its margin) while blending, accumulators and output together: the rise in
-# peak RSS measured on brighton-beach's 9.3 MP canvas blended whole (it includes one 1600x900 frame's buffers).
+# peak RSS measured on a 9.3 MP region blended at once (brighton-beach's canvas; it includes one 1600x900 frame's
+# buffers). A video's canvas is blended in one tile (composite_tiles), so it costs this much per canvas pixel.
 BYTES_PER_PIXEL = {"feather": 28, "multiband": 36, "none": 20}
 OUTPUT_BYTES_PER_PIXEL = 4  # an assembled BGRA canvas (PNG and JPEG outputs are encoded from it whole)
 DEFAULT_MAX_CANVAS_BYTES = 3 * 2**30  # refuse canvases whose assembled image would need more than this
@@ -51,12 +52,6 @@ class Canvas:
     scale: float
 
 
-def working_bytes(blend: str) -> int:
-    """Peak bytes of blending one tile with its margin (whatever the canvas's size)."""
-    side = TILE_SIDE + 2 * TILE_MARGIN[blend]
-    return side * side * BYTES_PER_PIXEL[blend] + DECODED_CACHE_BYTES
-
-
 def plan_canvas(
     ref_from: dict[int, np.ndarray],
     sizes: Sequence[tuple[int, int]],
@@ -64,13 +59,15 @@ def plan_canvas(
     max_size: int | None = None,
     max_bytes: int = DEFAULT_MAX_CANVAS_BYTES,
     assembled: bool = True,
+    one_tile: bool = False,
 ) -> Canvas:
     """Bounds of every frame's footprint; downscaled to ``max_size`` on the longest side if given.
 
     ``assembled``: the mosaic is held whole (4 bytes per pixel) to be encoded, as PNG and JPEG outputs are;
-    False when its tiles stream to a file (a tiled TIFF), so its area costs no memory.
+    False when its tiles stream to a file (a tiled TIFF), so its area costs no memory. ``one_tile``: the
+    canvas is blended whole (a video's frames, see :func:`composite_tiles`), at :data:`BYTES_PER_PIXEL`.
 
-    Raises :class:`UdhError` when an assembled canvas would take more than ``max_bytes``.
+    Raises :class:`UdhError` when the canvas would take more than ``max_bytes``.
     """
     corners = np.concatenate([geometry.transform_points(h, geometry.image_corners(*sizes[i])) for i, h in ref_from.items()])
     if not np.isfinite(corners).all():
@@ -83,12 +80,13 @@ def plan_canvas(
     size = (max(1, round(full[0] * scale)), max(1, round(full[1] * scale)))
     mosaic_from_ref = geometry.resize_matrix(full, size) @ geometry.translation(-low[0], -low[1])
     pixels = size[0] * size[1]
-    if assembled and pixels * OUTPUT_BYTES_PER_PIXEL > max_bytes:
-        needed = pixels * OUTPUT_BYTES_PER_PIXEL
+    needed = pixels * (BYTES_PER_PIXEL[blend] if one_tile else OUTPUT_BYTES_PER_PIXEL if assembled else 0)
+    if needed > max_bytes:
         fit = int(max(size) * math.sqrt(max_bytes / needed))
+        streamed = "" if one_tile else ", or write a .tif, whose tiles stream to the file"
         raise UdhError(
-            f"the mosaic canvas would be {size[0]}x{size[1]} px ({needed / 2**20:,.0f} MiB to hold, limit {max_bytes / 2**20:,.0f} MiB); "
-            f"pass --max-size {fit} or smaller to downscale it, or write a .tif, whose tiles stream to the file"
+            f"the mosaic canvas would be {size[0]}x{size[1]} px ({needed / 2**20:,.0f} MiB to {'blend' if one_tile else 'hold'}, "
+            f"limit {max_bytes / 2**20:,.0f} MiB); pass --max-size {fit} or smaller to downscale it{streamed}"
         )
     if pixels > MAX_STREAMED_PIXELS:
         fit = int(max(size) * math.sqrt(MAX_STREAMED_PIXELS / pixels))
@@ -185,9 +183,14 @@ def composite(
     tile_side: int | None = None,
 ) -> np.ndarray:
     """The tiles of :func:`composite_tiles` assembled into one (H, W, 4) BGRA uint8 canvas."""
+    return assemble(composite_tiles(frames, mosaic_from_frame, canvas_size, blend, reporter, label, gains, seams, tile_side), canvas_size)
+
+
+def assemble(tiles: Iterable[tuple[tuple[int, int, int, int], np.ndarray]], canvas_size: tuple[int, int]) -> np.ndarray:
+    """``((x0, y0, x1, y1), tile)`` pairs put together into one (H, W, 4) BGRA uint8 canvas of ``canvas_size`` (w, h)."""
     width, height = canvas_size
     out = np.zeros((height, width, 4), np.uint8)
-    for (x0, y0, x1, y1), tile in composite_tiles(frames, mosaic_from_frame, canvas_size, blend, reporter, label, gains, seams, tile_side):
+    for (x0, y0, x1, y1), tile in tiles:
         out[y0:y1, x0:x1] = tile
     return out
 
@@ -225,10 +228,13 @@ def _intersect(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tu
 
 
 def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int, int]], mosaic_from_frame: dict[int, np.ndarray],
-                  region: tuple[int, int, int, int], blend: str, weights: dict, sizes: dict, gains, seams: Seams | None,
+                  region: tuple[int, int, int, int], blend: str, weights: dict[tuple[int, int], np.ndarray],
+                  sizes: dict[int, tuple[int, int]], gains: dict[int, np.ndarray] | None, seams: Seams | None,
                   advance=lambda n=1: None) -> np.ndarray:
     """The canvas ``region`` (x0, y0, x1, y1) blended from the frames whose canvas ``boxes`` (inside it) are
-    given: (h, w, 4) BGRA uint8. ``advance(1)`` is called per frame blended."""
+    given: (h, w, 4) BGRA uint8. ``weights``: per frame size (w, h), the (h, w) float32 feather weight;
+    ``sizes``: each frame's (w, h); ``gains``: each frame's exposure gains (:mod:`.gains`). ``advance(1)`` is
+    called per frame blended."""
     rx0, ry0, rx1, ry1 = region
     width, height = rx1 - rx0, ry1 - ry0
     region_from_mosaic = geometry.translation(-rx0, -ry0)

@@ -22,7 +22,8 @@ import os
 import shutil
 import tempfile
 import time
-from concurrent.futures import Future
+from concurrent.futures import Future, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -133,11 +134,16 @@ def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], 
     staging = Path(tempfile.mkdtemp(prefix=".udh-follow-", dir=output.parent))
 
     def refreshed(outcome: Callable[[], dict[str, Any]], frames: int) -> None:
-        nonlocal refreshes
+        nonlocal refreshes, start_refresh
         try:
             report = outcome()
         except UdhError as exc:  # a refresh that cannot be written (a canvas too large...) must not end the flight
             reporter.warn(f"live: the mosaic of {frames} frames was not refreshed: {exc}")
+        except BrokenProcessPool:  # the refresh process died (killed, out of memory): refresh here from now on
+            start_refresh = None
+            reporter.warn(f"live: the refresh process stopped while refreshing {frames} frames; later refreshes run in this process")
+        except Exception as exc:  # noqa: BLE001 - a refresh is a convenience: only the final run may end the flight
+            reporter.warn(f"live: the mosaic of {frames} frames was not refreshed ({type(exc).__name__}: {exc})")
         else:
             refreshes += 1
             reporter.info(f"live: mosaic refreshed with {report['summary']['placed']} of {report['summary']['frames']} frames placed")
@@ -178,8 +184,8 @@ def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], 
                           "ended_by": "sentinel" if (folder / follow.sentinel).exists() else "idle timeout"}
         return report
     finally:
-        if pending is not None:
-            pending.cancel()
+        if pending is not None and not pending.cancel():  # a refresh still reads the staging folder: let it end
+            wait([pending])
         shutil.rmtree(staging, ignore_errors=True)
 
 

@@ -46,17 +46,26 @@ class MosaicImage:
         if array is not None:
             self.size = (array.shape[1], array.shape[0])
         else:
-            with _open_tiff(path) as dataset:
-                self.size = (dataset.width, dataset.height)
+            from rasterio.errors import RasterioError
+
+            try:
+                with _open_tiff(path) as dataset:
+                    self.size = (dataset.width, dataset.height)
+            except (RasterioError, OSError) as exc:
+                raise UdhError(f"{path}: not a readable mosaic ({exc})") from None
 
     def window(self, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
         """Pixels ``x0:x1``, ``y0:y1`` as (h, w, 4) BGRA uint8 (inside the image)."""
         if self.array is not None:
             return self.array[y0:y1, x0:x1]
+        from rasterio.errors import RasterioError
         from rasterio.windows import Window
 
-        with _open_tiff(self.path) as dataset:
-            rgba = dataset.read(window=Window(x0, y0, x1 - x0, y1 - y0))
+        try:
+            with _open_tiff(self.path) as dataset:
+                rgba = dataset.read(window=Window(x0, y0, x1 - x0, y1 - y0))
+        except (RasterioError, OSError) as exc:
+            raise UdhError(f"{self.path}: reading the mosaic back failed ({exc})") from None
         return np.ascontiguousarray(rgba.transpose(1, 2, 0)[..., [2, 1, 0, 3]])
 
 
@@ -82,14 +91,19 @@ def write_tiled_tiff(path: Path, size: tuple[int, int], tiles) -> None:
     import warnings
 
     width, height = size
+    from rasterio.errors import RasterioError
+
     profile = {"driver": "GTiff", "width": width, "height": height, "count": 4, "dtype": "uint8", "photometric": "RGB",
-               "alpha": "YES", "tiled": True, "blockxsize": STRIP_ROWS, "blockysize": STRIP_ROWS, "compress": "DEFLATE",
+               "alpha": "YES", "tiled": True, "blockxsize": BLOCK, "blockysize": BLOCK, "compress": "DEFLATE",
                "BIGTIFF": "IF_SAFER"}
-    with warnings.catch_warnings(), rasterio.Env(**GDAL_SETTINGS):
-        warnings.simplefilter("ignore", NotGeoreferencedWarning)
-        with rasterio.open(path, "w", **profile) as dataset:
-            for (x0, y0, x1, y1), tile in tiles:
-                dataset.write(tile[..., [2, 1, 0, 3]].transpose(2, 0, 1), window=Window(x0, y0, x1 - x0, y1 - y0))
+    try:
+        with warnings.catch_warnings(), rasterio.Env(**GDAL_SETTINGS):
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(path, "w", **profile) as dataset:
+                for (x0, y0, x1, y1), tile in tiles:
+                    dataset.write(tile[..., [2, 1, 0, 3]].transpose(2, 0, 1), window=Window(x0, y0, x1 - x0, y1 - y0))
+    except (RasterioError, OSError) as exc:  # a full disk, a folder that went away: one line, and the caller discards the file
+        raise UdhError(f"{path}: writing the mosaic failed ({exc}); check the free space and permissions") from None
 
 
 def write_cog(mosaic: MosaicImage, map_from_mosaic: np.ndarray, epsg: int, path: Path, max_pixels: int = 400_000_000) -> dict:
@@ -116,22 +130,27 @@ def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, 
     out_from_map = np.array([[1 / pixel, 0, -west / pixel - 0.5], [0, -1 / pixel, north / pixel - 0.5], [0, 0, 1]])
 
     def strip(top: int, height: int) -> np.ndarray:
-        """Rows ``top`` to ``top + height`` of the north-up grid, (height, columns, 4) BGRA, earlier layers on top."""
+        """Rows ``top`` to ``top + height`` of the north-up grid, (height, columns, 4) BGRA, earlier layers on top.
+        Drawn block by block (:data:`BLOCK` columns): a block's outline in a turned mosaic spans a window about
+        its own size, where a whole strip's would span most of the mosaic."""
         canvas = np.zeros((height, columns, 4), np.uint8)
-        strip_from_out = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -top], [0.0, 0.0, 1.0]])
-        strip_corners = np.array([[-1, -1, 1], [columns, -1, 1], [columns, height, 1], [-1, height, 1]], float).T
-        for image, map_from_mosaic in layers:
-            strip_from_mosaic = strip_from_out @ out_from_map @ map_from_mosaic
-            seen = (np.linalg.inv(strip_from_mosaic) @ strip_corners)[:2]  # the strip's outline in mosaic pixels
-            x0, y0 = np.maximum(np.floor(seen.min(1)).astype(int) - 1, 0)
-            x1, y1 = np.minimum(np.ceil(seen.max(1)).astype(int) + 2, image.size)
-            if x1 <= x0 or y1 <= y0:
-                continue
-            window_to_strip = strip_from_mosaic @ np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
-            drawn = cv2.warpAffine(image.window(x0, y0, x1, y1), window_to_strip[:2], (columns, height),
-                                   flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
-            empty = (canvas[..., 3] == 0) & (drawn[..., 3] > 0)
-            canvas[empty] = drawn[empty]
+        for left in range(0, columns, BLOCK):
+            width = min(BLOCK, columns - left)
+            block_from_out = np.array([[1.0, 0.0, -left], [0.0, 1.0, -top], [0.0, 0.0, 1.0]])
+            outline = np.array([[-1, -1, 1], [width, -1, 1], [width, height, 1], [-1, height, 1]], float).T
+            block = canvas[:, left : left + width]
+            for image, map_from_mosaic in layers:
+                block_from_mosaic = block_from_out @ out_from_map @ map_from_mosaic
+                seen = (np.linalg.inv(block_from_mosaic) @ outline)[:2]  # the block's outline in mosaic pixels
+                x0, y0 = np.maximum(np.floor(seen.min(1)).astype(int) - 1, 0)
+                x1, y1 = np.minimum(np.ceil(seen.max(1)).astype(int) + 2, image.size)
+                if x1 <= x0 or y1 <= y0:
+                    continue
+                window_to_block = block_from_mosaic @ np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+                drawn = cv2.warpAffine(image.window(x0, y0, x1, y1), window_to_block[:2], (width, height),
+                                       flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+                empty = (block[..., 3] == 0) & (drawn[..., 3] > 0)
+                block[empty] = drawn[empty]
         return canvas
 
     _write_rgba_cog(strip, rows, columns, west, north, pixel, epsg, path)
@@ -143,7 +162,8 @@ def _require_rasterio() -> None:
         raise UdhError("a GeoTIFF needs rasterio: pip install rasterio (from the udh checkout: pip install '.[geo]')")
 
 
-STRIP_ROWS = 512  # rows of the north-up grid drawn at a time: one COG block high
+BLOCK = 512  # side of a GeoTIFF block, pixels (GDAL's and the COG's usual)
+STRIP_ROWS = BLOCK  # rows of the north-up grid drawn at a time: one block high
 
 
 def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, pixel: float, epsg: int, path: Path) -> None:
@@ -161,9 +181,9 @@ def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, p
 
     profile = {"driver": "GTiff", "width": columns, "height": rows, "count": 4, "dtype": "uint8", "crs": f"EPSG:{epsg}",
                "transform": Affine(pixel, 0.0, west, 0.0, -pixel, north), "photometric": "RGB", "alpha": "YES",
-               "tiled": True, "blockxsize": STRIP_ROWS, "blockysize": STRIP_ROWS, "compress": "NONE", "BIGTIFF": "IF_SAFER"}
+               "tiled": True, "blockxsize": BLOCK, "blockysize": BLOCK, "compress": "NONE", "BIGTIFF": "IF_SAFER"}
     # Uncompressed (4 bytes per map pixel of temporary disk): the COG driver reads it again for every overview
-    # level, and with GDAL's cache bounded (GDAL_CACHE_MB) DEFLATE made seneca's largest part 8 -> 12.5 s; 9.3 s so.
+    # level, and with GDAL's cache bounded (GDAL_CACHE_MB) decompressing DEFLATE each time cost a third more time.
     # Named like a staged file (outputs.remove_stale_staged), so that one a killed run leaves is removed by the next.
     strips = path.with_name(f"{path.stem}.strips.staged{path.suffix}")
     try:
@@ -172,6 +192,6 @@ def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, p
                 for top in range(0, rows, STRIP_ROWS):
                     height = min(STRIP_ROWS, rows - top)
                     dataset.write(strip(top, height)[..., [2, 1, 0, 3]].transpose(2, 0, 1), window=Window(0, top, columns, height))
-            raster_copy(str(strips), str(path), driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=512, OVERVIEWS="AUTO")
+            raster_copy(str(strips), str(path), driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=BLOCK, OVERVIEWS="AUTO")
     finally:
         strips.unlink(missing_ok=True)

@@ -100,6 +100,13 @@ class Lens:
         found = cv2.undistortPoints(np.asarray(points, np.float64).reshape(-1, 1, 2), k, self.coefficients(), P=k)
         return found.reshape(-1, 2)
 
+    def to_cameras_json(self) -> dict:
+        """This camera as OpenSfM/OpenDroneMap's ``cameras.json`` (:func:`read_cameras` reads it back)."""
+        key = f"v2 udh {self.name or 'camera'} {self.width} {self.height} brown {self.focal_x:.4f}"
+        return {key: {"projection_type": "brown", "width": self.width, "height": self.height, "focal_x": self.focal_x,
+                      "focal_y": self.focal_y, "c_x": self.c_x, "c_y": self.c_y, "k1": self.k1, "k2": self.k2, "p1": self.p1,
+                      "p2": self.p2, "k3": self.k3}}
+
     def to_json(self) -> dict:
         return {"name": self.name, "width": self.width, "height": self.height, "focal_x": self.focal_x, "focal_y": self.focal_y,
                 "c_x": self.c_x, "c_y": self.c_y, "k1": self.k1, "k2": self.k2, "p1": self.p1, "p2": self.p2, "k3": self.k3}

@@ -86,8 +86,12 @@ def pair_matches(grey_a: np.ndarray, grey_b: np.ndarray, sift) -> tuple[np.ndarr
 
 
 def _residual_rms(matches: Sequence[tuple[np.ndarray, np.ndarray]], size: tuple[int, int], focal: float, k1: float) -> float:
-    """RMS over every pair of the least-squares homography residual of the matches undistorted with ``k1``."""
+    """RMS over every pair of the least-squares homography residual of the matches undistorted with ``k1``, in
+    the frames' own pixels: each residual is divided by the undistortion's radial magnification at its point,
+    since a barrel lens's undistortion stretches the rim, and with it the matches' noise, which would
+    otherwise favour a weaker lens."""
     lens = Lens(size[0], size[1], focal, focal, k1=k1)
+    centre = np.array([(size[0] - 1) / 2, (size[1] - 1) / 2])
     squares, count = 0.0, 0
     for points_a, points_b in matches:
         a, b = lens.undistort_points(points_a, size), lens.undistort_points(points_b, size)
@@ -95,7 +99,9 @@ def _residual_rms(matches: Sequence[tuple[np.ndarray, np.ndarray]], size: tuple[
         if h is None:
             return math.inf
         projected = cv2.perspectiveTransform(a.reshape(-1, 1, 2), h).reshape(-1, 2)
-        squares += float(((projected - b) ** 2).sum())
+        radius = np.linalg.norm(points_b - centre, axis=1)
+        magnification = np.where(radius > 1.0, np.linalg.norm(b - centre, axis=1) / np.maximum(radius, 1.0), 1.0)
+        squares += float(((np.linalg.norm(projected - b, axis=1) / magnification) ** 2).sum())
         count += len(a)
     return math.sqrt(squares / max(count, 1))
 

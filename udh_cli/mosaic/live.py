@@ -9,9 +9,11 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from udh_cli.errors import UdhError
 from udh_cli.estimators import create_estimator
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.follow import FollowConfig, follow_mosaic
+from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE
 from udh_cli.mosaic.pair_cache import cache_path
 from udh_cli.mosaic.pipeline import MosaicConfig, acceptance, check_config, check_output, mosaic_method_options, own_files, run_mosaic
 from udh_cli.mosaic.outputs import check_outputs_are_not_inputs, sidecar_path
@@ -33,6 +35,9 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     output = Path(output)
     check_output(output)
     check_config(config)
+    if str(options.get("camera")) == CAMERA_ESTIMATE:  # each refresh would fit another k1 and estimate every pair again
+        raise UdhError("--camera estimate cannot follow a flight as it is written: fit the lens once on a finished flight "
+                       "(it writes NAME.cameras.json) and give that file, or the camera's own cameras.json")
     check_outputs_are_not_inputs(Path(folder), {"live picture": live_picture_path(output), "live record": live_record_path(output)},
                                  sidecar_path(output))
     cache_file = cache_path(output) if cache_dir is None else Path(cache_dir) / cache_path(output).name
@@ -51,7 +56,11 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
 
     def on_frames(paths: list[Path]) -> None:
         for path in paths:
-            record = look.add(path)
+            try:
+                record = look.add(path)
+            except Exception as exc:  # noqa: BLE001 - the quick look is a convenience: it never ends the flight
+                reporter.warn(f"live: {path.name} could not be drawn in the quick look ({type(exc).__name__}: {exc}); the flight goes on")
+                continue
             if not record["placed"]:
                 reporter.warn(f"live: {path.name} is not in the quick look ({record.get('failure')}); the mosaic will try it again")
 

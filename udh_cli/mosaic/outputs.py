@@ -20,6 +20,7 @@ from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES
 
 PREVIEW_SUFFIX = ".preview.jpg"
+CAMERAS_SUFFIX = ".cameras.json"  # the lens `--camera estimate` fitted, in OpenSfM's format
 GEOREFERENCE_SUFFIXES = (".pgw", ".tfw", ".jgw", ".prj", ".cog.tif")  # world and projection files beside a georeferenced mosaic
 
 
@@ -71,21 +72,23 @@ def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: 
         is_frame = source.is_dir() and resolved.parent == source.resolve() and path.suffix.lower() in IMAGE_SUFFIXES
         if resolved in sources or (is_frame and not earlier_run):
             raise UdhError(f"{path}: the {role} would replace an input file of {source}; choose another output name")
-        if path.suffix.lower() == ".json" and not _is_udh_json(path, ("udh-mosaic",)):
+        owned_by_run = path.name.lower().endswith(GEOREFERENCE_SUFFIXES + (CAMERAS_SUFFIX,))
+        if path.suffix.lower() == ".json" and not owned_by_run and not _is_udh_json(path, ("udh-mosaic",)):
             raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
-        if path.name.lower().endswith(GEOREFERENCE_SUFFIXES) and not earlier_run:  # only an earlier run of ours wrote these
+        if owned_by_run and not earlier_run:  # in formats of their own (world files, OpenSfM's): only an earlier run of ours wrote these
             raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
 
 
-STALE_AFTER_S = 60.0  # a temporary younger than this may be another writer's at work (live mode's quick look)
+STALE_AFTER_S = 60.0  # a live quick look's temporary younger than this may be at work beside the refresh
 
 
 def remove_stale_staged(output: Path, now: float | None = None) -> list[Path]:
     """Hidden temporary files of ``output``'s names (``.staged`` and ``.part``) that a run killed while
-    writing left behind; removed. Only hidden files named after ``output``'s stem match, and only those last
-    written :data:`STALE_AFTER_S` or more before ``now``: a live run's quick look writes its picture beside the
-    refresh that runs this."""
+    writing left behind; removed. Only hidden files named after ``output``'s stem match. The live quick look's
+    (``.NAME.live.jpg...part``) are left while younger than :data:`STALE_AFTER_S`: the quick look writes them
+    beside the refresh that runs this."""
     pattern = re.compile(rf"\.+{re.escape(output.stem)}\..*(\.staged\.[A-Za-z0-9]+|\.part)")
+    live = re.compile(rf"\.+{re.escape(output.stem)}\.live\.(jpg|json)\..*\.part")
     now = time.time() if now is None else now
     removed = []
     try:
@@ -96,7 +99,7 @@ def remove_stale_staged(output: Path, now: float | None = None) -> list[Path]:
         if not (pattern.fullmatch(path.name) and path.is_file() and not path.is_symlink()):
             continue
         try:
-            if now - path.stat().st_mtime < STALE_AFTER_S:
+            if live.fullmatch(path.name) and now - path.stat().st_mtime < STALE_AFTER_S:
                 continue
         except OSError:  # gone meanwhile: its writer renamed it
             continue

@@ -28,7 +28,7 @@ from udh_cli.mosaic.gains import EXPOSURES, exposure_gains, mean_gain
 from udh_cli.mosaic.seams import SEAM_FINDERS, find_seams
 from udh_cli.mosaic.small import draw_small
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
-from udh_cli.mosaic.outputs import (StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
+from udh_cli.mosaic.outputs import (CAMERAS_SUFFIX, StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.lens import read_cameras
@@ -265,7 +265,7 @@ def run_mosaic(
         raise UdhError(f"--cache-dir {cache_dir}: no such folder; create it first")
     check_outputs_are_not_inputs(source, {"mosaic": output, "sidecar": sidecar_path(output), "preview": preview_path(output),
                                           "pair cache": pair_cache_file, "world file": world_file_path(output), "GeoTIFF": cog_path(output),
-                                          "projection file": output.with_suffix(".prj")}, sidecar_path(output))
+                                          "projection file": output.with_suffix(".prj"), "camera file": cameras_path(output)}, sidecar_path(output))
     remove_stale_staged(output)
     gcps = read_gcp_file(gcp) if gcp is not None else None  # a bad file fails before any work
     estimate_lens = camera is not None and str(camera) == CAMERA_ESTIMATE
@@ -342,6 +342,9 @@ def run_mosaic(
         report["timings_s"]["total"] = time.perf_counter() - started
         # The sidecar is staged with the images and renamed last: a run that fails while writing leaves
         # the earlier run's files, all of them, and never new images beside an old sidecar.
+        if frameset.lens_fit is not None and frameset.lens is not None:  # the fitted lens, for the next run and for ODM
+            atomic_write_bytes(staged.path_for(cameras_path(output)), (json.dumps(frameset.lens.to_cameras_json(), indent=1) + "\n").encode())
+            report["camera"]["file"] = cameras_path(output).name
         atomic_write_bytes(staged.path_for(sidecar_path(output)), (json.dumps(report, indent=1) + "\n").encode())
         staged.publish()
     finally:
@@ -433,7 +436,10 @@ def _staged_bgra(staged: StagedFiles, part: Part) -> MosaicImage | None:
     if temporary is None:
         return None
     if streams_to_file(part.file):
-        return MosaicImage(path=temporary)
+        try:
+            return MosaicImage(path=temporary)
+        except UdhError:
+            return None
     image = cv2.imread(str(temporary), cv2.IMREAD_UNCHANGED)
     if image is None or image.ndim != 3 or image.dtype != np.uint8:
         return None
@@ -501,10 +507,15 @@ def _relative_to(path: Path, folder: Path) -> str:
         return str(Path(path).absolute())
 
 
+def cameras_path(output: Path) -> Path:
+    """``NAME.cameras.json``: the lens ``--camera estimate`` fitted, in OpenSfM's format."""
+    return output.with_name(f"{output.stem}{CAMERAS_SUFFIX}")
+
+
 def own_files(output: Path) -> list[Path]:
     """Outputs of this run (or an earlier one), which must never be read back as frames."""
     return ([output, sidecar_path(output), preview_path(output), cache_path(output), cog_path(output), live_picture_path(output),
-             live_record_path(output)] + [p for p in output.parent.glob(f"{output.stem}.part*")])
+             live_record_path(output), cameras_path(output)] + [p for p in output.parent.glob(f"{output.stem}.part*")])
 
 
 def _load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:
@@ -702,7 +713,7 @@ def _plan_canvases(frameset: FrameSet, parts: list[Part], output: Path, config: 
     for number, (part, path) in enumerate(zip(multi, output_paths(output, len(multi))), start=1):
         part.number = number
         part.canvas = compositing.plan_canvas({i: part.solved[i] for i in part.frames}, sizes, config.blend, config.max_size,
-                                              config.max_canvas_bytes, assembled=not streams_to_file(path))
+                                              config.max_canvas_bytes, assembled=not streams_to_file(path), one_tile=frameset.is_video)
         part.file = path
 
 
@@ -726,10 +737,7 @@ def _composite_part(frameset: FrameSet, part: Part, config: MosaicConfig, report
     if streams_to_file(part.file):  # blended and written tile by tile: the map's area costs no memory
         write_tiled_tiff(staged.path_for(part.file), part.canvas.size, _drawn(tiles, drawer))
     else:
-        width, height = part.canvas.size
-        mosaic = np.zeros((height, width, 4), np.uint8)
-        for (x0, y0, x1, y1), tile in _drawn(tiles, drawer):
-            mosaic[y0:y1, x0:x1] = tile
+        mosaic = compositing.assemble(_drawn(tiles, drawer), part.canvas.size)
         with reporter.stage("writing", 1) as advance:
             if part.file.suffix.lower() in (".jpg", ".jpeg"):
                 reporter.warn(f"{part.file.name}: JPEG has no alpha channel; uncovered areas are black (use .png or .tif to keep the mask)")

@@ -33,6 +33,7 @@ FRAME_SIDE = 240  # longer side, pixels, of a frame in the picture: a whole surv
 MAX_SIDE = 3000  # the picture is halved when it would grow past this many pixels on a side
 GROWTH = 512  # pixels added on each side that must grow, so that the picture is not reallocated per frame
 BACKGROUND = 40  # grey of the picture where no frame is
+MAX_PAIR_SCALE = 3.0  # consecutive frames of one flight differ in scale far less (the mosaic's --max-frame-scale)
 
 
 def live_picture_path(output: Path) -> Path:
@@ -100,13 +101,14 @@ class QuickLook:
             if doubt is not None or estimate.homography is None:
                 record["failure"] = doubt or estimate.failure
                 return self._finish(record, path)
-            # The estimate is last_from_new in work-copy pixels.
+            # The estimate is last_from_new in work-copy pixels; checked there, since the picture's own scale
+            # shrinks as it is halved to hold a long flight.
+            if not geometry.is_valid_homography(estimate.homography, grey.shape[1], grey.shape[0], max_scale=MAX_PAIR_SCALE):
+                record["failure"] = f"its pair homography degenerates (folded, past the horizon or scaled over {MAX_PAIR_SCALE:g}x)"
+                return self._finish(record, path)
             picture_from_full = self.last.picture_from_work @ estimate.homography @ work_from_full
             record.update(placed=True, stage=estimate.stage or estimate.method)
         picture_from_small = picture_from_full @ np.linalg.inv(small_from_full)
-        if not geometry.is_valid_homography(picture_from_small, small.shape[1], small.shape[0], max_scale=4.0):
-            record.update(placed=False, failure="its chained placement degenerates (folded or past the horizon)")
-            return self._finish(record, path)
         picture_from_small = self._make_room(picture_from_small, small.shape[1], small.shape[0])
         picture_from_full = picture_from_small @ small_from_full
         self._paste(small, picture_from_small)

@@ -38,7 +38,8 @@ def portable_path(path: str) -> str:
 
 
 def _portable_history(trained_before: dict[str, Any]) -> dict[str, Any]:
-    """``trained_before`` with its paths made portable (:func:`portable_path`), nested runs included."""
+    """``trained_before`` (the run it started from: ``init``, ``init_steps``, ``init_data``) with its paths made
+    portable (:func:`portable_path`)."""
     out = dict(trained_before)
     if isinstance(out.get("init"), str) and ("/" in out["init"] or "\\" in out["init"]):
         out["init"] = portable_path(out["init"])

@@ -22,6 +22,7 @@ from udh_cli.estimators.verify import Verifier
 DEFAULT_ITERATIONS = 2  # coarse rounds
 DEFAULT_REFINE_ROUNDS = 2  # measured on the held-out rho-32 bench (models/README.md)
 SEARCH_FINALISTS = 3  # large-motion search: hypotheses of a pair that get the whole cascade after screening
+PIPELINE_SEARCH = 2  # the search of the whole learned pipeline (unsupervised with its tile stage): 24 shifts
 # How the networks judge their own answers, on their S x S input (Verifier.score_grey, at the size given): the
 # one Verifier, whole (a tile of a 4 x 4 grid at 128 px holds too few pixels to correlate) and with at least
 # 30 % overlap: the check that the heading choice, the search and its search_below were tuned with.
@@ -49,8 +50,9 @@ class DeepEstimator(Estimator):
             alone).
         search: large-motion search for pairs whose score is below ``search_below``: rerun the network
             from a (2 * search + 1)^2 grid of translations up to half the frame and keep the best-scoring
-            answer (0: off). For sequences that move further between frames than the network was trained
-            for (it saw corners moved by up to 45 px of 128).
+            answer (0: off; None: :data:`PIPELINE_SEARCH` when the tile stage runs, else off). For sequences
+            that move further between frames than the network was trained for (it saw corners moved by up to
+            45 px of 128).
         search_below: the score under which a pair is searched.
         precision: which shipped networks to load for those not given as ``model`` / ``refine_model`` files:
             "int8" (`udh quantize` copies: a network pass 1.7 -> 1.1 ms on one core, the same median accuracy
@@ -77,7 +79,7 @@ class DeepEstimator(Estimator):
     iterations: int = DEFAULT_ITERATIONS
     refine_model: str | None = None
     refine_rounds: int | None = None
-    search: int = 0
+    search: int | None = 0
     search_below: float = 0.5
     precision: str | None = None
     flight_model: str | None = None
@@ -97,7 +99,7 @@ class DeepEstimator(Estimator):
         if self.refine_rounds is None:
             has_stage = has_refinement_stage(self.name, self.model, self.refine_model)
             self.refine_rounds = DEFAULT_REFINE_ROUNDS if has_stage else 0
-        if self.search < 0:
+        if self.search is not None and self.search < 0:
             raise UdhError(f"method '{self.name}': search ({self.search}) must be 0 (off) or more")
         if self.refine_rounds < 0:
             raise UdhError(f"method '{self.name}': refine_rounds ({self.refine_rounds}) must be 0 or more")
@@ -125,6 +127,10 @@ class DeepEstimator(Estimator):
             self.first_stages.append(flight)
         if self.tiles is None:
             self.tiles = len(self.stages) > 1
+        if self.search is None:
+            # Only with the tile stage: without it nothing but the 128-px score checks a searched answer, and a
+            # translation alone can pass that (an untrained network on the example flight: 0.24 at 36 px off).
+            self.search = PIPELINE_SEARCH if self.tiles else 0
         loaded = self.loaded_precision()
         if self.precision is None and loaded in PRECISIONS:
             # Record what was chosen, so that settings (mosaic sidecars, the pair cache) say what ran and
@@ -227,7 +233,12 @@ class DeepEstimator(Estimator):
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
                                tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
             stage = "tiles" if details.get("tile_levels") else "search" if was_searched else "network"
-            out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage))
+            # An answer that no tile level confirmed, although the pair had room for tiles, is not verified
+            # whatever its score: the search's best translation can score above the floor while tens of
+            # pixels off (an untrained network on the example flight: 0.24 at 36 px).
+            unconfirmed = refined is not None and refined.levels_used == 0 and TileRefinement().can_confirm(pair.b.size, s)
+            out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage,
+                                     verified=False if unconfirmed else None))
         return out
 
     def _full_resolution(self, small_h: np.ndarray, pair: PreparedPair) -> np.ndarray | None:
@@ -371,7 +382,7 @@ class UnsupervisedEstimator(DeepEstimator):
 
     name: ClassVar[str] = "unsupervised"
     headings: int = 2
-    search: int = 2
+    search: int | None = None  # PIPELINE_SEARCH with the tile stage (the shipped networks), else off
 
 
 @dataclass

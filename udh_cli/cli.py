@@ -81,7 +81,7 @@ def estimate(
     iterations: Annotated[Optional[int], typer.Option(min=1, max=MAX_ITERATIONS, help=f"Learned methods: rounds of the coarse network; ecc: ECC iterations (1-{MAX_ITERATIONS}).")] = None,
     refine_model: Annotated[Optional[Path], typer.Option(help="Learned methods: an ONNX file for the refinement stage instead of the shipped one.")] = None,
     refine_rounds: Annotated[Optional[int], typer.Option(min=0, max=10, help="Learned methods: rounds of the refinement network after the coarse ones (0: none; at most 10).")] = None,
-    search: Annotated[Optional[int], typer.Option(min=0, max=4, help="Learned methods: when the answer is doubted, retry from a (2N+1)^2 grid of shifts up to half the frame (0: off; at most 4).")] = None,
+    search: Annotated[Optional[int], typer.Option(min=0, max=4, help="Learned methods: when the answer is doubted, retry from a (2N+1)^2 grid of shifts up to half the frame (0: off; at most 4; unsupervised: 2 with its tile stage).")] = None,
     precision: Annotated[Optional[str], typer.Option(help="Learned methods: which shipped networks, int8 (the default where shipped) or fp32.")] = None,
     headings: Annotated[Optional[int], typer.Option(min=1, max=2, help="Learned methods: 2 also tries B turned half a turn (unsupervised's default), 1 only B as given.")] = None,
     tiles: Annotated[Optional[bool], typer.Option("--tiles/--no-tiles", help="Learned methods: refine on tiles up to full resolution (on when there is a refinement stage).")] = None,

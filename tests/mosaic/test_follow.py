@@ -60,6 +60,7 @@ def test_a_flight_written_while_it_is_followed_gives_the_mosaic_of_the_whole_fol
     report = run_live(live, tmp_path / "out" / "live.png", config, follow)
     writer.join()
     assert report["live"]["ended_by"] == "sentinel" and report["live"]["frames"] == len(frames)
+    assert report["skipped_files"] == []  # the DONE file is the sentinel, not a frame that failed to read
     assert report["live"]["refreshes"] >= 2  # the mosaic was rewritten while the flight went on
     assert report["summary"]["placed"] == len(frames) and report["summary"]["parts"] == 1
     assert report["summary"]["pairs_from_cache"] > 0  # the final run reused the refreshes' pairs

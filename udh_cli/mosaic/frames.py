@@ -23,7 +23,9 @@ from udh_cli.mosaic.metadata import FrameMetadata, read_metadata
 from udh_cli.mosaic.report import Reporter
 
 ORDERS = ("name", "time")  # the --order choices
-IGNORED_FILES = ("ground_truth.json",)  # files a frame folder may hold that are not frames (the simulator's)
+# Files a frame folder may hold that are not frames: the simulator's ground truth, and live mode's end-of-flight
+# sentinel (FollowConfig.sentinel), which stays in the folder its final run reads.
+IGNORED_FILES = ("ground_truth.json", "DONE")
 
 
 @dataclass

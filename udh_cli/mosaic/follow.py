@@ -109,6 +109,12 @@ def poll_complete_frames(folder: Path, watch: _Watch, settle_s: float, exclude: 
     return new
 
 
+def check_followed_folder(folder: Path) -> None:
+    """Refuse a source that is not a folder (a video, a typo) before anything is loaded."""
+    if not Path(folder).is_dir():
+        raise UdhError(f"--follow {folder}: not a folder; live mode watches a folder that frames are written into")
+
+
 def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], dict[str, Any]], follow: FollowConfig = FollowConfig(),
                   reporter: Reporter | None = None, exclude: Callable[[], set[Path]] = frozenset, clock: Callable[[], float] = time.time,
                   sleep: Callable[[float], None] = time.sleep, on_frames: Callable[[list[Path]], None] | None = None,
@@ -124,8 +130,7 @@ def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], 
     """
     reporter = reporter or Reporter(quiet=True)
     folder, output = Path(folder), Path(output)
-    if not folder.is_dir():
-        raise UdhError(f"--follow {folder}: not a folder; live mode watches a folder that frames are written into")
+    check_followed_folder(folder)
     if follow.refresh_every < 1 or follow.poll_s <= 0 or follow.idle_timeout_s <= 0 or follow.settle_s < 0:
         raise UdhError("--follow: the refresh interval (frames), the poll interval and the idle timeout must be positive")
     watch = _Watch()

@@ -12,7 +12,7 @@ from typing import Any
 from udh_cli.errors import UdhError
 from udh_cli.estimators import create_estimator
 from udh_cli.images import atomic_write_bytes
-from udh_cli.mosaic.follow import FollowConfig, follow_mosaic
+from udh_cli.mosaic.follow import FollowConfig, check_followed_folder, follow_mosaic
 from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE
 from udh_cli.mosaic.pair_cache import cache_path
 from udh_cli.mosaic.pipeline import MosaicConfig, acceptance, check_config, check_output, mosaic_method_options, own_files, run_mosaic
@@ -35,6 +35,7 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     output = Path(output)
     check_output(output)
     check_config(config)
+    check_followed_folder(Path(folder))  # before the networks load
     if str(options.get("camera")) == CAMERA_ESTIMATE:  # each refresh would fit another k1 and estimate every pair again
         raise UdhError("--camera estimate cannot follow a flight as it is written: fit the lens once on a finished flight "
                        "(it writes NAME.cameras.json) and give that file, or the camera's own cameras.json")

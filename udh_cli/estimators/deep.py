@@ -208,8 +208,7 @@ class DeepEstimator(Estimator):
         # Doubted: a low score, or (with tiles) an answer no finer level confirmed although the pair had room
         # for tiles, which on real flights meant a start too far off for the tiles: both are worth the
         # large-motion search.
-        unconfirmed = [tiled[i] is not None and tiled[i].levels_used == 0 and TileRefinement().can_confirm(pairs[i].b.size, s) for i in range(len(pairs))]
-        doubtful = [i for i, score in enumerate(scores) if score < self.search_below or unconfirmed[i]]
+        doubtful = [i for i, score in enumerate(scores) if score < self.search_below or self._unconfirmed(tiled[i], pairs[i])]
         if self.search and doubtful:
             found, found_scores = self._search([pairs[i] for i in doubtful], small_a[doubtful], small_b[doubtful])
             for i, h, score in zip(doubtful, found, found_scores):
@@ -236,10 +235,14 @@ class DeepEstimator(Estimator):
             # An answer that no tile level confirmed, although the pair had room for tiles, is not verified
             # whatever its score: the search's best translation can score above the floor while tens of
             # pixels off (an untrained network on the example flight: 0.24 at 36 px).
-            unconfirmed = refined is not None and refined.levels_used == 0 and TileRefinement().can_confirm(pair.b.size, s)
             out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage,
-                                     verified=False if unconfirmed else None))
+                                     verified=False if self._unconfirmed(refined, pair) else None))
         return out
+
+    def _unconfirmed(self, refined, pair: PreparedPair) -> bool:
+        """Whether the tile stage ran on ``pair`` (``refined``: its result, None when it did not) and no level
+        confirmed the answer, although B had room for tiles."""
+        return refined is not None and refined.levels_used == 0 and TileRefinement().can_confirm(pair.b.size, self.network.input_size)
 
     def _full_resolution(self, small_h: np.ndarray, pair: PreparedPair) -> np.ndarray | None:
         """A ``b_from_a`` of the S x S images rescaled exactly to the pair's pixels; None when degenerate."""

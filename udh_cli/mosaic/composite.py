@@ -171,19 +171,11 @@ def composite_tiles(
             yield (tx0, ty0, tx1, ty1), np.ascontiguousarray(blended[ty0 - ry0 : ty1 - ry0, tx0 - rx0 : tx1 - rx0])
 
 
-def composite(
-    frames: FrameSet,
-    mosaic_from_frame: dict[int, np.ndarray],
-    canvas_size: tuple[int, int],
-    blend: str,
-    reporter: Reporter,
-    label: str = "compositing",
-    gains: dict[int, np.ndarray] | None = None,
-    seams: Seams | None = None,
-    tile_side: int | None = None,
-) -> np.ndarray:
-    """The tiles of :func:`composite_tiles` assembled into one (H, W, 4) BGRA uint8 canvas."""
-    return assemble(composite_tiles(frames, mosaic_from_frame, canvas_size, blend, reporter, label, gains, seams, tile_side), canvas_size)
+def composite(frames: FrameSet, mosaic_from_frame: dict[int, np.ndarray], canvas_size: tuple[int, int], blend: str,
+              reporter: Reporter, **options) -> np.ndarray:
+    """The tiles of :func:`composite_tiles` (``options``: its ``label``, ``gains``, ``seams``, ``tile_side``)
+    assembled into one (H, W, 4) BGRA uint8 canvas."""
+    return assemble(composite_tiles(frames, mosaic_from_frame, canvas_size, blend, reporter, **options), canvas_size)
 
 
 def assemble(tiles: Iterable[tuple[tuple[int, int, int, int], np.ndarray]], canvas_size: tuple[int, int]) -> np.ndarray:
@@ -202,6 +194,7 @@ class _DecodedFrames:
     def __init__(self, frames: FrameSet) -> None:
         self.frames = frames
         self.kept: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.kept_bytes = 0
 
     def get(self, indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
         """``(index, (H, W, 3) BGR uint8)`` for ``indices``, in sequence order; the frames not kept are decoded one
@@ -215,10 +208,12 @@ class _DecodedFrames:
                 index, image = next(fresh)
                 if index != i:
                     raise UdhError(f"frame {i} was expected from the reader, frame {index} came; this is a bug in udh, please report it")
+            if i not in self.kept:
+                self.kept_bytes += image.nbytes
             self.kept[i] = image
             self.kept.move_to_end(i)
-            while len(self.kept) > 1 and sum(kept.nbytes for kept in self.kept.values()) > DECODED_CACHE_BYTES:
-                self.kept.popitem(last=False)
+            while len(self.kept) > 1 and self.kept_bytes > DECODED_CACHE_BYTES:
+                self.kept_bytes -= self.kept.popitem(last=False)[1].nbytes
             yield i, image
 
 

@@ -37,22 +37,29 @@ def has_rasterio() -> bool:
 
 class MosaicImage:
     """A written mosaic to resample north-up, read window by window: held in memory, or in a tiled TIFF that
-    :func:`write_tiled_tiff` streamed (so that a map larger than memory is never held whole)."""
+    :func:`write_tiled_tiff` streamed (so that a map larger than memory is never held whole). The TIFF stays
+    open between windows, so that GDAL's block cache serves the blocks neighbouring windows share; :meth:`close`
+    releases it (it reopens on the next window)."""
 
     def __init__(self, array: np.ndarray | None = None, path: Path | None = None) -> None:
         if (array is None) == (path is None):
             raise ValueError("give the mosaic as an array or as a tiled TIFF's path")
-        self.array, self.path = array, path
+        self.array, self.path, self._dataset = array, path, None
         if array is not None:
             self.size = (array.shape[1], array.shape[0])
         else:
+            dataset = self._open()
+            self.size = (dataset.width, dataset.height)
+
+    def _open(self):
+        if self._dataset is None:
             from rasterio.errors import RasterioError
 
             try:
-                with _open_tiff(path) as dataset:
-                    self.size = (dataset.width, dataset.height)
+                self._dataset = _open_tiff(self.path)
             except (RasterioError, OSError) as exc:
-                raise UdhError(f"{path}: not a readable mosaic ({exc})") from None
+                raise UdhError(f"{self.path}: not a readable mosaic ({exc})") from None
+        return self._dataset
 
     def window(self, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
         """Pixels ``x0:x1``, ``y0:y1`` as (h, w, 4) BGRA uint8 (inside the image)."""
@@ -62,11 +69,15 @@ class MosaicImage:
         from rasterio.windows import Window
 
         try:
-            with _open_tiff(self.path) as dataset:
-                rgba = dataset.read(window=Window(x0, y0, x1 - x0, y1 - y0))
+            rgba = self._open().read(window=Window(x0, y0, x1 - x0, y1 - y0))
         except (RasterioError, OSError) as exc:
             raise UdhError(f"{self.path}: reading the mosaic back failed ({exc})") from None
         return np.ascontiguousarray(rgba.transpose(1, 2, 0)[..., [2, 1, 0, 3]])
+
+    def close(self) -> None:
+        if self._dataset is not None:
+            self._dataset.close()
+            self._dataset = None
 
 
 def _open_tiff(path: Path):
@@ -114,7 +125,7 @@ def write_cog(mosaic: MosaicImage, map_from_mosaic: np.ndarray, epsg: int, path:
 def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, path: Path, max_pixels: int = 400_000_000) -> dict:
     """Several mosaics (``(image, map_from_mosaic)``, earlier ones on top) resampled onto one north-up grid of
     the finest pixel size among them, written as one COG: the parts of a split flight in one map. Each strip
-    of the grid reads only the window of each mosaic it covers."""
+    of the grid reads only the window of each mosaic it covers; the mosaics' files are closed at the end."""
     _require_rasterio()
     pixel = min(math.hypot(m[0, 0], m[1, 0]) for _, m in layers)
     edges = []
@@ -153,7 +164,11 @@ def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, 
                 block[empty] = drawn[empty]
         return canvas
 
-    _write_rgba_cog(strip, rows, columns, west, north, pixel, epsg, path)
+    try:
+        _write_rgba_cog(strip, rows, columns, west, north, pixel, epsg, path)
+    finally:
+        for image, _ in layers:
+            image.close()
     return {"file": path.name, "width": columns, "height": rows, "pixel_size_m": float(pixel), "west": float(west), "north": float(north)}
 
 

@@ -8,9 +8,9 @@ pair fit its matches best:
 
 1. SIFT matches (ratio test, a loose RANSAC homography that keeps the distorted inliers) on up to
    :data:`MAX_PAIRS` consecutive pairs of work copies, spread over the flight;
-2. for each k1 on a grid, then a golden-section refinement, the matches are undistorted (OpenCV's model, the
-   frame's own camera matrix) and each pair's homography is refitted by least squares; the cost is the RMS of
-   their residuals over all pairs.
+2. for each k1 on a grid, then scipy's bounded scalar minimisation around the best, the matches are
+   undistorted (OpenCV's model, the frame's own camera matrix) and each pair's homography is refitted by
+   least squares; the cost is the RMS of their residuals over all pairs.
 
 The focal length scales the distortion (OpenCV's model acts on ``r / f``), and it trades with k1: a wrong focal
 length gives another k1 with nearly the same undistortion in pixels. It comes from EXIF's 35 mm equivalent when
@@ -25,6 +25,7 @@ from typing import Sequence
 
 import cv2
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from udh_cli.errors import UdhError
 from udh_cli.mosaic.lens import Lens
@@ -126,20 +127,8 @@ def fit_k1(greys: Sequence[np.ndarray], focal: float, focal_source: str = "given
     grid = np.linspace(*K1_RANGE, 17)
     costs = [cost(k) for k in grid]
     best = int(np.argmin(costs))
-    low, high = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
-    ratio = (math.sqrt(5) - 1) / 2
-    x1, x2 = high - ratio * (high - low), low + ratio * (high - low)
-    f1, f2 = cost(x1), cost(x2)
-    for _ in range(20):  # golden section to about 1e-4 of k1
-        if f1 < f2:
-            high, x2, f2 = x2, x1, f1
-            x1 = high - ratio * (high - low)
-            f1 = cost(x1)
-        else:
-            low, x1, f1 = x1, x2, f2
-            x2 = low + ratio * (high - low)
-            f2 = cost(x2)
-    k1 = (low + high) / 2
+    bracket = (grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)])
+    k1 = float(minimize_scalar(cost, bounds=bracket, method="bounded", options={"xatol": 1e-4}).x)
     without, with_k1 = cost(0.0), cost(k1)
     if not with_k1 < (1 - MIN_GAIN) * without:  # no lens to speak of: do not resample the frames for nothing
         k1, with_k1 = 0.0, without

@@ -31,6 +31,11 @@ def output_paths(output: Path, n_parts: int) -> list[Path]:
     return [output.with_name(f"{output.stem}.part{k}{output.suffix}") for k in range(1, n_parts + 1)]
 
 
+def cameras_path(output: Path) -> Path:
+    """``NAME.cameras.json``: the lens ``--camera estimate`` fitted, in OpenSfM's format."""
+    return output.with_name(f"{output.stem}{CAMERAS_SUFFIX}")
+
+
 def sidecar_path(output: Path) -> Path:
     return output.with_suffix(".json")
 

@@ -28,7 +28,7 @@ from udh_cli.mosaic.gains import EXPOSURES, exposure_gains, mean_gain
 from udh_cli.mosaic.seams import SEAM_FINDERS, find_seams
 from udh_cli.mosaic.small import draw_small
 from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates, reference_frame
-from udh_cli.mosaic.outputs import (CAMERAS_SUFFIX, StagedFiles, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
+from udh_cli.mosaic.outputs import (StagedFiles, cameras_path, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.lens import read_cameras
@@ -505,11 +505,6 @@ def _relative_to(path: Path, folder: Path) -> str:
         return os.path.relpath(Path(path).absolute(), Path(folder).absolute())
     except ValueError:
         return str(Path(path).absolute())
-
-
-def cameras_path(output: Path) -> Path:
-    """``NAME.cameras.json``: the lens ``--camera estimate`` fitted, in OpenSfM's format."""
-    return output.with_name(f"{output.stem}{CAMERAS_SUFFIX}")
 
 
 def own_files(output: Path) -> list[Path]:

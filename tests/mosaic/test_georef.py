@@ -251,3 +251,39 @@ def test_a_north_up_geotiff_drawn_strip_by_strip_equals_the_whole_warp(tmp_path,
     assert np.abs(rgba[..., 3].astype(int) - whole[..., 3]).max() <= 1  # OpenCV's fixed-point rounding
     inside = whole[..., 3] == 255
     assert np.abs(rgba[..., 0][inside].astype(int) - whole[..., 2][inside]).max() <= 1
+
+
+def test_the_cogs_overviews_are_area_averages_of_the_map_without_dark_edges(tmp_path):
+    """The overviews built from the strips as they are drawn: every level halves the one below down to one
+    block, its inside is the area average of the map, and along the map's turned edges a uniform grey stays
+    grey (the empty pixels outside do not dim it)."""
+    rasterio = pytest.importorskip("rasterio")
+    import cv2
+
+    from conftest import textured_image
+    from udh_cli.mosaic import geotiff
+
+    turn, pixel = math.radians(30.0), 0.05
+    map_from_mosaic = np.array([[pixel * math.cos(turn), pixel * math.sin(turn), 500000.0],
+                                [pixel * math.sin(turn), -pixel * math.cos(turn), 4000000.0], [0.0, 0.0, 1.0]])
+    for name, grey in [("textured", textured_image(1500, 1100, seed=3)), ("uniform", np.full((1100, 1500), 200, np.uint8))]:
+        path = tmp_path / f"{name}.cog.tif"
+        written = geotiff.write_cog(geotiff.MosaicImage(array=cv2.cvtColor(grey, cv2.COLOR_GRAY2BGRA)), map_from_mosaic, 32633, path)
+        with rasterio.open(path) as dataset:
+            factors = dataset.overviews(1)
+            full = dataset.read().transpose(1, 2, 0)
+        assert factors == [2, 4] and max(written["width"], written["height"]) // 4 <= geotiff.BLOCK < max(written["width"], written["height"]) // 2
+        with rasterio.open(path, overview_level=0) as level:
+            half = level.read().transpose(1, 2, 0)
+        assert full.shape[0] % 4 == 0 and full.shape[1] % 4 == 0 and half.shape[:2] == (full.shape[0] // 2, full.shape[1] // 2)
+        if name == "textured":
+            expected = cv2.resize(full, (half.shape[1], half.shape[0]), interpolation=cv2.INTER_AREA)
+            inside = cv2.erode((expected[..., 3] == 255).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+            assert inside.mean() > 0.3 and np.abs(half[inside].astype(int) - expected[inside]).max() <= 1
+        else:
+            covered = half[..., 3] >= 32  # below, the map's own edge pixels round their colour to 0
+            edge = covered & (half[..., 3] < 255)
+            assert edge.sum() > 1000 and np.abs(half[covered][:, :3].astype(int) - 200).max() <= 8  # 8-bit rounding at low alpha
+            dimmed = cv2.resize(full, (half.shape[1], half.shape[0]), interpolation=cv2.INTER_AREA)  # without the division
+            assert np.abs(dimmed[edge][:, :3].astype(int) - 200).max() > 50
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["textured.cog.tif", "uniform.cog.tif"]  # no temporary left

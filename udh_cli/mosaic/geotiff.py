@@ -72,7 +72,7 @@ class MosaicImage:
             rgba = self._open().read(window=Window(x0, y0, x1 - x0, y1 - y0))
         except (RasterioError, OSError) as exc:
             raise UdhError(f"{self.path}: reading the mosaic back failed ({exc})") from None
-        return np.ascontiguousarray(rgba.transpose(1, 2, 0)[..., [2, 1, 0, 3]])
+        return cv2.cvtColor(np.ascontiguousarray(rgba.transpose(1, 2, 0)), cv2.COLOR_RGBA2BGRA)
 
     def close(self) -> None:
         if self._dataset is not None:
@@ -112,7 +112,7 @@ def write_tiled_tiff(path: Path, size: tuple[int, int], tiles) -> None:
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
             with rasterio.open(path, "w", **profile) as dataset:
                 for (x0, y0, x1, y1), tile in tiles:
-                    dataset.write(tile[..., [2, 1, 0, 3]].transpose(2, 0, 1), window=Window(x0, y0, x1 - x0, y1 - y0))
+                    dataset.write(cv2.cvtColor(tile, cv2.COLOR_BGRA2RGBA).transpose(2, 0, 1), window=Window(x0, y0, x1 - x0, y1 - y0))
     except (RasterioError, OSError) as exc:  # a full disk, a folder that went away: one line, and the caller discards the file
         raise UdhError(f"{path}: writing the mosaic failed ({exc}); check the free space and permissions") from None
 
@@ -135,7 +135,7 @@ def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, 
         edges.append((map_from_mosaic @ corners)[:2])
     mapped = np.hstack(edges)
     west, east, south, north = mapped[0].min(), mapped[0].max(), mapped[1].min(), mapped[1].max()
-    columns, rows = int(math.ceil((east - west) / pixel)), int(math.ceil((north - south) / pixel))
+    columns, rows = padded_for_overviews(int(math.ceil((east - west) / pixel)), int(math.ceil((north - south) / pixel)))
     if columns * rows > max_pixels:
         raise UdhError(f"the north-up GeoTIFF would be {columns}x{rows} pixels; use --max-size to make the mosaic smaller")
     out_from_map = np.array([[1 / pixel, 0, -west / pixel - 0.5], [0, -1 / pixel, north / pixel - 0.5], [0, 0, 1]])
@@ -160,8 +160,7 @@ def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, 
                 window_to_block = block_from_mosaic @ np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
                 drawn = cv2.warpAffine(image.window(x0, y0, x1, y1), window_to_block[:2], (width, height),
                                        flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
-                empty = (block[..., 3] == 0) & (drawn[..., 3] > 0)
-                block[empty] = drawn[empty]
+                np.copyto(block, drawn, where=((block[..., 3] == 0) & (drawn[..., 3] > 0))[..., None])
         return canvas
 
     try:
@@ -186,27 +185,142 @@ def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, p
     Cloud-Optimised GeoTIFF: RGBA with an alpha band, tiled, DEFLATE, overviews; (west, north) is the outer
     corner of the top-left pixel.
 
-    Memory stays at one strip: the strips go to a tiled GeoTIFF beside ``path``, which GDAL's COG driver then
-    copies block by block, adding the overviews, and which is removed afterwards whatever happens.
+    Memory stays at about two strips: the strips go to a tiled GeoTIFF beside ``path`` and its overviews to
+    one more per level (:class:`_OverviewPyramid`); a VRT ties them together and GDAL's COG driver copies it
+    block by block, overviews included. The temporary files are removed afterwards whatever happens.
     """
+    import warnings
+
     import rasterio
-    from affine import Affine
+    from rasterio.errors import NotGeoreferencedWarning
     from rasterio.shutil import copy as raster_copy
     from rasterio.windows import Window
 
-    profile = {"driver": "GTiff", "width": columns, "height": rows, "count": 4, "dtype": "uint8", "crs": f"EPSG:{epsg}",
-               "transform": Affine(pixel, 0.0, west, 0.0, -pixel, north), "photometric": "RGB", "alpha": "YES",
-               "tiled": True, "blockxsize": BLOCK, "blockysize": BLOCK, "compress": "NONE", "BIGTIFF": "IF_SAFER"}
-    # Uncompressed (4 bytes per map pixel of temporary disk): the COG driver reads it again for every overview
-    # level, and with GDAL's cache bounded (GDAL_CACHE_MB) decompressing DEFLATE each time cost a third more time.
-    # Named like a staged file (outputs.remove_stale_staged), so that one a killed run leaves is removed by the next.
+    profile = _temporary_profile(columns, rows)
+    # Uncompressed (4 bytes per map pixel of temporary disk): the COG driver reads every file once more, and
+    # DEFLATE there cost more time than the disk. Named like staged files (outputs.remove_stale_staged), so
+    # that those a killed run leaves are removed by the next.
     strips = path.with_name(f"{path.stem}.strips.staged{path.suffix}")
+    levels = path.with_name(f"{path.stem}.levels.staged.vrt")
+    pyramid = _OverviewPyramid(columns, rows, lambda level: path.with_name(f"{path.stem}.overview{level}.staged{path.suffix}"))
     try:
-        with rasterio.Env(**GDAL_SETTINGS):
-            with rasterio.open(strips, "w", **profile) as dataset:
+        with rasterio.Env(**GDAL_SETTINGS), warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)  # the temporary files: the VRT holds the georeference
+            with rasterio.open(strips, "w", **profile) as dataset, pyramid:
                 for top in range(0, rows, STRIP_ROWS):
                     height = min(STRIP_ROWS, rows - top)
-                    dataset.write(strip(top, height)[..., [2, 1, 0, 3]].transpose(2, 0, 1), window=Window(0, top, columns, height))
-            raster_copy(str(strips), str(path), driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=BLOCK, OVERVIEWS="AUTO")
+                    rgba = cv2.cvtColor(strip(top, height), cv2.COLOR_BGRA2RGBA)
+                    dataset.write(rgba.transpose(2, 0, 1), window=Window(0, top, columns, height))
+                    pyramid.add(rgba, last=top + height >= rows)
+            levels.write_text(_vrt_with_overviews(strips, pyramid.files, columns, rows, west, north, pixel, epsg))
+            raster_copy(str(levels), str(path), driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=BLOCK, OVERVIEWS="AUTO")
     finally:
-        strips.unlink(missing_ok=True)
+        for temporary in [strips, levels, *pyramid.files]:
+            temporary.unlink(missing_ok=True)
+
+
+def _temporary_profile(columns: int, rows: int) -> dict:
+    """A tiled, uncompressed RGBA GeoTIFF of ``columns`` x ``rows`` without a georeference (the VRT holds it)."""
+    return {"driver": "GTiff", "width": columns, "height": rows, "count": 4, "dtype": "uint8", "photometric": "RGB",
+            "alpha": "YES", "tiled": True, "blockxsize": BLOCK, "blockysize": BLOCK, "compress": "NONE", "BIGTIFF": "IF_SAFER"}
+
+
+def overview_count(columns: int, rows: int) -> int:
+    """How many times a map of ``columns`` x ``rows`` is halved until it fits one :data:`BLOCK`."""
+    count = 0
+    while max(columns, rows) > BLOCK:
+        columns, rows, count = (columns + 1) // 2, (rows + 1) // 2, count + 1
+    return count
+
+
+def padded_for_overviews(columns: int, rows: int) -> tuple[int, int]:
+    """``columns`` and ``rows`` rounded up to a multiple of 2^:func:`overview_count` (transparent pixels at the
+    right and bottom), so that every overview pixel covers exactly 2x2 of the level below, as GDAL assumes when
+    it scales a level's extent."""
+    step = 2 ** overview_count(columns, rows)
+    return -(-columns // step) * step, -(-rows // step) * step
+
+
+def halve_rgba(rgba: np.ndarray) -> np.ndarray:
+    """(h, w, 4) RGBA uint8, h and w even -> (h/2, w/2, 4): the area average, weighted by alpha.
+
+    Outside the map the colour is 0, so the plain average of the colour is the alpha-weighted sum; where a
+    pixel is partly covered (the map's edge) dividing by its alpha undoes the dimming towards black that the
+    empty pixels would otherwise leave along every edge of the overview.
+    """
+    height, width = rgba.shape[:2]
+    half = cv2.resize(rgba, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
+    alpha = half[..., 3]
+    edge = (alpha > 0) & (alpha < 255)
+    if edge.any():
+        partial = half[edge].astype(np.float32)
+        partial[:, :3] *= 255.0 / partial[:, 3:]
+        half[edge] = np.minimum(partial + 0.5, 255.0).astype(np.uint8)
+    return half
+
+
+class _OverviewPyramid:
+    """A COG's overview levels, each half the size of the one below (:func:`halve_rgba`) down to one block,
+    built from the map's strips as they are drawn and written to one temporary tiled GeoTIFF per level.
+
+    Why not GDAL's own: its COG driver computes the overviews by reading the whole map back for every level,
+    with cubic resampling; on seneca's 150-megapixel map that took 17 of its 23 s, this 1 s (2026-11-25,
+    docs/benchmarks.md). Each level holds at most one block's height of rows of the level below, so memory
+    stays at about one strip.
+    """
+
+    def __init__(self, columns: int, rows: int, level_path) -> None:
+        self.sizes = [(columns >> level, rows >> level) for level in range(1, overview_count(columns, rows) + 1)]
+        if padded_for_overviews(columns, rows) != (columns, rows):
+            raise ValueError(f"a {columns}x{rows} map does not halve evenly; pad it with padded_for_overviews")
+        self.files = [level_path(level + 1) for level in range(len(self.sizes))]
+        self._datasets: list = []
+        self._pending: list[np.ndarray | None] = [None] * len(self.sizes)  # rows of level k waiting to be halved
+        self._written = [0] * len(self.sizes)
+
+    def __enter__(self) -> "_OverviewPyramid":
+        import rasterio
+
+        for file, (columns, rows) in zip(self.files, self.sizes):
+            self._datasets.append(rasterio.open(file, "w", **_temporary_profile(columns, rows)))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for dataset in self._datasets:
+            dataset.close()
+
+    def add(self, rgba: np.ndarray, last: bool, level: int = 0) -> None:
+        """The next rows (h, columns, 4) RGBA of ``level`` (0: the map itself); ``last`` after the bottom row.
+        Rows are halved in runs of at least :data:`BLOCK` (an even count but for the last)."""
+        if level >= len(self.sizes):
+            return
+        pending = self._pending[level]
+        rows = rgba if pending is None else np.concatenate([pending, rgba])
+        if len(rows) < BLOCK and not last:
+            self._pending[level] = rows
+            return
+        self._pending[level] = None
+        half = halve_rgba(rows)
+        from rasterio.windows import Window
+
+        self._datasets[level].write(half.transpose(2, 0, 1), window=Window(0, self._written[level], half.shape[1], half.shape[0]))
+        self._written[level] += len(half)
+        self.add(half, last, level + 1)
+
+
+def _vrt_with_overviews(base: Path, overviews: list[Path], columns: int, rows: int, west: float, north: float,
+                        pixel: float, epsg: int) -> str:
+    """A GDAL VRT of the RGBA ``base`` file with ``overviews`` as its overview levels, north-up in EPSG
+    ``epsg``: what the COG driver copies (it keeps a source's overviews rather than computing its own)."""
+    from xml.sax.saxutils import escape
+
+    west, north, pixel = float(west), float(north), float(pixel)  # repr() of a numpy scalar is not a number
+    bands = []
+    for band, colour in enumerate(["Red", "Green", "Blue", "Alpha"], start=1):
+        levels = "".join(f'<Overview><SourceFilename relativeToVRT="1">{escape(level.name)}</SourceFilename>'
+                         f"<SourceBand>{band}</SourceBand></Overview>" for level in overviews)
+        bands.append(f'<VRTRasterBand dataType="Byte" band="{band}"><ColorInterp>{colour}</ColorInterp>'
+                     f'<SimpleSource><SourceFilename relativeToVRT="1">{escape(base.name)}</SourceFilename>'
+                     f"<SourceBand>{band}</SourceBand></SimpleSource>{levels}</VRTRasterBand>")
+    return (f'<VRTDataset rasterXSize="{columns}" rasterYSize="{rows}"><SRS>EPSG:{epsg}</SRS>'
+            f"<GeoTransform>{west!r}, {pixel!r}, 0.0, {north!r}, 0.0, {-pixel!r}</GeoTransform>{''.join(bands)}</VRTDataset>")

@@ -25,7 +25,6 @@ from typing import Sequence
 
 import cv2
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from udh_cli.errors import UdhError
 from udh_cli.mosaic.lens import Lens
@@ -128,6 +127,8 @@ def fit_k1(greys: Sequence[np.ndarray], focal: float, focal_source: str = "given
     costs = [cost(k) for k in grid]
     best = int(np.argmin(costs))
     bracket = (grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)])
+    from scipy.optimize import minimize_scalar  # here: importing scipy.optimize costs every udh command 0.25 s
+
     k1 = float(minimize_scalar(cost, bounds=bracket, method="bounded", options={"xatol": 1e-4}).x)
     without, with_k1 = cost(0.0), cost(k1)
     if not with_k1 < (1 - MIN_GAIN) * without:  # no lens to speak of: do not resample the frames for nothing

@@ -50,6 +50,16 @@ def test_tiles_give_the_canvas_blended_whole(small_flight, blend):
     assert difference.max() <= 1 and (difference == 0).mean() > 0.99
 
 
+@pytest.mark.parametrize("blend", ["feather", "multiband"])
+def test_tiles_blended_in_threads_are_the_same_tiles_in_the_same_order(small_flight, blend):
+    frames, to_ground, size = _true_placement(small_flight)
+    one = list(composite_tiles(frames, to_ground, size, blend, Reporter(quiet=True), tile_side=96))
+    three = list(composite_tiles(frames, to_ground, size, blend, Reporter(quiet=True), tile_side=96, workers=3))
+    assert len(three) == len(one) > 20
+    assert [box for box, _ in three] == [box for box, _ in one]
+    assert all((a == b).all() for (_, a), (_, b) in zip(one, three))
+
+
 def test_frames_evicted_from_the_decoded_cache_are_read_again(small_flight, monkeypatch):
     import udh_cli.mosaic.composite as composite_module
 

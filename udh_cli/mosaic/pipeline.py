@@ -727,7 +727,8 @@ def _composite_part(frameset: FrameSet, part: Part, config: MosaicConfig, report
             gains = exposure_gains(config.exposure, small)
             seams = find_seams(config.seams, small) if want_seams else None
             advance(1)
-    tiles = compositing.composite_tiles(frameset, to_mosaic, part.canvas.size, config.blend, reporter, f"compositing{suffix}", gains, seams)
+    tiles = compositing.composite_tiles(frameset, to_mosaic, part.canvas.size, config.blend, reporter, f"compositing{suffix}", gains, seams,
+                                        workers=config.workers)
     drawer = compositing.PreviewDrawer(part.canvas.size)
     if streams_to_file(part.file):  # blended and written tile by tile: the map's area costs no memory
         write_tiled_tiff(staged.path_for(part.file), part.canvas.size, _drawn(tiles, drawer))

@@ -248,3 +248,20 @@ def test_the_flight_network_joins_the_cascade_and_follows_large_whole_frame_moti
     paper_untiled = create_estimator("unsupervised", device="cpu", flight_model="", tiles=False).estimate(a, b)
     untiled_error = float(geometry.mace(both_untiled.homography, truth, 640, 480))
     assert not paper_untiled.ok or float(geometry.mace(paper_untiled.homography, truth, 640, 480)) > untiled_error
+
+
+@pytest.mark.parametrize("used, run, verified", [(1, 3, False), (2, 3, None), (1, 1, None), (0, 2, False)])
+def test_an_answer_is_verified_only_when_enough_tile_levels_accept_it(monkeypatch, used, run, verified):
+    """One accepted level of three is not a confirmation (on seneca such answers were wrong 9 times in 10):
+    the answer is reported unverified, and a mosaic doubts it (pairs.Acceptance)."""
+    if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
+        pytest.skip("shipped unsupervised model not built yet")
+    import udh_cli.estimators.deep as deep
+    from udh_cli.estimators.tiles import TileResult
+
+    truth = geometry.translation(8.0, -5.0)
+    a, b = warped_pair(truth, 600, 400, seed=4)
+    monkeypatch.setattr(deep, "refine_with_tiles", lambda network, a, b, h, *args, **kwargs: TileResult(h, used, 0.8, 0.5, run))
+    estimate = create_estimator("unsupervised", device="cpu", search=0).estimate(a, b)
+    assert estimate.ok and estimate.details["tile_levels"] == used
+    assert estimate.verified is verified

@@ -41,7 +41,8 @@ def test_tiles_recover_a_known_homography_at_full_resolution(refiner, big_pair, 
     after = float(geometry.mace(result.b_from_a, TRUE, 1600, 1200))
     assert before > 5.0
     assert after < 1.0, (before, after)
-    assert result.levels_used == 2 and result.agreeing >= 0.75 and result.residual_px < 1.0
+    assert result.levels_used == result.levels_run == 2 and result.agreeing >= 0.75 and result.residual_px < 1.0
+    assert result.confirms()
 
 
 @pytest.mark.parametrize("seed", [7, 8, 9, 10, 11])
@@ -49,8 +50,19 @@ def test_a_start_beyond_the_tiles_reach_is_left_as_it_was(refiner, big_pair, see
     a, b = big_pair
     start = _perturbed(TRUE, (1600, 1200), 300.0, seed)
     result = refine_with_tiles(refiner, to_gray_float(a), to_gray_float(b), start, TileRefinement(max_move=16.0))
-    assert result.levels_used == 0 and np.isnan(result.residual_px)
+    assert result.levels_used == 0 and result.levels_run == 2 and np.isnan(result.residual_px) and not result.confirms()
     np.testing.assert_allclose(result.b_from_a, start / start[2, 2])
+
+
+def test_an_answer_is_confirmed_by_two_levels_or_by_all_that_ran():
+    from udh_cli.estimators.tiles import CONFIRMING_LEVELS, TileResult
+
+    def result(used, run):
+        return TileResult(np.eye(3), used, 0.5, 1.0, run)
+
+    assert CONFIRMING_LEVELS == 2
+    assert [result(used, 3).confirms() for used in range(4)] == [False, False, True, True]
+    assert result(1, 1).confirms() and not result(0, 1).confirms()  # a pair with room for one level only
 
 
 def test_flat_images_give_no_tiles(refiner):

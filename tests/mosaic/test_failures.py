@@ -176,3 +176,22 @@ def test_a_confident_but_wrong_pair_fails_the_alignment_check(flight, tmp_path):
     assert pairs[(3, 4)]["verified"] < 0.3
     assert all(p["verified"] > 0.5 for key, p in pairs.items() if p["status"] == "ok")
     assert report["summary"]["placed"] == 8  # bridged over the doubted link (2 -> 4)
+
+
+def test_an_answer_its_network_could_not_confirm_is_doubted_even_when_it_aligns():
+    """A network's answer its tile levels did not confirm (``verified`` False) is not accepted, however well it
+    aligns; an answer of a method that verifies itself (auto) is its method's to judge."""
+    from conftest import warped_pair
+    from udh_cli.estimators.base import Estimate
+    from udh_cli.mosaic.pairs import Acceptance
+
+    truth = geometry.translation(6.0, -4.0)
+    a, b = warped_pair(truth, seed=3)
+    acceptance = Acceptance()
+    confirmed = Estimate("unsupervised", truth, 0.9, 1.0)
+    score, doubt = acceptance.judge(confirmed, a, b)
+    assert doubt is None and score > 0.8  # it aligns: the photometric check alone would accept it
+    unconfirmed = Estimate("unsupervised", truth, 0.9, 1.0, verified=False)
+    score, doubt = acceptance.judge(unconfirmed, a, b)
+    assert score is None and "unconfirmed" in doubt and "tile levels" in doubt
+    assert acceptance.judge(Estimate("auto", truth, 0.9, 1.0, verified=False), a, b, verified_by_method=True) == (None, None)

@@ -205,8 +205,8 @@ class DeepEstimator(Estimator):
         tiled = [self._tiles(pairs[i], small_h[i]) for i in range(len(pairs))] if self.tiles else [None] * len(pairs)
         tiles_done = time.perf_counter()
         searched = [False] * len(pairs)
-        # Doubted: a low score, or (with tiles) an answer no finer level confirmed although the pair had room
-        # for tiles, which on real flights meant a start too far off for the tiles: both are worth the
+        # Doubted: a low score, or (with tiles) an answer the tile levels did not confirm although the pair had
+        # room for tiles, which on real flights meant a start too far off for the tiles: both are worth the
         # large-motion search.
         doubtful = [i for i, score in enumerate(scores) if score < self.search_below or self._unconfirmed(tiled[i], pairs[i])]
         if self.search and doubtful:
@@ -232,17 +232,18 @@ class DeepEstimator(Estimator):
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
                                tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
             stage = "tiles" if details.get("tile_levels") else "search" if was_searched else "network"
-            # An answer that no tile level confirmed, although the pair had room for tiles, is not verified
+            # An answer the tile levels did not confirm, although the pair had room for tiles, is not verified
             # whatever its score: the search's best translation can score above the floor while tens of
-            # pixels off (an untrained network on the example flight: 0.24 at 36 px).
+            # pixels off (an untrained network on the example flight: 0.24 at 36 px), and a network-only
+            # mosaic rejects it (pairs.Acceptance).
             out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage,
                                      verified=False if self._unconfirmed(refined, pair) else None))
         return out
 
     def _unconfirmed(self, refined, pair: PreparedPair) -> bool:
-        """Whether the tile stage ran on ``pair`` (``refined``: its result, None when it did not) and no level
-        confirmed the answer, although B had room for tiles."""
-        return refined is not None and refined.levels_used == 0 and TileRefinement().can_confirm(pair.b.size, self.network.input_size)
+        """Whether the tile stage ran on ``pair`` (``refined``: its result, None when it did not) and did not
+        confirm the answer (:meth:`TileResult.confirms`), although B had room for tiles."""
+        return refined is not None and not refined.confirms() and TileRefinement().can_confirm(pair.b.size, self.network.input_size)
 
     def _full_resolution(self, small_h: np.ndarray, pair: PreparedPair) -> np.ndarray | None:
         """A ``b_from_a`` of the S x S images rescaled exactly to the pair's pixels; None when degenerate."""

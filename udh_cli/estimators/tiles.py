@@ -66,6 +66,13 @@ class TileRefinement:
         return min(size_b) >= tile and len(_tile_origins(size_b, tile)) >= self.min_tiles
 
 
+# Levels that must accept an answer for it to count as confirmed. Why two: on seneca's consecutive pairs at 800 px
+# (148, against auto's mosaic), of the answers one level accepted 9 in 10 were over 20 px off, of those two or
+# three accepted none; in a network-only mosaic of seneca, accepting one-level answers joined 46 wrong pairs
+# (over 20 px) to 14 right ones, requiring two joined 1 wrong to 16 right (docs/estimators.md, 2026-11-25).
+CONFIRMING_LEVELS = 2
+
+
 @dataclass(frozen=True)
 class TileResult:
     """What the tile stage found.
@@ -73,6 +80,7 @@ class TileResult:
     Attributes:
         b_from_a: (3, 3) refined homography, pixels of the images given.
         levels_used: levels whose fit was accepted.
+        levels_run: levels that ran (a level of the same size and network as an earlier one does not run again).
         agreeing: share of the finest accepted level's tiles that agreed with its fit (0 when none was).
         residual_px: median corner residual of the agreeing tiles at the finest accepted level, in pixels
             of the full-resolution B (nan when no level was accepted).
@@ -82,6 +90,12 @@ class TileResult:
     levels_used: int
     agreeing: float
     residual_px: float
+    levels_run: int = 0
+
+    def confirms(self) -> bool:
+        """Whether the answer is confirmed: accepted by :data:`CONFIRMING_LEVELS` levels, or by every level
+        that ran when fewer ran."""
+        return self.levels_used >= min(CONFIRMING_LEVELS, self.levels_run)
 
 
 def _level_sizes(size_a: tuple[int, int], size_b: tuple[int, int], side: int) -> tuple[tuple[int, int], tuple[int, int]]:
@@ -188,7 +202,7 @@ def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: 
     """
     size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
     current = np.asarray(b_from_a, np.float64)
-    used, agreeing, residual = 0, 0.0, float("nan")
+    used, run, agreeing, residual = 0, 0, 0.0, float("nan")
     plan = [(side, network, config.max_move) for side in config.levels]
     if coarse_network is not None and config.coarse_side > 0:
         plan.insert(0, (config.coarse_side, coarse_network, config.coarse_move))
@@ -203,6 +217,7 @@ def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: 
             continue
         done_sizes.add((id(level_network), level_size_a, level_size_b))
         start = geometry.rescale_homography(current, size_a, level_size_a, size_b, level_size_b)
+        run += 1
         found = refine_level(level_network, level_a, level_b, start, config, max_move)
         if found is None:
             continue
@@ -210,4 +225,4 @@ def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: 
         current = geometry.rescale_homography(fitted, level_size_a, size_a, level_size_b, size_b)
         residual = residual_level * size_b[0] / level_size_b[0]
         used += 1
-    return TileResult(current / current[2, 2], used, agreeing, residual)
+    return TileResult(current / current[2, 2], used, agreeing, residual, run)

@@ -37,6 +37,11 @@ class Acceptance:
             on wrong seneca pairs (smooth infrared fields correlate under a wrong shift); their gradient NCC
             was at most 0.47 (95 % below 0.28). Not for every method: right SIFT pairs of brighton-beach
             (surf and sand) scored 0.19-0.30 and were split off. 0 turns the check off.
+
+    An answer its own method marks unconfirmed (``Estimate.verified`` False: a network's tile levels did not
+    confirm it) is doubted whatever these say, unless the method verifies itself (``auto`` keeps its best
+    unconfirmed answer and says so). Why: in a network-only mosaic of seneca 46 of the 75 pairs accepted
+    without this were over 20 px off (against ``auto``'s), with it 1 of 28 (docs/mosaic.md, 2026-11-25).
     """
 
     min_confidence: float = 0.2
@@ -49,7 +54,11 @@ class Acceptance:
             return None, estimate.failure
         if estimate.confidence < self.min_confidence:
             return None, f"confidence {estimate.confidence:.2f} < {self.min_confidence}"
-        if self.min_verified <= 0 or verified_by_method:
+        if verified_by_method:
+            return None, None
+        if estimate.verified is False:  # the method itself could not confirm it (the networks' tile stage)
+            return None, f"{estimate.method}: its answer is unconfirmed (for a network: its tile levels did not agree on it)"
+        if self.min_verified <= 0:
             return None, None
         verified = VERIFIER.score(image_a, image_b, estimate.homography)
         if verified < self.min_verified:

@@ -51,10 +51,18 @@ def test_tiles_give_the_canvas_blended_whole(small_flight, blend):
 
 
 @pytest.mark.parametrize("blend", ["feather", "multiband"])
-def test_tiles_blended_in_threads_are_the_same_tiles_in_the_same_order(small_flight, blend):
+def test_tiles_blended_in_threads_are_the_same_tiles_in_the_same_order(small_flight, blend, monkeypatch):
     frames, to_ground, size = _true_placement(small_flight)
+    import threading
+
+    import udh_cli.mosaic.composite as composite_module
+
     one = list(composite_tiles(frames, to_ground, size, blend, Reporter(quiet=True), tile_side=96))
+    threads = set()
+    real = composite_module._blend_region
+    monkeypatch.setattr(composite_module, "_blend_region", lambda *args: threads.add(threading.current_thread().name) or real(*args))
     three = list(composite_tiles(frames, to_ground, size, blend, Reporter(quiet=True), tile_side=96, workers=3))
+    assert len(threads) == 3 and all(name.startswith("udh-composite") for name in threads)
     assert len(three) == len(one) > 20
     assert [box for box, _ in three] == [box for box, _ in one]
     assert all((a == b).all() for (_, a), (_, b) in zip(one, three))

@@ -138,6 +138,15 @@ def test_pairs_that_no_longer_match_are_estimated_again(flight, uninterrupted, t
     assert [c for c in counted.calls if None not in c] == [(5, 6), (6, 7)]
     assert report["summary"]["pairs_from_cache"] >= 5
 
+    # Other acceptance rules (a new revision of what makes a pair accepted) change every key too.
+    import udh_cli.mosaic.pair_cache as pair_cache
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(pair_cache, "ACCEPTANCE_REVISION", pair_cache.ACCEPTANCE_REVISION + 1)
+        counted = Interrupted(new_prints)
+        run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, min_confidence=0.25), estimator=counted, resume=True)
+        assert len(counted.calls) == len(uninterrupted["pairs"])
+
 
 @dataclass
 class WithModel(Estimator):

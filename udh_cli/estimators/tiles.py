@@ -80,7 +80,8 @@ class TileResult:
     Attributes:
         b_from_a: (3, 3) refined homography, pixels of the images given.
         levels_used: levels whose fit was accepted.
-        levels_run: levels that ran (a level of the same size and network as an earlier one does not run again).
+        levels_run: levels that ran with room for tiles (:meth:`TileRefinement.can_confirm`; a level of the same
+            size and network as an earlier one does not run again).
         agreeing: share of the finest accepted level's tiles that agreed with its fit (0 when none was).
         residual_px: median corner residual of the agreeing tiles at the finest accepted level, in pixels
             of the full-resolution B (nan when no level was accepted).
@@ -90,7 +91,7 @@ class TileResult:
     levels_used: int
     agreeing: float
     residual_px: float
-    levels_run: int = 0
+    levels_run: int
 
     def confirms(self) -> bool:
         """Whether the answer is confirmed: accepted by :data:`CONFIRMING_LEVELS` levels, or by every level
@@ -217,7 +218,7 @@ def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: 
             continue
         done_sizes.add((id(level_network), level_size_a, level_size_b))
         start = geometry.rescale_homography(current, size_a, level_size_a, size_b, level_size_b)
-        run += 1
+        run += config.can_confirm(level_size_b, level_network.input_size)  # a level with no room for tiles is no evidence
         found = refine_level(level_network, level_a, level_b, start, config, max_move)
         if found is None:
             continue

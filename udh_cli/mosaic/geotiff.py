@@ -192,7 +192,7 @@ def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, p
     import warnings
 
     import rasterio
-    from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.errors import NotGeoreferencedWarning, RasterioError
     from rasterio.shutil import copy as raster_copy
     from rasterio.windows import Window
 
@@ -212,8 +212,10 @@ def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, p
                     rgba = cv2.cvtColor(strip(top, height), cv2.COLOR_BGRA2RGBA)
                     dataset.write(rgba.transpose(2, 0, 1), window=Window(0, top, columns, height))
                     pyramid.add(rgba, last=top + height >= rows)
-            levels.write_text(_vrt_with_overviews(strips, pyramid.files, columns, rows, west, north, pixel, epsg))
+            levels.write_text(_vrt_with_overviews(strips, pyramid.files, columns, rows, west, north, pixel, epsg), encoding="utf-8")
             raster_copy(str(levels), str(path), driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=BLOCK, OVERVIEWS="AUTO")
+    except (RasterioError, OSError) as exc:  # a full disk, a folder that went away: one line, and the caller goes on without it
+        raise UdhError(f"{path.name}: writing the GeoTIFF failed ({exc}); check the free space and permissions") from None
     finally:
         for temporary in [strips, levels, *pyramid.files]:
             temporary.unlink(missing_ok=True)
@@ -242,21 +244,25 @@ def padded_for_overviews(columns: int, rows: int) -> tuple[int, int]:
 
 
 def halve_rgba(rgba: np.ndarray) -> np.ndarray:
-    """(h, w, 4) RGBA uint8, h and w even -> (h/2, w/2, 4): the area average, weighted by alpha.
-
-    Outside the map the colour is 0, so the plain average of the colour is the alpha-weighted sum; where a
-    pixel is partly covered (the map's edge) dividing by its alpha undoes the dimming towards black that the
-    empty pixels would otherwise leave along every edge of the overview.
-    """
+    """(h, w, 4) RGBA uint8, h and w even, colour premultiplied by alpha (0 outside the map, dimmed where a
+    pixel is partly covered, as warping with a transparent border leaves it) -> (h/2, w/2, 4): the area
+    average, still premultiplied, for the next level."""
     height, width = rgba.shape[:2]
-    half = cv2.resize(rgba, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
-    alpha = half[..., 3]
+    return cv2.resize(rgba, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
+
+
+def straight_alpha(premultiplied: np.ndarray) -> np.ndarray:
+    """(h, w, 4) RGBA uint8 with premultiplied colour -> colour divided by alpha where a pixel is partly covered:
+    what a viewer composites (TIFF's unassociated alpha). Without it every overview would darken along the
+    map's edges towards the empty pixels outside."""
+    out = premultiplied.copy()
+    alpha = out[..., 3]
     edge = (alpha > 0) & (alpha < 255)
     if edge.any():
-        partial = half[edge].astype(np.float32)
+        partial = out[edge].astype(np.float32)
         partial[:, :3] *= 255.0 / partial[:, 3:]
-        half[edge] = np.minimum(partial + 0.5, 255.0).astype(np.uint8)
-    return half
+        out[edge] = np.minimum(partial + 0.5, 255.0).astype(np.uint8)
+    return out
 
 
 class _OverviewPyramid:
@@ -281,13 +287,18 @@ class _OverviewPyramid:
     def __enter__(self) -> "_OverviewPyramid":
         import rasterio
 
-        for file, (columns, rows) in zip(self.files, self.sizes):
-            self._datasets.append(rasterio.open(file, "w", **_temporary_profile(columns, rows)))
+        try:
+            for file, (columns, rows) in zip(self.files, self.sizes):
+                self._datasets.append(rasterio.open(file, "w", **_temporary_profile(columns, rows)))
+        except BaseException:  # __exit__ does not run when __enter__ fails: close what did open
+            self.__exit__()
+            raise
         return self
 
     def __exit__(self, *exc) -> None:
         for dataset in self._datasets:
             dataset.close()
+        self._datasets = []
 
     def add(self, rgba: np.ndarray, last: bool, level: int = 0) -> None:
         """The next rows (h, columns, 4) RGBA of ``level`` (0: the map itself); ``last`` after the bottom row.
@@ -300,10 +311,10 @@ class _OverviewPyramid:
             self._pending[level] = rows
             return
         self._pending[level] = None
-        half = halve_rgba(rows)
+        half = halve_rgba(rows)  # premultiplied, as the level below: the next level halves this, not the written copy
         from rasterio.windows import Window
 
-        self._datasets[level].write(half.transpose(2, 0, 1), window=Window(0, self._written[level], half.shape[1], half.shape[0]))
+        self._datasets[level].write(straight_alpha(half).transpose(2, 0, 1), window=Window(0, self._written[level], half.shape[1], half.shape[0]))
         self._written[level] += len(half)
         self.add(half, last, level + 1)
 

@@ -29,7 +29,7 @@ from udh_cli.estimators import Estimate, Estimator
 from udh_cli.estimators.base import TYPED_FIELDS
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.pairs import Acceptance, PairRequest, PairResult, full_resolution, work_inputs
+from udh_cli.mosaic.pairs import ACCEPTANCE_REVISION, Acceptance, PairRequest, PairResult, full_resolution, work_inputs
 from udh_cli.mosaic.report import Reporter
 
 CACHE_FORMAT = "udh-mosaic-pairs/1"
@@ -104,7 +104,8 @@ class PairCache:
         context = {
             "udh_version": __version__,  # a different release may estimate differently
             "opinions": [estimator_identity(opinion) for opinion in opinions],
-            "acceptance": {"min_confidence": float(acceptance.min_confidence), "min_verified": float(acceptance.min_verified)},
+            "acceptance": {"min_confidence": float(acceptance.min_confidence), "min_verified": float(acceptance.min_verified),
+                           "revision": ACCEPTANCE_REVISION},
         }
         previous: dict[str, dict] = {}
         path = Path(path)

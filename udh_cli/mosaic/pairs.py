@@ -19,6 +19,12 @@ from udh_cli.estimators.verify import VERIFIER
 from udh_cli.mosaic.frames import Frame
 
 
+# The revision of what makes a pair accepted: these rules, and what an estimator calls confirmed (the tile
+# stage's CONFIRMING_LEVELS). A pair cache records it, so that --resume never reuses decisions made under other
+# rules. 2 (2026-11-25): answers their method marks unconfirmed are doubted, and two tile levels confirm.
+ACCEPTANCE_REVISION = 2
+
+
 @dataclass(frozen=True)
 class Acceptance:
     """When a pair estimate is accepted; below either threshold it is doubted (fallback, bridge, split).
@@ -36,7 +42,7 @@ class Acceptance:
             (:data:`udh_cli.estimators.verify.VERIFIER`, the check auto uses). Why: the networks' confidence stayed at 0.2-0.9
             on wrong seneca pairs (smooth infrared fields correlate under a wrong shift); their gradient NCC
             was at most 0.47 (95 % below 0.28). Not for every method: right SIFT pairs of brighton-beach
-            (surf and sand) scored 0.19-0.30 and were split off. 0 turns the check off.
+            (surf and sand) scored 0.19-0.30 and were split off. 0 turns the check off (not the rule below).
 
     An answer its own method marks unconfirmed (``Estimate.verified`` False: a network's tile levels did not
     confirm it) is doubted whatever these say, unless the method verifies itself (``auto`` keeps its best

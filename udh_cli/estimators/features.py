@@ -23,6 +23,15 @@ EXACT_MATCH_LIMIT = 5000
 _FEATURE_CACHE: OrderedDict = OrderedDict()
 
 
+def ratio_test_points(knn: list, keypoints_a: list, keypoints_b: list, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lowe's ratio test on two-nearest-neighbour matches (OpenCV DMatch lists, A's descriptors queried in B's):
+    the (N, 2) float64 pixels in A and in B of the matches whose best is below ``ratio`` times the second best."""
+    good = [pair[0] for pair in knn if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance]
+    points_a = np.array([keypoints_a[m.queryIdx].pt for m in good], np.float64).reshape(-1, 2)
+    points_b = np.array([keypoints_b[m.trainIdx].pt for m in good], np.float64).reshape(-1, 2)
+    return points_a, points_b
+
+
 @dataclass
 class FeatureRansacEstimator(Estimator):
     """Detect keypoints, match with Lowe's ratio test, fit ``b_from_a`` with RANSAC.
@@ -118,24 +127,22 @@ class FeatureRansacEstimator(Estimator):
             raise EstimationFailed(
                 f"too few keypoints ({len(keypoints_a)} in A, {len(keypoints_b)} in B); the images may lack texture"
             )
-        knn = self._match(descriptors_a, descriptors_b)
-        good = [m[0] for m in knn if len(m) == 2 and m[0].distance < self.ratio * m[1].distance]
-        if len(good) < max(4, self.min_inliers):
-            raise EstimationFailed(f"only {len(good)} matches pass the ratio test (need {max(4, self.min_inliers)})")
-        points_a = np.float32([keypoints_a[m.queryIdx].pt for m in good])
-        points_b = np.float32([keypoints_b[m.trainIdx].pt for m in good])
+        points_a, points_b = ratio_test_points(self._match(descriptors_a, descriptors_b), keypoints_a, keypoints_b, self.ratio)
+        if len(points_a) < max(4, self.min_inliers):
+            raise EstimationFailed(f"only {len(points_a)} matches pass the ratio test (need {max(4, self.min_inliers)})")
+        points_a, points_b = points_a.astype(np.float32), points_b.astype(np.float32)
         homography, inlier_mask = cv2.findHomography(points_a, points_b, cv2.RANSAC, self.ransac_px)
         inliers = int(inlier_mask.sum()) if inlier_mask is not None else 0
         if homography is None or inliers < self.min_inliers:
-            raise EstimationFailed(f"RANSAC kept {inliers} of {len(good)} matches (need {self.min_inliers})")
+            raise EstimationFailed(f"RANSAC kept {inliers} of {len(points_a)} matches (need {self.min_inliers})")
         if self.lmeds_refit:
             keep = inlier_mask.ravel() > 0
             refit, _ = cv2.findHomography(points_a[keep], points_b[keep], cv2.LMEDS)
             if refit is not None and np.isfinite(refit).all():
                 homography = refit
         # Confidence: the inlier share, discounted when the support is thin.
-        confidence = (inliers / len(good)) * min(1.0, inliers / 30.0)
-        details = {"keypoints_a": len(keypoints_a), "keypoints_b": len(keypoints_b), "matches": len(good), "inliers": inliers}
+        confidence = (inliers / len(points_a)) * min(1.0, inliers / 30.0)
+        details = {"keypoints_a": len(keypoints_a), "keypoints_b": len(keypoints_b), "matches": len(points_a), "inliers": inliers}
         return homography, confidence, details
 
 

@@ -391,6 +391,10 @@ def test_is_valid_homography_accepts_mild_and_rejects_broken():
     assert not geometry.is_valid_homography(np.zeros((3, 3)), 320, 240)
     assert not geometry.is_valid_homography(np.array([[1.0, 2, 3], [2, 4, 6], [0, 0, 1]]), 320, 240)  # rank 2
     assert not geometry.is_valid_homography(np.eye(2), 320, 240)
+    # A frame far from the reference of a large survey is no less valid than one beside it.
+    assert geometry.is_valid_homography(geometry.translation(-159.5, -23076.7), 320, 240, max_scale=3.0)
+    assert geometry.is_valid_homography(geometry.translation(1e6, 1e6) @ mild, 320, 240)
+    assert not geometry.is_valid_homography(geometry.translation(1e6, 1e6) @ np.array([[1.0, 2, 3], [2, 4, 6], [0, 0, 1]]), 320, 240)
 
     # Folded: the top-right and bottom-right corners swapped places.
     corners = geometry.image_corners(320, 240)

@@ -324,7 +324,10 @@ def is_valid_homography(b_from_a: np.ndarray | None, width: int, height: int, ma
         return False
     (a, b, c), (d, e, f), (g, i, j) = h.tolist()
     det = a * (e * j - f * i) - b * (d * j - f * g) + c * (d * i - e * g)
-    if abs(det) < 1e-12 * max(1.0, max(abs(v) for v in (a, b, c, d, e, f, g, i, j))) ** 3:
+    # Singular relative to Hadamard's bound (|det| <= the product of the row norms), which a translation alone
+    # cannot shrink: the cube of the largest entry called a frame 23,000 px from the reference singular.
+    bound = math.hypot(a, b, c) * math.hypot(d, e, f) * math.hypot(g, i, j)
+    if abs(det) < 1e-12 * bound:
         return False
     corners = ((0.0, 0.0), (width - 1.0, 0.0), (width - 1.0, height - 1.0), (0.0, height - 1.0))
     w = [g * x + i * y + j for x, y in corners]

@@ -190,3 +190,15 @@ def test_a_tif_mosaic_streams_its_tiles_and_holds_the_png_run_s_pixels(small_fli
     assert png["parts"][0]["width"] == tif["parts"][0]["width"]
     preview = cv2.imread(str(tmp_path / "m.preview.jpg"))
     assert preview is not None and preview.shape[:2] == bgra.shape[:2]  # drawn from the tiles as they streamed
+
+
+def test_rectify_draws_on_the_ground_without_changing_the_frames_relations(accurate_run, tmp_path):
+    folder, _, report = accurate_run
+    rectified = run_mosaic(folder, tmp_path / "rectified.png", MosaicConfig(method="sift", rectify=True))
+    assert report["parts"][0]["plane"] == "reference frame" and rectified["parts"][0]["plane"] == "ground (rectified)"
+    before, after = report["ground_truth_error"], rectified["ground_truth_error"]
+    # The frames' relations are the solve's: the frame-to-reference error is the same.
+    assert after["solved"]["mean_corner_px"] == pytest.approx(before["solved"]["mean_corner_px"], abs=1e-6)
+    # The map's shape is what changes: the reference frame's own tilt no longer bends it (3.99 -> 1.22 px median
+    # when written).
+    assert before["map_shape"]["median_px"] > 3.0 and after["map_shape"]["median_px"] < 1.5

@@ -40,6 +40,26 @@ def test_the_offsets_align_the_clean_views(sources):
         assert np.abs(warped - batch.clean_b[i])[covered].mean() < 0.03
 
 
+def test_residual_pairs_show_a_prewarped_a_and_label_what_is_left(sources):
+    config = MotionConfig(lighting=0.0, residual=10.0)
+    batch = make_motion_pairs(sources, 24, config, np.random.default_rng(2), patch=128, illumination=False)
+    assert np.abs(batch.offsets).max() <= 10.0 + 1e-4  # the label is the residual, not the flight motion
+    assert np.abs(batch.offsets).mean() > 2.0
+    homographies = batch.homographies()
+    reflected = 0
+    for i in range(24):
+        # The context is the source in the pre-warped A's frame: the residual label aligns it with B.
+        warped = cv2.warpPerspective(batch.context_a[i, 0], homographies[i] @ geometry.translation(-128, -128), (128, 128))
+        assert np.abs(warped - batch.clean_b[i]).mean() < 0.03
+        # Outside A's own frame the network sees the border fill (PREWARP_BORDER), as the cascade's rounds do,
+        # so that part of its view differs from the true surroundings in the context.
+        seen = batch.patch_a[i]
+        truly = batch.context_a[i, 0, 128:256, 128:256]
+        reflected += float(np.abs(seen - truly).mean() > 0.01)
+    assert reflected >= 12  # most pairs overlap by less than the whole view
+    assert config.scaled(0.5).residual == 10.0  # small-motion pairs shrink the motion, not the residual
+
+
 def test_motion_reaches_its_ranges_and_no_further(sources):
     config = MotionConfig(max_heading=60.0, scale_range=(0.8, 1.25), max_shift=0.3, perspective=0.0, lighting=0.0)
     batch = make_motion_pairs(sources, 200, config, np.random.default_rng(1), patch=64, illumination=False, with_context=False)

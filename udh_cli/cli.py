@@ -167,6 +167,7 @@ def train(
     max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = _TRAIN.max_scale,
     max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = _TRAIN.max_shift,
     min_overlap: Annotated[float, typer.Option(help="Flight motion: least share of B that A's view covers.")] = _TRAIN.min_overlap,
+    residual: Annotated[float, typer.Option(help="Flight motion, a later round of the cascade: A pre-warped by an answer off by up to this many px (0: a first round).")] = _TRAIN.residual,
     eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = _TRAIN.eval_every,
     seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = _TRAIN.seed,
     threads: Annotated[Optional[int], typer.Option(help="torch CPU threads (default: torch's choice).")] = None,
@@ -178,7 +179,7 @@ def train(
     config = TrainConfig(
         mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, real_fraction=real_fraction, source_side=source_side, arch=arch or init_arch(init), rho=rho, small_motion_fraction=small_motion,
         illumination=illumination, occluders=occluders, photometric=photometric, motion=motion, max_heading=max_heading, max_scale=max_scale,
-        max_shift=max_shift, min_overlap=min_overlap, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
+        max_shift=max_shift, min_overlap=min_overlap, residual=residual, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
         checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),
     )
     last = run_training(config, resume=resume, threads=threads, overwrite=overwrite, on_note=lambda note: err_console.print(f"note: {note}"))
@@ -306,6 +307,7 @@ def mosaic(
     blend: Annotated[Blend, typer.Option("--blend", case_sensitive=False, help="How overlapping frames are mixed.")] = Blend(_MOSAIC.blend),
     max_size: Annotated[Optional[int], typer.Option("--max-size", help="Downscale the mosaic so its longest side is at most this many pixels.")] = _MOSAIC.max_size,
     max_frame_scale: Annotated[float, typer.Option("--max-frame-scale", help="Report (leave out) frames the solve draws more than this many times larger or smaller than the reference frame.")] = _MOSAIC.max_frame_scale,
+    rectify: Annotated[bool, typer.Option("--rectify/--no-rectify", help="Without GPS or ground-control anchors, draw the map on the plane its frames look down on on average (nadir surveys) instead of in the reference frame's own view.")] = _MOSAIC.rectify,
     exposure: Annotated[Exposure, typer.Option("--exposure", case_sensitive=False, help="Exposure compensation (OpenCV's): per-channel gain maps over blocks, per-channel gains, one gain, or none.")] = Exposure(_MOSAIC.exposure),
     seams: Annotated[SeamFinder, typer.Option("--seams", case_sensitive=False, help="Seam finder (OpenCV's): dynamic programming or graph cut on colour, or central (each pixel from the frame that sees it nearest its centre).")] = SeamFinder(_MOSAIC.seams),
     overlap_per_frame: Annotated[int, typer.Option("--overlap-pairs", help="Loop-closure pairs per frame at most (0: plain chaining).")] = _MOSAIC.overlap_per_frame,
@@ -332,7 +334,7 @@ def mosaic(
     options = parse_method_options(method_option, [method.value, *([fallback] if fallback and fallback != method.value else [])])
     config = _MosaicConfig(
         method=method.value, fallback=fallback, method_options=options.get(method.value, {}), fallback_options=options.get(fallback, {}) if fallback else {}, work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
-        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, exposure=exposure.value, seams=seams.value, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, gps_sigma_m=gps_sigma, gcp_sigma_m=gcp_sigma, workers=workers, scheduler=scheduler,
+        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, rectify=rectify, exposure=exposure.value, seams=seams.value, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, gps_sigma_m=gps_sigma, gcp_sigma_m=gcp_sigma, workers=workers, scheduler=scheduler,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
     if follow:
@@ -359,6 +361,9 @@ def _print_mosaic(report: dict) -> None:
         solved, chained = report["ground_truth_error"]["solved"], report["ground_truth_error"]["chained"]
         if solved["frames"]:
             table.add_row("error vs ground truth (px)", f"{solved['mean_corner_px']:.3f} mean, {solved['max_corner_px']:.3f} max corner (chained only: {chained['mean_corner_px']:.3f} / {chained['max_corner_px']:.3f})")
+            shape = report["ground_truth_error"]["map_shape"]
+            if shape["count"]:
+                table.add_row("map shape vs ground truth (px)", f"{shape['median_px']:.3f} median, {shape['max_px']:.3f} max (corners after the best similarity)")
         else:  # the truth names none of these frames (or not the reference): nothing to compare
             table.add_row("error vs ground truth (px)", "- (the ground truth names no placed frame with its reference)")
     for part in report["parts"]:

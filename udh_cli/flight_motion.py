@@ -39,6 +39,12 @@ from udh_cli.synthetic import PairBatch, _occlude, illuminate
 ASPECTS = (1.0, 4.0 / 3.0, 3.0 / 2.0, 16.0 / 9.0)  # frame shapes of common drone cameras (w / h)
 SOURCE_SHORT_SIDE = 360  # sources are resized to this short side (long side at most 2x): room for large motion
 CONTEXT_FACTOR = 3  # context canvas side, in views: A's view sits in the middle of a 3x3 grid of views
+# How the cascade's later rounds fill what lies outside A when they pre-warp it by the answer so far
+# (DeepEstimator.predict_small), and how residual training pairs (MotionConfig.residual) are drawn to match.
+# Reflected borders instead took the flight-motion benchmark's failures from 27.5 to 23.5 %, but real
+# consecutive pairs did not follow (brighton-beach under 10 px 38 -> 25 %, copr under 3 px 85 -> 82 %;
+# docs/training.md), so the edges stay replicated.
+PREWARP_BORDER = cv2.BORDER_REPLICATE
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,10 @@ class MotionConfig:
         perspective: corner jitter after the similarity, pixels of the P x P view (the paper's rho).
         min_overlap: smallest share of B's view that A's footprint must cover.
         lighting: probability of each real-flight lighting effect (shadow, vignette, blur, noise, JPEG).
+        residual: 0 for the motion itself (a first round's view). Above 0, the pairs a later round of the
+            cascade sees: A is shown pre-warped into B's view by a wrong answer, with
+            :data:`PREWARP_BORDER` outside its frame, and the label is what is left, a corner perturbation
+            of up to ``residual`` px of the P x P view.
     """
 
     # Measured on real consecutive pairs (SIFT references): copr and brighton-beach turn by at most 27 degrees
@@ -63,12 +73,13 @@ class MotionConfig:
     perspective: float = 12.0
     min_overlap: float = 0.3
     lighting: float = 0.3
+    residual: float = 0.0
 
     def scaled(self, amount: float) -> "MotionConfig":
         """The same distribution with every motion shrunk by ``amount`` in [0, 1] (for small-motion pairs)."""
         low, high = self.scale_range
         return MotionConfig(self.max_heading * amount, (low**amount, high**amount), self.max_shift * amount,
-                            self.perspective * amount, self.min_overlap, self.lighting)
+                            self.perspective * amount, self.min_overlap, self.lighting, self.residual)
 
 
 def source_size(width: int, height: int) -> tuple[int, int]:
@@ -251,11 +262,20 @@ def make_motion_pairs(sources: list[np.ndarray], count: int, config: MotionConfi
         amount = rng.uniform() if rng.uniform() < small_motion_fraction else 1.0
         motion = config.scaled(amount) if amount < 1.0 else config
         source_from_b, source_from_a, b_from_a = _draw_until_it_fits(rng, motion, (patch, patch), (w, h))
+        prewarp = None
+        if config.residual > 0:
+            # A later round sees A warped by an answer that is off by ``left``: b_from_a = left . prewarp.
+            corners = geometry.image_corners(patch, patch)
+            left = geometry.homography_from_points(corners, corners + rng.uniform(-config.residual, config.residual, (4, 2)))
+            prewarp = np.linalg.inv(left) @ b_from_a
+            source_from_a, b_from_a = source_from_a @ np.linalg.inv(prewarp), left
         offsets[i] = geometry.offsets_from_homography(b_from_a, patch, patch)
         image_f = image.astype(np.float32) / 255.0
         b = cv2.warpPerspective(image_f, source_from_b, (patch, patch), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                 borderMode=cv2.BORDER_REPLICATE)
-        a = cv2.warpPerspective(image_f, source_from_a, (patch, patch), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+        # A's own frame (pre-warped below when training a later round), and its lighting, as the frame has it.
+        a = cv2.warpPerspective(image_f, source_from_a if prewarp is None else source_from_a @ prewarp, (patch, patch),
+                                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
         if with_context:
             source_from_canvas = source_from_a @ geometry.translation(-patch, -patch)
             context[i, 0] = cv2.warpPerspective(image_f, source_from_canvas, (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
@@ -272,5 +292,7 @@ def make_motion_pairs(sources: list[np.ndarray], count: int, config: MotionConfi
             a_seen, b_seen = flight_lighting(a_seen, rng, config.lighting), flight_lighting(b_seen, rng, config.lighting)
         if occluders >= 1.0 or (occluders > 0.0 and rng.uniform() < occluders):
             a_seen, b_seen = _occlude(a_seen, rng), _occlude(b_seen, rng)
+        if prewarp is not None:
+            a_seen = cv2.warpPerspective(a_seen, prewarp, (patch, patch), flags=cv2.INTER_LINEAR, borderMode=PREWARP_BORDER)
         patch_a[i], patch_b[i] = a_seen, b_seen
     return PairBatch(patch_a, patch_b, offsets, context, clean_b, origin, index)

@@ -400,6 +400,10 @@ def test_pools_and_flights_together_mix_real_pairs_into_flight_motion_batches(po
         open_data([pool, flight], "auto", PairConfig(patch_size=32), real_fraction=0.5)
     with pytest.raises(UdhError, match="--real-fraction"):
         Trainer(tiny_config(pool, tmp_path / "bad", real_fraction=1.5), progress=False)
+    with pytest.raises(UdhError, match="--residual trains a later round on flight motion"):
+        Trainer(tiny_config(pool, tmp_path / "bad", residual=8.0), progress=False)
+    with pytest.raises(UdhError, match="--residual 40"):
+        Trainer(tiny_config(pool, tmp_path / "bad", motion="flight", residual=40.0), progress=False)
 
 
 def test_pool_images_at_a_larger_side_give_pairs_from_windows_at_that_scale(pool, tmp_path):

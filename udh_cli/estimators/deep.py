@@ -12,6 +12,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
+from udh_cli.flight_motion import PREWARP_BORDER
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.tiles import TileRefinement, refine_with_tiles
 from udh_cli.estimators.pair import PreparedPair
@@ -171,7 +172,7 @@ class DeepEstimator(Estimator):
         rounds = self.rounds() if rounds is None else list(rounds)
         for round_index, network in enumerate(rounds):
             current_a = small_a if start is None and round_index == 0 else np.stack([
-                cv2.warpPerspective(a, h, (s, s), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                cv2.warpPerspective(a, h, (s, s), flags=cv2.INTER_LINEAR, borderMode=PREWARP_BORDER)
                 if np.isfinite(h).all() else a
                 for a, h in zip(small_a, b_from_a)
             ])

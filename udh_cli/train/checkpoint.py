@@ -71,6 +71,7 @@ _CONFIG_FIELDS = {
     "max_heading": (lambda v: _is_number(v) and math.isfinite(v), "a number", True),
     "max_scale": (lambda v: _is_number(v) and math.isfinite(v), "a number", True),
     "max_shift": (lambda v: _is_number(v) and math.isfinite(v), "a number", True),
+    "residual": (lambda v: _is_number(v) and math.isfinite(v) and v >= 0, "a number of at least 0", True),
 }
 
 

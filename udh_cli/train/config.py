@@ -40,7 +40,8 @@ class TrainConfig:
             flight motion, :mod:`udh_cli.flight_motion`; ``rho`` is then the perspective jitter).
         max_heading: flight motion's largest turn, degrees; max_scale: its largest scale change (a factor,
             both ways); max_shift: its largest translation, as a fraction of the frame; min_overlap: the least
-            share of B that A's view covers.
+            share of B that A's view covers; residual: above 0, train a later round of the cascade (A shown
+            pre-warped by an answer off by up to this many px at the corners, the label what is left).
         steps: total optimiser steps (None: :data:`DEFAULT_STEPS`, or on resume the run's own total);
             batch: pairs per step and per process.
         lr: Adam learning rate (None: the paper's, 1e-4 unsupervised, 5e-4 supervised).
@@ -72,6 +73,7 @@ class TrainConfig:
     max_scale: float = MotionConfig.scale_range[1]
     max_shift: float = MotionConfig.max_shift
     min_overlap: float = MotionConfig.min_overlap
+    residual: float = MotionConfig.residual
     steps: int | None = None
     batch: int = 32
     lr: float | None = None

@@ -70,6 +70,7 @@ def model_metadata(state: dict[str, Any]) -> dict[str, str]:
         "max_heading": repr(float(config.get("max_heading", 0.0))) if config.get("motion", "paper") == "flight" else "0.0",
         "max_scale": repr(float(config.get("max_scale", 1.0))) if config.get("motion", "paper") == "flight" else "1.0",
         "max_shift": repr(float(config.get("max_shift", 0.0))) if config.get("motion", "paper") == "flight" else "0.0",
+        "residual": repr(float(config.get("residual", 0.0))),
         "convention": "offsets[i] = b_from_a(corner_i) - corner_i, corners TL,TR,BR,BL at pixel centres of the SxS input",
     }
 

@@ -379,7 +379,7 @@ def motion_config(config: TrainConfig) -> MotionConfig | None:
         return None
     return MotionConfig(max_heading=config.max_heading, scale_range=(1.0 / config.max_scale, config.max_scale),
                         max_shift=config.max_shift, perspective=config.rho,
-                        min_overlap=config.min_overlap)
+                        min_overlap=config.min_overlap, residual=config.residual)
 
 
 def _load_weights(model: torch.nn.Module, state: dict[str, Any], source: str) -> None:
@@ -419,6 +419,10 @@ def _check_config(config: TrainConfig, out: Path) -> None:
         raise UdhError(f"flight motion out of range: --max-heading {config.max_heading} (0-180 degrees), "
                        f"--max-scale {config.max_scale} (1-4), --max-shift {config.max_shift} (0-1 of the frame), "
                        f"--min-overlap {config.min_overlap} (0.05-1)")
+    if not 0.0 <= config.residual <= config.patch_size / 4:
+        raise UdhError(f"--residual {config.residual}: give 0 (a first round) or a corner error up to {config.patch_size // 4} px")
+    if config.residual and config.motion != "flight":
+        raise UdhError("--residual trains a later round on flight motion; it needs --motion flight")
     if out.exists() and not out.is_dir():
         raise UdhError(f"--out {out}: is a file; give a folder for the run")
     # Nothing is created until training starts, so a bad --data leaves no empty run folder behind.

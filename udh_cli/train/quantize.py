@@ -74,7 +74,8 @@ def flight_motion_of(model: OnnxHomographyModel) -> MotionConfig:
     try:
         scale = float(meta["max_scale"])
         return MotionConfig(max_heading=float(meta["max_heading"]), scale_range=(1.0 / scale, scale),
-                            max_shift=float(meta["max_shift"]), perspective=float(meta.get("rho", 12.0)))
+                            max_shift=float(meta["max_shift"]), perspective=float(meta.get("rho", 12.0)),
+                            residual=float(meta.get("residual", 0.0)))
     except (KeyError, ValueError, ZeroDivisionError):
         raise UdhError(f"{model.path}: its metadata says flight motion but not its ranges; re-export it with `udh export-onnx`") from None
 

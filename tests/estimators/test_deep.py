@@ -11,7 +11,7 @@ import pytest
 from conftest import export_tiny_network, textured_image, warped_pair
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.estimators import create_estimator
+from udh_cli.estimators import create_estimator, deep
 from udh_cli.estimators.pair import PreparedImage
 from udh_cli.models_catalog import SHIPPED_MODELS, models_dir
 
@@ -265,3 +265,19 @@ def test_an_answer_is_verified_only_when_enough_tile_levels_accept_it(monkeypatc
     estimate = create_estimator("unsupervised", device="cpu", search=0).estimate(a, b)
     assert estimate.ok and estimate.details["tile_levels"] == used
     assert estimate.verified is verified
+
+
+def test_the_rounds_network_runs_the_whole_frame_rounds_and_the_tiles_keep_the_refinement_network(tiny_onnx, tiny_fine_onnx, monkeypatch):
+    estimator = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), rounds_model=str(tiny_onnx),
+                                 flight_model="", device="cpu")
+    assert [n.path for n in estimator.rounds()] == [tiny_onnx] * estimator.iterations + [tiny_onnx] * estimator.refine_rounds
+    assert estimator.tile_network.path == tiny_fine_onnx and estimator.tiles
+    assert estimator.model_files() == sorted({str(tiny_onnx), str(tiny_fine_onnx)})
+    used = []
+    monkeypatch.setattr(deep, "refine_with_tiles", lambda network, *args, **kwargs: used.append(network.path))
+    a, b = warped_pair(np.eye(3), 320, 240, seed=1)
+    estimator.estimate(a, b)
+    assert used and set(used) == {tiny_fine_onnx}
+    # Without a rounds network the refinement network runs both.
+    plain = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), flight_model="", device="cpu")
+    assert plain.rounds()[-1].path == tiny_fine_onnx and plain.tile_network.path == tiny_fine_onnx

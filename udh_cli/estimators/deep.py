@@ -45,6 +45,9 @@ class DeepEstimator(Estimator):
         iterations: rounds of the coarse network (at least 1). The second round took the held-out rho-45
             failures from 25 % to 17 % ahead of the refinement rounds.
         refine_model: path of the refinement network; ``None`` takes the shipped ``<name>-refine`` model.
+        rounds_model: path of a network for the whole-frame refinement rounds only, e.g. one trained on what
+            those rounds see (``udh train --residual``: A pre-warped at low overlap, with border fill); the
+            tiles keep the refinement network, trained on tiles. ``None``: the refinement network runs both.
         refine_rounds: rounds of the refinement network after the coarse ones (0: no refinement stage).
             ``None``: :data:`DEFAULT_REFINE_ROUNDS` when a ``refine_model`` is given, or when ``model`` is
             the shipped one and a shipped refinement network exists; else 0 (a ``model`` given alone runs
@@ -79,6 +82,7 @@ class DeepEstimator(Estimator):
     device: str = "auto"
     iterations: int = DEFAULT_ITERATIONS
     refine_model: str | None = None
+    rounds_model: str | None = None
     refine_rounds: int | None = None
     search: int | None = 0
     search_below: float = 0.5
@@ -91,6 +95,7 @@ class DeepEstimator(Estimator):
     network: OnnxHomographyModel = field(init=False, repr=False)
     stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)
     first_stages: list[OnnxHomographyModel] = field(init=False, repr=False)  # the coarse networks whose cascades compete
+    tile_network: OnnxHomographyModel = field(init=False, repr=False)  # the network of the tile stage
 
     def __post_init__(self) -> None:
         from udh_cli.models_catalog import PRECISIONS, check_precision, has_shipped, shipped_onnx
@@ -117,7 +122,14 @@ class DeepEstimator(Estimator):
             if refiner.input_size != self.network.input_size:
                 raise UdhError(f"{refine_path}: the refinement network takes {refiner.input_size}px inputs but "
                                f"{path} takes {self.network.input_size}px; give two models of the same input size")
+            self.tile_network = refiner
+            if self.rounds_model:
+                refiner = OnnxHomographyModel.load(self.rounds_model, self.device, self.threads)
+                if refiner.input_size != self.network.input_size:
+                    raise UdhError(f"{self.rounds_model}: the rounds' network takes {refiner.input_size}px inputs, {path} {self.network.input_size}px")
             self.stages.append((refiner, self.refine_rounds))
+        else:
+            self.tile_network = self.network
         self.first_stages = [self.network]
         if self.flight_model is None and self.model is None and has_shipped(f"{self.name}-flight", precision=None):
             self.flight_model = str(shipped_onnx(f"{self.name}-flight", self.precision))
@@ -150,11 +162,11 @@ class DeepEstimator(Estimator):
     def loaded_precision(self) -> str:
         """What the cascade runs in: "int8", "fp32", or "mixed" (networks of both, e.g. a float32 ``model``
         file followed by the shipped int8 refinement network)."""
-        found = {network.metadata.get("precision", "fp32") for network in [*(n for n, _ in self.stages), *self.first_stages]}
+        found = {network.metadata.get("precision", "fp32") for network in [*(n for n, _ in self.stages), *self.first_stages, self.tile_network]}
         return found.pop() if len(found) == 1 else "mixed"
 
     def model_files(self) -> list[str]:
-        return sorted({str(network.path) for network in [*(n for n, _ in self.stages), *self.first_stages]})
+        return sorted({str(network.path) for network in [*(n for n, _ in self.stages), *self.first_stages, self.tile_network]})
 
     def rounds(self) -> list[OnnxHomographyModel]:
         """The network of every round of the cascade, in order."""
@@ -259,7 +271,7 @@ class DeepEstimator(Estimator):
         full = self._full_resolution(small_h, pair)
         if full is None:
             return None
-        return refine_with_tiles(self.stages[-1][0], pair.a.grey, pair.b.grey, full,
+        return refine_with_tiles(self.tile_network, pair.a.grey, pair.b.grey, full,
                                  coarse_network=self.network if len(self.stages) > 1 else None)
 
     def _predict_headings(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:

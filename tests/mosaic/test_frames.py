@@ -56,18 +56,21 @@ def test_working_copies_are_small_and_grey(tmp_path):
 
 
 class ShiftLoops(Estimator):
-    """SIFT, except that loop-closure pairs (pre-warped, so B matches no frame) come back 60 px off."""
+    """SIFT, except that loop-closure pairs (pre-warped, so B matches no frame) come back 60 px off: all of them,
+    or the first ``wrong`` (as from a drifted chain's prior)."""
 
     name = "shift-loops"
 
-    def __init__(self, prints):
+    def __init__(self, prints, wrong: int | None = None):
         self.known = set(prints)
         self.sift = create_estimator("sift")
+        self.wrong = wrong
 
     def _estimate(self, pair):
         image_b = pair.b
         homography, confidence, details = self.sift._estimate(pair)
-        if fingerprint(image_b) not in self.known:
+        if fingerprint(image_b) not in self.known and (self.wrong is None or self.wrong > 0):
+            self.wrong = None if self.wrong is None else self.wrong - 1
             homography = geometry.translation(60.0, 0.0) @ homography
         return homography, confidence, details
 
@@ -84,21 +87,6 @@ def test_loop_closures_that_contradict_the_chain_are_rejected(tmp_path):
     assert report["ground_truth_error"]["solved"]["max_corner_px"] < 3  # the wrong pairs did not reach the solve
 
 
-class ShiftFirstLoopRound(ShiftLoops):
-    """SIFT, except that the first ``wrong`` loop-closure estimates come back 60 px off (a drifted chain's prior)."""
-
-    def __init__(self, prints, wrong):
-        super().__init__(prints)
-        self.wrong = wrong
-
-    def _estimate(self, pair):
-        homography, confidence, details = self.sift._estimate(pair)
-        if fingerprint(pair.b) not in self.known and self.wrong > 0:
-            self.wrong -= 1
-            homography = geometry.translation(60.0, 0.0) @ homography
-        return homography, confidence, details
-
-
 def test_loop_closures_rejected_against_the_chain_are_tried_again_from_the_solve(tmp_path):
     paths = make_flight(tmp_path / "f", SMALL, seed=4)
     config = MosaicConfig(overlap_per_frame=1, min_verified=0)
@@ -106,7 +94,7 @@ def test_loop_closures_rejected_against_the_chain_are_tried_again_from_the_solve
     first_round = {(p["a"], p["b"]) for p in first["pairs"] if p["kind"] == "overlap"}
     # The first round's answers are all wrong and rejected; the later rounds' are right and kept, and the solve
     # they allow shows overlaps that the chain did not (frames further apart).
-    report = run_mosaic(tmp_path / "f", tmp_path / "n.png", config, estimator=ShiftFirstLoopRound(work_fingerprints(paths), len(first_round)))
+    report = run_mosaic(tmp_path / "f", tmp_path / "n.png", config, estimator=ShiftLoops(work_fingerprints(paths), len(first_round)))
     loops = {(p["a"], p["b"]): p for p in report["pairs"] if p["kind"] == "overlap"}
     assert first_round <= set(loops) and all(p["status"] == "ok" for p in loops.values())
     assert {"loop-closure pairs", "loop-closure pairs again, from the solve (2)"} <= set(report["timings_s"])

@@ -74,7 +74,9 @@ def footprint(ref_from_frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return geometry.transform_points(ref_from_frame, geometry.image_corners(*size)).astype(np.float32)
 
 
-NEAR_IN_SEQUENCE = 3  # loop pairs this close in the sequence come after the others (overlap_candidates)
+# Loop pairs at most this far apart in the sequence close loops the chain nearly closes already: a frame with
+# none but these is not tied to another strip (pipeline._close_loops gives it a far partner).
+NEAR_IN_SEQUENCE = 3
 
 
 def overlap_share(quad_a: np.ndarray, quad_b: np.ndarray) -> float:
@@ -94,11 +96,8 @@ def overlap_candidates(
 ) -> list[tuple[int, int, float]]:
     """Non-consecutive frame pairs of a part whose chained footprints overlap by ``min_overlap`` or more.
 
-    Each frame gets at most ``per_frame`` new partners, which bounds the work at ``per_frame * N`` pairs: first
-    those more than :data:`NEAR_IN_SEQUENCE` frames apart, then the near ones, the best-overlapping first in
-    each. Why: a frame two or three steps along its own strip closes a loop the chain almost closes already,
-    while a neighbour in the next strip ties two strips together; on a simulated 1,988-frame survey the near
-    ones took most frames' quota. Returns ``(a, b, share)`` with ``a < b``, in that order.
+    Each frame gets at most ``per_frame`` new partners, the best-overlapping first, which bounds the work
+    at ``per_frame * N`` pairs. Returns ``(a, b, share)`` with ``a < b``, best overlap first.
     """
     quads = {i: footprint(ref_from[i], sizes[i]) for i in part}
     valid = {i for i in part if np.isfinite(quads[i]).all() and cv2.isContourConvex(quads[i].reshape(-1, 1, 2))}
@@ -116,7 +115,7 @@ def overlap_candidates(
             share = overlap_share(quads[a], quads[b])
             if share >= min_overlap:
                 found.append((a, b, share))
-    found.sort(key=lambda t: (t[1] - t[0] <= NEAR_IN_SEQUENCE, -t[2]))
+    found.sort(key=lambda t: -t[2])
     taken: dict[int, int] = {}
     chosen = []
     for a, b, share in found:

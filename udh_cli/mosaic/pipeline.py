@@ -604,7 +604,7 @@ def _chain_parts(frameset: FrameSet, pairs: list[PairResult]) -> list[Part]:
 # one. Why: over a long survey the chain drifts, so the pairs that close the longest loops (a strip's far end
 # against its neighbour) get a prior 100+ px off and fail, and some overlaps do not show in the drifted
 # footprints at all. On a simulated 1,988-frame survey all 415 such rejections were wrong (111 px median from
-# the truth) and the last strip drifted by up to 850 px; with the rounds its frames were 0.89 px median from the
+# the truth) and the last strip drifted by up to 850 px; with the rounds its frames were 2.87 px median from the
 # truth after the best homography of the plane (26.3 px before).
 LOOP_ROUNDS = 4
 

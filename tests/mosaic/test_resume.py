@@ -125,8 +125,9 @@ def test_pairs_that_no_longer_match_are_estimated_again(flight, uninterrupted, t
 
     # Another confidence threshold changes every key.
     counted = Interrupted(prints)
-    run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, min_confidence=0.25), estimator=counted, resume=True)
-    assert len(counted.calls) == len(uninterrupted["pairs"])
+    report = run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, min_confidence=0.25), estimator=counted, resume=True)
+    # Every pair is estimated (loop closure's later rounds may estimate a pair once more, or add one).
+    assert report["summary"]["pairs_from_cache"] == 0 and len(counted.calls) >= len(report["pairs"]) >= len(uninterrupted["pairs"]) - 1
 
     # A changed frame: its two consecutive pairs are estimated again, the other five come from the cache.
     frame = work / "frame_006.jpg"
@@ -144,8 +145,8 @@ def test_pairs_that_no_longer_match_are_estimated_again(flight, uninterrupted, t
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(pair_cache, "ACCEPTANCE_REVISION", pair_cache.ACCEPTANCE_REVISION + 1)
         counted = Interrupted(new_prints)
-        run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, min_confidence=0.25), estimator=counted, resume=True)
-        assert len(counted.calls) == len(uninterrupted["pairs"])
+        report = run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, min_confidence=0.25), estimator=counted, resume=True)
+        assert report["summary"]["pairs_from_cache"] == 0 and len(counted.calls) >= len(report["pairs"])
 
 
 @dataclass

@@ -80,6 +80,14 @@ def transform_points(homography: Array, points: Array) -> Array:
     return projected[..., :2] / projected[..., 2:3]
 
 
+def homography_jacobian(homography: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """(2, 2) derivative of ``homography`` (3, 3) at ``point`` (2,), pixels per pixel."""
+    x = np.array([point[0], point[1], 1.0])
+    w = float(homography[2] @ x)
+    mapped = (homography[:2] @ x) / w
+    return (homography[:2, :2] - np.outer(mapped, homography[2, :2])) / w
+
+
 def invert(homography: Array) -> Array:
     """Inverse homography, scaled so that h33 = 1 where that is possible. (..., 3, 3)."""
     xp = _xp(homography)

@@ -7,7 +7,7 @@ import pytest
 
 from udh_cli import geometry
 from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.rectify import MIN_FRAMES, jacobian_at, rectifying_homography
+from udh_cli.mosaic.rectify import MIN_FRAMES, rectifying_homography
 from udh_cli.mosaic.truth import corner_errors_vs_truth, map_shape_errors
 
 SIZE = (320, 240)
@@ -47,7 +47,7 @@ def test_a_bent_plane_is_brought_back_to_a_similarity_of_the_ground():
     centre = np.array([(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2])
     at = geometry.transform_points(plane_from[7], centre[None])
     np.testing.assert_allclose(geometry.transform_points(plane, at), at, atol=1e-8)
-    j = jacobian_at(plane, at[0])
+    j = geometry.homography_jacobian(plane, at[0])
     assert (j[0, 0] + j[1, 1]) / 2 == pytest.approx(1.0, abs=1e-9) and (j[1, 0] - j[0, 1]) / 2 == pytest.approx(0.0, abs=1e-9)
 
 

@@ -656,7 +656,7 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
             poses[id(part)] = solve_part(part.reference, part.chained, sizes, [pair_points(p, sizes[p.a], sizes[p.b]) for p in used], config.huber_px)
             # The solve also shows overlaps the drifted chain hid: a far partner (the next strip) for every frame
             # that has none yet, one per frame and round, so the work stays about one pair per untied frame.
-            tied = {f for p in used if p.kind != "consecutive" and abs(p.b - p.a) > NEAR_IN_SEQUENCE for f in (p.a, p.b)}
+            tied = {f for p in used if abs(p.b - p.a) > NEAR_IN_SEQUENCE for f in (p.a, p.b)}
             found = [(a, b) for a, b, _ in overlap_candidates(part.frames, poses[id(part)], sizes, tried, config.overlap_min, 1)
                      if b - a > NEAR_IN_SEQUENCE and not (a in tied and b in tied)]
             wanted[id(part)] = [key for key in wanted[id(part)] if key in retry] + found

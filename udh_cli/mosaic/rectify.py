@@ -26,24 +26,10 @@ from typing import Sequence
 import numpy as np
 
 from udh_cli import geometry
+from udh_cli.mosaic.solve import frame_normaliser
 
 MIN_FRAMES = 10  # fewer frames hold too little evidence about the ground's plane: the reference's view is kept
 PERSPECTIVE_ROUNDS = 5  # reweightings of the perspective fit; it had settled after 3 on the simulated surveys
-
-
-def _normaliser(size: tuple[int, int]) -> np.ndarray:
-    """Centre the frame and scale its longest side to 2 (the global solve's normalisation)."""
-    w, h = size
-    s = 2.0 / max(w, h)
-    return np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
-
-
-def jacobian_at(h: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """(2, 2) derivative of the homography ``h`` at ``point`` (2,)."""
-    x = np.array([point[0], point[1], 1.0])
-    w = float(h[2] @ x)
-    mapped = (h[:2] @ x) / w
-    return (h[:2, :2] - np.outer(mapped, h[2, :2])) / w
 
 
 def _perspective_row(ref_from: dict[int, np.ndarray], sizes: Sequence[tuple[int, int]]) -> np.ndarray:
@@ -52,7 +38,7 @@ def _perspective_row(ref_from: dict[int, np.ndarray], sizes: Sequence[tuple[int,
     for _ in range(PERSPECTIVE_ROUNDS):
         rows, targets = [], []
         for i, h in ref_from.items():
-            normalised = h @ np.linalg.inv(_normaliser(sizes[i]))
+            normalised = h @ np.linalg.inv(frame_normaliser(sizes[i]))
             weight = 1.0 / max(abs(float(correction[2] @ normalised[:, 2])), 1e-9)
             # Row 3 of correction @ normalised is g * n[0] + h * n[1] + n[2]; its first two entries should be 0.
             rows.append(weight * normalised[:2, :2].T)
@@ -67,7 +53,7 @@ def _conformal_shape(ref_from: dict[int, np.ndarray], sizes: Sequence[tuple[int,
     rows, targets = [], []
     for i, h in ref_from.items():
         centre = np.array([(sizes[i][0] - 1) / 2, (sizes[i][1] - 1) / 2])
-        j = jacobian_at(h, centre)
+        j = geometry.homography_jacobian(h, centre)
         # shape @ j is conformal when its (0,0) equals its (1,1) and its (0,1) is minus its (1,0).
         rows += [[j[0, 0], j[1, 0]], [j[0, 1], j[1, 1]]]
         targets += [j[1, 1] - j[0, 0], -j[1, 0] - j[0, 1]]
@@ -93,7 +79,7 @@ def rectifying_homography(ref_from: dict[int, np.ndarray], sizes: Sequence[tuple
     centre = np.array([(sizes[reference][0] - 1) / 2, (sizes[reference][1] - 1) / 2])
     anchor = ref_from[reference]
     at = geometry.transform_points(anchor, centre[None])[0]
-    j = jacobian_at(plane, at)
+    j = geometry.homography_jacobian(plane, at)
     scale_cos, scale_sin = (j[0, 0] + j[1, 1]) / 2, (j[1, 0] - j[0, 1]) / 2
     local = np.array([[scale_cos, -scale_sin, 0.0], [scale_sin, scale_cos, 0.0], [0.0, 0.0, 1.0]])
     moved = geometry.transform_points(plane, at[None])[0]

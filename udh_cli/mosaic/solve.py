@@ -106,8 +106,8 @@ def pair_rms_px(ref_from: dict[int, np.ndarray], points: PairPoints) -> float:
     return float(np.sqrt((diff**2).sum(-1).mean()))
 
 
-def _normaliser(size: tuple[int, int]) -> np.ndarray:
-    """Centre the frame and scale its longest side to 2."""
+def frame_normaliser(size: tuple[int, int]) -> np.ndarray:
+    """(3, 3) that centres a frame of ``size`` (width, height) and scales its longest side to 2."""
     w, h = size
     s = 2.0 / max(w, h)
     return np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
@@ -183,8 +183,8 @@ def solve_part(
     slot = {frame: k for k, frame in enumerate(frames)}
     slot[reference] = n  # the reference's slot: fixed (dropped from the system) unless anchors hold the part
     free = n + 1 if anchored else n
-    t_ref = _normaliser(sizes[reference])
-    normalisers = {i: _normaliser(sizes[i]) for i in initial}
+    t_ref = frame_normaliser(sizes[reference])
+    normalisers = {i: frame_normaliser(sizes[i]) for i in initial}
     params = np.zeros((n + 1, 8))
     for i in initial:
         g = t_ref @ initial[i] @ np.linalg.inv(normalisers[i])

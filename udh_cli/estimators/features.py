@@ -10,17 +10,54 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
+from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
 
 
 # Recently detected features, least recently used first: (method, settings, shape, digest) -> (keypoints,
-# descriptors). Eight images cover a frame's consecutive, bridge and loop pairs in a mosaic's batches.
-FEATURE_CACHE_IMAGES = 8
+# descriptors), up to FEATURE_CACHE_BYTES of them. Why a budget rather than a few images: a mosaic's loop pairs
+# come back to frames a strip earlier, after the consecutive pairs of a whole strip (brighton-beach with eight
+# images kept: 31 detections for 17 frames). A frame of 10,000 SIFT keypoints holds about 6 MB.
+FEATURE_CACHE_BYTES = 192 * 2**20
+KEYPOINT_BYTES = 120  # an OpenCV KeyPoint object in Python, about
 # Above this many keypoints in an image, exact matching costs seconds (a 1600 px photo has 20,000); the
 # kd-trees then take a fraction of it for the same inliers. Below, exact matching is fast and stays exact.
 EXACT_MATCH_LIMIT = 5000
-_FEATURE_CACHE: OrderedDict = OrderedDict()
+
+
+class _FeatureCache:
+    """Features by key, least recently used first, dropped from the front beyond ``budget_bytes`` (the newest
+    entry is always kept)."""
+
+    def __init__(self, budget_bytes: int) -> None:
+        self.budget_bytes = budget_bytes
+        self.entries: OrderedDict = OrderedDict()
+        self.held_bytes = 0
+
+    @staticmethod
+    def _size(features: tuple) -> int:
+        keypoints, descriptors = features
+        return len(keypoints) * KEYPOINT_BYTES + (descriptors.nbytes if descriptors is not None else 0)
+
+    def get(self, key):
+        found = self.entries.get(key)
+        if found is not None:
+            self.entries.move_to_end(key)
+        return found
+
+    def put(self, key, features: tuple) -> None:
+        self.entries[key] = features
+        self.held_bytes += self._size(features)
+        while len(self.entries) > 1 and self.held_bytes > self.budget_bytes:
+            self.held_bytes -= self._size(self.entries.popitem(last=False)[1])
+
+    def clear(self) -> None:
+        self.entries.clear()
+        self.held_bytes = 0
+
+
+_FEATURE_CACHE = _FeatureCache(FEATURE_CACHE_BYTES)
 
 
 def ratio_test_points(knn: list, keypoints_a: list, keypoints_b: list, ratio: float) -> tuple[np.ndarray, np.ndarray]:
@@ -87,11 +124,7 @@ class FeatureRansacEstimator(Estimator):
         found = _FEATURE_CACHE.get(key)
         if found is None:
             found = self._detect_uncached(gray)
-            _FEATURE_CACHE[key] = found
-            while len(_FEATURE_CACHE) > FEATURE_CACHE_IMAGES:
-                _FEATURE_CACHE.popitem(last=False)
-        else:
-            _FEATURE_CACHE.move_to_end(key)
+            _FEATURE_CACHE.put(key, found)
         return found
 
     def _cache_settings(self) -> tuple:
@@ -120,9 +153,24 @@ class FeatureRansacEstimator(Estimator):
             return flann.knnMatch(descriptors_a, descriptors_b, k=2)
         return cv2.BFMatcher(self.norm).knnMatch(descriptors_a, descriptors_b, k=2)
 
+    def _features(self, image) -> tuple[list, np.ndarray | None]:
+        """Keypoints and descriptors of a :class:`~udh_cli.estimators.pair.PreparedImage`: detected on the image
+        it was cut or warped from when it records one (:attr:`PreparedImage.source`), where the cache serves
+        them, and mapped into it, keeping those that land inside."""
+        if image.source is None:
+            return self._detect(image.grey_u8())
+        keypoints, descriptors = self._detect(image.source.grey_u8())
+        if not keypoints:
+            return [], None
+        points = geometry.transform_points(image.from_source, np.array([k.pt for k in keypoints], np.float64))
+        width, height = image.size
+        inside = np.nonzero(np.isfinite(points).all(1) & (points[:, 0] >= 0) & (points[:, 1] >= 0)
+                            & (points[:, 0] <= width - 1) & (points[:, 1] <= height - 1))[0]
+        return [cv2.KeyPoint(float(points[i, 0]), float(points[i, 1]), keypoints[i].size) for i in inside], descriptors[inside]
+
     def _estimate(self, pair):
-        keypoints_a, descriptors_a = self._detect(pair.a.grey_u8())
-        keypoints_b, descriptors_b = self._detect(pair.b.grey_u8())
+        keypoints_a, descriptors_a = self._features(pair.a)
+        keypoints_b, descriptors_b = self._features(pair.b)
         if len(keypoints_a) < 4 or len(keypoints_b) < 4:
             raise EstimationFailed(
                 f"too few keypoints ({len(keypoints_a)} in A, {len(keypoints_b)} in B); the images may lack texture"

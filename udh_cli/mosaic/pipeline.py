@@ -655,8 +655,8 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
             for part in solving:
                 members = set(part.frames)
                 used = [p for p in [*pairs, *results.values()] if p.ok and p.a in members and p.b in members]
-                # From the previous round's solve: the pairs it had hold it already, so the few new ones move it
-                # little and the solve converges in a few iterations, where from the drifted chain it took many.
+                # From the previous round's solve, which the pairs it had already hold: nearer this round's answer
+                # than the drifted chain is.
                 poses[id(part)] = solve_part(part.reference, poses[id(part)], sizes, [pair_points(p, sizes[p.a], sizes[p.b]) for p in used], config.huber_px)
                 part.solved = poses[id(part)]  # the global solve starts from here too
                 # The solve also shows overlaps the drifted chain hid: a far partner (the next strip) for every frame

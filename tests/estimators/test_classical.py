@@ -95,9 +95,12 @@ def test_best_features_keeps_the_strongest_n(method):
     # is held to a number.
     if method == "sift":
         assert float(geometry.mace(result.homography, truth, WIDTH, HEIGHT)) < 0.5
-    kept = create_estimator(method, best_features=50)._detect(to_gray_u8(image_a))[0]
-    everything = create_estimator(method)._detect(to_gray_u8(image_a))[0]
-    assert min(k.response for k in kept) >= np.sort([k.response for k in everything])[-50]
+    estimator = create_estimator(method, best_features=50)
+    kept = estimator._detect(to_gray_u8(image_a))[0]  # (50, 2) pixels
+    everything, _ = estimator._detector().detectAndCompute(to_gray_u8(image_a), None)
+    strongest = sorted(everything, key=lambda k: -k.response)[:50]
+    weakest_kept = min(k.response for k in everything if any(np.allclose(k.pt, p) for p in kept))
+    assert len(kept) == 50 and weakest_kept >= strongest[-1].response
 
 
 def test_ecc_takes_iterations_and_an_initial_guess():
@@ -292,20 +295,27 @@ def test_a_cut_or_warped_image_takes_its_features_from_its_source(monkeypatch):
 
 
 def test_the_feature_cache_keeps_what_its_byte_budget_holds():
-    from udh_cli.estimators.features import KEYPOINT_BYTES, _FeatureCache
+    from udh_cli.estimators.features import _FeatureCache
 
-    def features(count):
-        return [None] * count, np.zeros((count, 128), np.float32)
+    rng = np.random.default_rng(0)
 
-    per_frame = 100 * (KEYPOINT_BYTES + 512)
+    def features(count):  # SIFT-like: float descriptors of whole numbers 0-255
+        return rng.random((count, 2)) * 300, np.round(rng.random((count, 128)) * 255).astype(np.float32)
+
+    per_frame = 100 * (16 + 128)  # float64 points, descriptors held as bytes
     cache = _FeatureCache(budget_bytes=3 * per_frame)
-    for frame in range(3):
-        cache.put(frame, features(100))
-    assert cache.get(0) is not None  # used again: now the most recent
-    cache.put(3, features(100))  # over budget: the least recently used (1) goes
+    kept = {frame: features(100) for frame in range(3)}
+    for frame, found in kept.items():
+        cache.put(frame, *found)
+    points, descriptors = cache.get(0)  # used again: now the most recent
+    assert descriptors.dtype == np.float32 and np.array_equal(descriptors, kept[0][1]) and np.array_equal(points, kept[0][0])
+    cache.put(3, *features(100))  # over budget: the least recently used (1) goes
     assert cache.get(1) is None and all(cache.get(k) is not None for k in (0, 2, 3))
     assert cache.held_bytes == 3 * per_frame
-    cache.put(4, features(1000))  # larger than the budget alone: kept, everything else dropped
-    assert list(cache.entries) == [4] and cache.held_bytes == 1000 * (KEYPOINT_BYTES + 512)
+    fractional = (rng.random((10, 2)), rng.random((10, 128)).astype(np.float32))  # not whole numbers: held as they are
+    cache.put(4, *fractional)
+    assert np.array_equal(cache.get(4)[1], fractional[1])
+    cache.put(5, *features(1000))  # larger than the budget alone: kept, everything else dropped
+    assert list(cache.entries) == [5] and cache.held_bytes == 1000 * (16 + 128)
     cache.clear()
     assert cache.held_bytes == 0 and not cache.entries

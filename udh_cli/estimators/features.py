@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Sequence
 
 import cv2
 import numpy as np
@@ -15,12 +15,12 @@ from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
 
 
-# Recently detected features, least recently used first: (method, settings, shape, digest) -> (keypoints,
+# Recently detected features, least recently used first: (method, settings, shape, digest) -> (points,
 # descriptors), up to FEATURE_CACHE_BYTES of them. Why a budget rather than a few images: a mosaic's loop pairs
-# come back to frames a strip earlier, after the consecutive pairs of a whole strip (brighton-beach with eight
-# images kept: 31 detections for 17 frames). A frame of 10,000 SIFT keypoints holds about 6 MB.
-FEATURE_CACHE_BYTES = 192 * 2**20
-KEYPOINT_BYTES = 120  # an OpenCV KeyPoint object in Python, about
+# and GPS bridges come back to frames a strip or more earlier (brighton-beach with eight images kept: 31
+# detections for 17 frames; seneca 293 for 155 with 192 MB of float descriptors). A frame of 10,000 SIFT
+# keypoints holds 1.4 MB (descriptors kept as bytes, :class:`_FeatureCache`).
+FEATURE_CACHE_BYTES = 256 * 2**20
 # Above this many keypoints in an image, exact matching costs seconds (a 1600 px photo has 20,000); the
 # kd-trees then take a fraction of it for the same inliers. Below, exact matching is fast and stays exact.
 EXACT_MATCH_LIMIT = 5000
@@ -28,27 +28,36 @@ EXACT_MATCH_LIMIT = 5000
 
 class _FeatureCache:
     """Features by key, least recently used first, dropped from the front beyond ``budget_bytes`` (the newest
-    entry is always kept)."""
+    entry is always kept). Float descriptors whose values are all whole numbers in 0-255 (OpenCV's SIFT rounds
+    them so) are held as bytes, a quarter of the memory, and given back as float32: exactly the same values."""
 
     def __init__(self, budget_bytes: int) -> None:
         self.budget_bytes = budget_bytes
-        self.entries: OrderedDict = OrderedDict()
+        self.entries: OrderedDict = OrderedDict()  # key -> (points, descriptors as held, dtype to give back)
         self.held_bytes = 0
 
     @staticmethod
-    def _size(features: tuple) -> int:
-        keypoints, descriptors = features
-        return len(keypoints) * KEYPOINT_BYTES + (descriptors.nbytes if descriptors is not None else 0)
+    def _size(entry: tuple) -> int:
+        points, descriptors, _ = entry
+        return points.nbytes + (descriptors.nbytes if descriptors is not None else 0)
 
-    def get(self, key):
-        found = self.entries.get(key)
-        if found is not None:
-            self.entries.move_to_end(key)
-        return found
+    def get(self, key) -> tuple[np.ndarray, np.ndarray | None] | None:
+        entry = self.entries.get(key)
+        if entry is None:
+            return None
+        self.entries.move_to_end(key)
+        points, descriptors, dtype = entry
+        return points, descriptors if descriptors is None or descriptors.dtype == dtype else descriptors.astype(dtype)
 
-    def put(self, key, features: tuple) -> None:
-        self.entries[key] = features
-        self.held_bytes += self._size(features)
+    def put(self, key, points: np.ndarray, descriptors: np.ndarray | None) -> None:
+        held, dtype = descriptors, None if descriptors is None else descriptors.dtype
+        if descriptors is not None and descriptors.dtype == np.float32 and descriptors.size and descriptors.min() >= 0 \
+                and descriptors.max() <= 255 and np.array_equal(descriptors, np.round(descriptors)):
+            held = descriptors.astype(np.uint8)
+        points.flags.writeable = False  # shared by every later get
+        entry = (points, held, dtype)
+        self.entries[key] = entry
+        self.held_bytes += self._size(entry)
         while len(self.entries) > 1 and self.held_bytes > self.budget_bytes:
             self.held_bytes -= self._size(self.entries.popitem(last=False)[1])
 
@@ -60,13 +69,18 @@ class _FeatureCache:
 _FEATURE_CACHE = _FeatureCache(FEATURE_CACHE_BYTES)
 
 
-def ratio_test_points(knn: list, keypoints_a: list, keypoints_b: list, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """Lowe's ratio test on two-nearest-neighbour matches (OpenCV DMatch lists, A's descriptors queried in B's):
-    the (N, 2) float64 pixels in A and in B of the matches whose best is below ``ratio`` times the second best."""
+def keypoint_points(keypoints: Sequence) -> np.ndarray:
+    """(N, 2) float64 pixels of OpenCV keypoints."""
+    return np.array([k.pt for k in keypoints], np.float64).reshape(-1, 2)
+
+
+def ratio_test_points(knn: list, points_a: np.ndarray, points_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lowe's ratio test on two-nearest-neighbour matches (OpenCV DMatch lists, A's descriptors queried in B's;
+    ``points_a``, ``points_b``: (N, 2) keypoint pixels, :func:`keypoint_points`): the (M, 2) float64 pixels in A
+    and in B of the matches whose best is below ``ratio`` times the second best."""
     good = [pair[0] for pair in knn if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance]
-    points_a = np.array([keypoints_a[m.queryIdx].pt for m in good], np.float64).reshape(-1, 2)
-    points_b = np.array([keypoints_b[m.trainIdx].pt for m in good], np.float64).reshape(-1, 2)
-    return points_a, points_b
+    return (points_a[[m.queryIdx for m in good]].reshape(-1, 2).astype(np.float64),
+            points_b[[m.trainIdx for m in good]].reshape(-1, 2).astype(np.float64))
 
 
 @dataclass
@@ -124,7 +138,7 @@ class FeatureRansacEstimator(Estimator):
         found = _FEATURE_CACHE.get(key)
         if found is None:
             found = self._detect_uncached(gray)
-            _FEATURE_CACHE.put(key, found)
+            _FEATURE_CACHE.put(key, *found)
         return found
 
     def _cache_settings(self) -> tuple:
@@ -134,12 +148,12 @@ class FeatureRansacEstimator(Estimator):
     def _detect_uncached(self, gray: np.ndarray):
         keypoints, descriptors = self._detector().detectAndCompute(gray, None)
         if descriptors is None or len(keypoints) == 0:
-            return [], None
+            return np.zeros((0, 2)), None
         if self.best_features is not None and len(keypoints) > self.best_features:
             strongest = np.argsort([-k.response for k in keypoints])[: self.best_features]
             keypoints = [keypoints[i] for i in strongest]
             descriptors = descriptors[strongest]
-        return keypoints, descriptors
+        return keypoint_points(keypoints), descriptors
 
     def _match(self, descriptors_a: np.ndarray, descriptors_b: np.ndarray) -> list:
         """Each descriptor of A's two nearest in B (OpenCV DMatch lists)."""
@@ -153,23 +167,23 @@ class FeatureRansacEstimator(Estimator):
             return flann.knnMatch(descriptors_a, descriptors_b, k=2)
         return cv2.BFMatcher(self.norm).knnMatch(descriptors_a, descriptors_b, k=2)
 
-    def _features(self, image) -> tuple[list, np.ndarray | None]:
-        """Keypoints and descriptors of a :class:`~udh_cli.estimators.pair.PreparedImage`: detected on the image
-        it was cut or warped from when it records one (:attr:`PreparedImage.source`), where the cache serves
-        them, and mapped into it, keeping those that land inside."""
+    def _features(self, image) -> tuple[np.ndarray, np.ndarray | None]:
+        """(N, 2) keypoint pixels and descriptors of a :class:`~udh_cli.estimators.pair.PreparedImage`: detected
+        on the image it was cut or warped from when it records one (:attr:`PreparedImage.source`), where the
+        cache serves them, and mapped into it, keeping those that land inside."""
         if image.source is None:
             return self._detect(image.grey_u8())
-        keypoints, descriptors = self._detect(image.source.grey_u8())
-        if not keypoints:
-            return [], None
-        points = geometry.transform_points(image.from_source, np.array([k.pt for k in keypoints], np.float64))
+        points, descriptors = self._detect(image.source.grey_u8())
+        if descriptors is None:
+            return points, None
+        points = geometry.transform_points(image.from_source, points)
         width, height = image.size
-        inside = np.nonzero(np.isfinite(points).all(1) & (points[:, 0] >= 0) & (points[:, 1] >= 0)
-                            & (points[:, 0] <= width - 1) & (points[:, 1] <= height - 1))[0]
-        return [cv2.KeyPoint(float(points[i, 0]), float(points[i, 1]), keypoints[i].size) for i in inside], descriptors[inside]
+        inside = (np.isfinite(points).all(1) & (points[:, 0] >= 0) & (points[:, 1] >= 0)
+                  & (points[:, 0] <= width - 1) & (points[:, 1] <= height - 1))
+        return points[inside], descriptors[inside]
 
     def _estimate(self, pair):
-        keypoints_a, descriptors_a = self._features(pair.a)
+        keypoints_a, descriptors_a = self._features(pair.a)  # (N, 2) pixels each
         keypoints_b, descriptors_b = self._features(pair.b)
         if len(keypoints_a) < 4 or len(keypoints_b) < 4:
             raise EstimationFailed(

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.estimators.features import ratio_test_points
+from udh_cli.estimators.features import keypoint_points, ratio_test_points
 from udh_cli.mosaic.lens import Lens
 
 DEFAULT_FOCAL = 0.7  # focal length over the longer side: a 24-25 mm (35 mm equivalent) drone camera
@@ -74,7 +74,7 @@ def pair_matches(grey_a: np.ndarray, grey_b: np.ndarray, sift) -> tuple[np.ndarr
     keys_b, desc_b = sift.detectAndCompute(grey_b, None)
     if desc_a is None or desc_b is None or len(keys_a) < MIN_MATCHES or len(keys_b) < MIN_MATCHES:
         return None
-    points_a, points_b = ratio_test_points(cv2.BFMatcher().knnMatch(desc_a, desc_b, k=2), keys_a, keys_b, 0.75)
+    points_a, points_b = ratio_test_points(cv2.BFMatcher().knnMatch(desc_a, desc_b, k=2), keypoint_points(keys_a), keypoint_points(keys_b), 0.75)
     if len(points_a) < MIN_MATCHES:
         return None
     _, inliers = cv2.findHomography(points_a, points_b, cv2.RANSAC, RANSAC_PX)

@@ -284,6 +284,7 @@ from udh_cli.mosaic.gains import EXPOSURES as _EXPOSURES  # noqa: E402 - the --e
 from udh_cli.mosaic.seams import SEAM_FINDERS as _SEAM_FINDERS  # noqa: E402 - the --seams choices live there
 from udh_cli.mosaic.pipeline import MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
 from udh_cli.mosaic.follow import FollowConfig as _FollowConfig  # noqa: E402
+from udh_cli.mosaic.workers import MAX_AUTO_WORKERS as _MAX_AUTO_WORKERS, POOL_MIN_FRAMES as _POOL_MIN_FRAMES  # noqa: E402
 
 _MOSAIC = _MosaicConfig()
 _FOLLOW = _FollowConfig()
@@ -314,7 +315,7 @@ def mosaic(
     gcp_sigma: Annotated[float, typer.Option("--gcp-sigma", min=0.0, help="With --gcp: the points' error in metres, e.g. 0.05; their observations then anchor the global solve (0: they only place the finished mosaic).")] = _MOSAIC.gcp_sigma_m,
     gps_sigma: Annotated[float, typer.Option("--gps-sigma", min=0.0, help="With GPS in the frames: the fixes' error in metres, e.g. 3; they then anchor the global solve and bound long-chain drift (0: off).")] = _MOSAIC.gps_sigma_m,
     gps_pairs: Annotated[int, typer.Option("--gps-pairs", min=0, help="With GPS in the frames: pairs tried between each two parts that GPS puts close together, e.g. 3 (0: off; short surveys split at a turn).")] = _MOSAIC.gps_pairs,
-    workers: Annotated[int, typer.Option("--workers", min=1, help="Local processes estimating pairs at once (e.g. one per core; 1: in this process).")] = _MOSAIC.workers,
+    workers: Annotated[Optional[int], typer.Option("--workers", min=1, show_default=False, help=f"Local processes estimating pairs at once (1: in this process). Default: one per core, at most {_MAX_AUTO_WORKERS}, for {_POOL_MIN_FRAMES} frames or more; 1 in live mode.")] = None,
     scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Estimate pairs on a Dask cluster: the scheduler's address, e.g. tcp://host:8786.")] = _MOSAIC.scheduler,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Simulator ground truth (default: SOURCE/ground_truth.json when present) to report the corner error.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars; warnings and the summary only.", metavar="")] = False,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +36,8 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     output = Path(output)
     check_output(output)
     check_config(config)
+    if config.workers is None:  # the quick look needs the other core; each refresh estimates its new pairs in one process
+        config = replace(config, workers=1)
     check_followed_folder(Path(folder))  # before the networks load
     if str(options.get("camera")) == CAMERA_ESTIMATE:  # each refresh would fit another k1 and estimate every pair again
         raise UdhError("--camera estimate cannot follow a flight as it is written: fit the lens once on a finished flight "

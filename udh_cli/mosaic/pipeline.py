@@ -10,7 +10,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +34,7 @@ from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted
 from udh_cli.mosaic.lens import read_cameras
 from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, undistort_by_fitted_lens
 from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
-from udh_cli.mosaic.workers import EstimatorSpec, open_runner
+from udh_cli.mosaic.workers import EstimatorSpec, automatic_workers, open_runner
 from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
                                       placement_error_m)
 from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
@@ -81,7 +81,10 @@ class MosaicConfig:
         gcp_sigma_m: with ground-control points (``run_mosaic(gcp=...)``), their observations join the global
             solve as anchors of this standard error in metres, so that the mosaic bends to them instead of only
             being placed by them afterwards; 0: off.
-        workers: local processes estimating pairs at once (:mod:`.workers`; 1: in this process).
+        workers: local processes estimating pairs at once (:mod:`.workers`; 1: in this process; None: one per
+            core, at most 4, for 30 frames or more, :func:`.workers.automatic_workers`, which is what the command
+            line does). 1 by default here: a pool spawns processes that import the calling script again, so a
+            script needs ``if __name__ == "__main__":`` first.
         scheduler: a Dask scheduler's address (``tcp://host:8786``): pairs are estimated on its workers.
         exposure: exposure compensation of each part (:mod:`.gains`: ``blocks``, ``channels``, ``gain``, ``none``).
         seams: where one frame gives way to the next (:mod:`.seams`: ``dp``, ``graphcut``, ``central``); with
@@ -103,7 +106,7 @@ class MosaicConfig:
     gps_pairs: int = 0
     gps_sigma_m: float = 0.0
     gcp_sigma_m: float = 0.0
-    workers: int = 1
+    workers: int | None = 1
     scheduler: str | None = None
     max_disagreement: float = 0.1
     huber_px: float = 2.0
@@ -194,7 +197,7 @@ def check_config(config: MosaicConfig) -> None:
         raise UdhError(f"--min-verified {config.min_verified}: give a value in [0, 1]")
     if not config.max_frame_scale > 1.0:
         raise UdhError(f"--max-frame-scale {config.max_frame_scale}: give a factor above 1 (frames drawn that many times larger or smaller than the reference are reported)")
-    if config.workers < 1:
+    if config.workers is not None and config.workers < 1:
         raise UdhError(f"--workers {config.workers}: give at least 1 (pairs estimated in this process)")
     if not (config.gps_sigma_m >= 0 and math.isfinite(config.gps_sigma_m)):
         raise UdhError(f"--gps-sigma {config.gps_sigma_m}: give the GPS fixes' error in metres (e.g. 3), or 0 for off")
@@ -291,6 +294,8 @@ def run_mosaic(
 
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=own_files(output), reporter=reporter, lens=lens)
     frames = frameset.frames
+    if config.workers is None:  # a cluster's workers estimate the pairs; the local ones still blend the tiles
+        config = replace(config, workers=automatic_workers(len(frames)) if config.scheduler is None else 1)
     if estimate_lens:
         with reporter.stage("lens", 1) as advance:
             undistort_by_fitted_lens(frameset, reporter)

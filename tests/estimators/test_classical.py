@@ -95,8 +95,10 @@ def test_best_features_keeps_the_strongest_n(method):
     # is held to a number.
     if method == "sift":
         assert float(geometry.mace(result.homography, truth, WIDTH, HEIGHT)) < 0.5
+    from udh_cli.estimators.pair import PreparedImage
+
     estimator = create_estimator(method, best_features=50)
-    kept = estimator._detect(to_gray_u8(image_a))[0]  # (50, 2) pixels
+    kept = estimator._features(PreparedImage.of(image_a))[0]  # (50, 2) pixels
     everything, _ = estimator._detector().detectAndCompute(to_gray_u8(image_a), None)
     strongest = sorted(everything, key=lambda k: -k.response)[:50]
     weakest_kept = min(k.response for k in everything if any(np.allclose(k.pt, p) for p in kept))
@@ -300,22 +302,42 @@ def test_the_feature_cache_keeps_what_its_byte_budget_holds():
     rng = np.random.default_rng(0)
 
     def features(count):  # SIFT-like: float descriptors of whole numbers 0-255
-        return rng.random((count, 2)) * 300, np.round(rng.random((count, 128)) * 255).astype(np.float32)
+        return rng.random((count, 2)) * 300, np.round(rng.random((count, 128)) * 255).astype(np.float32), rng.random(count).astype(np.float32)
 
-    per_frame = 100 * (16 + 128)  # float64 points, descriptors held as bytes
+    per_frame = 100 * (16 + 128 + 4)  # float64 points, descriptors held as bytes, float32 responses
     cache = _FeatureCache(budget_bytes=3 * per_frame)
     kept = {frame: features(100) for frame in range(3)}
     for frame, found in kept.items():
         cache.put(frame, *found)
-    points, descriptors = cache.get(0)  # used again: now the most recent
+    points, descriptors, _ = cache.get(0)  # used again: now the most recent
     assert descriptors.dtype == np.float32 and np.array_equal(descriptors, kept[0][1]) and np.array_equal(points, kept[0][0])
+    assert not points.flags.writeable and not descriptors.flags.writeable  # shared: nobody may change them
     cache.put(3, *features(100))  # over budget: the least recently used (1) goes
     assert cache.get(1) is None and all(cache.get(k) is not None for k in (0, 2, 3))
     assert cache.held_bytes == 3 * per_frame
-    fractional = (rng.random((10, 2)), rng.random((10, 128)).astype(np.float32))  # not whole numbers: held as they are
-    cache.put(4, *fractional)
+    cache.put(3, *features(100))  # put again: counted once
+    assert cache.held_bytes == 3 * per_frame
+    fractional = (rng.random((10, 2)), rng.random((10, 128)).astype(np.float32), rng.random(10).astype(np.float32))
+    cache.put(4, *fractional)  # not whole numbers: held as they are
     assert np.array_equal(cache.get(4)[1], fractional[1])
     cache.put(5, *features(1000))  # larger than the budget alone: kept, everything else dropped
-    assert list(cache.entries) == [5] and cache.held_bytes == 1000 * (16 + 128)
+    assert list(cache.entries) == [5] and cache.held_bytes == 10 * per_frame
     cache.clear()
     assert cache.held_bytes == 0 and not cache.entries
+
+
+def test_a_cut_image_keeps_its_own_strongest_keypoints_and_orb_detects_on_it():
+    """best_features picks the strongest keypoints inside a cut image, not the whole frame's strongest (of which
+    few fall in a small loop window); ORB, which keeps its strongest N of whatever it is shown, detects on the
+    cut image itself."""
+    from udh_cli.estimators.pair import PreparedImage
+
+    frame = textured_image(640, 480, seed=9)
+    window = np.ascontiguousarray(frame[300:460, 400:620])  # a small corner of the frame
+    cut = PreparedImage.of(window).cut_from(frame, geometry.translation(-400, -300))
+    sift = create_estimator("sift", best_features=50)
+    points, _ = sift._features(cut)
+    assert len(points) == 50
+    assert (points >= 0).all() and (points[:, 0] <= 219).all() and (points[:, 1] <= 159).all()
+    orb = create_estimator("orb", orb_features=300)
+    np.testing.assert_array_equal(orb._features(cut)[0], orb._features(PreparedImage.of(window))[0])

@@ -295,6 +295,8 @@ def test_the_tiles_coarse_network_runs_only_the_tile_stage_coarse_level(tiny_onn
     a, b = warped_pair(np.eye(3), 320, 240, seed=1)
     estimator.estimate(a, b)
     assert used and set(used) == {(tiny_fine_onnx, tile_coarse)}
+    with pytest.raises(UdhError, match="needs a refinement stage"):  # no tile stage to run it in
+        create_estimator("unsupervised", model=str(tiny_onnx), tile_coarse_model=str(tile_coarse), flight_model="", device="cpu")
     # Without it the coarse network starts the tiles, as it starts the cascade.
     plain = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), flight_model="", device="cpu")
     assert plain.tile_coarse_network.path == tiny_onnx

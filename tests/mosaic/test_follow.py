@@ -42,7 +42,11 @@ def test_a_flight_written_while_it_is_followed_gives_the_mosaic_of_the_whole_fol
     live.mkdir()
 
     def fly():
-        for path in frames:  # each frame written in two halves, 0.15 s apart, as a slow copy would
+        for number, path in enumerate(frames):  # each frame written in two halves, 0.15 s apart, as a slow copy would
+            if number == len(frames) // 2:  # the flight goes on after the first refresh, however slow its process starts
+                deadline = time.monotonic() + 60
+                while not (tmp_path / "out" / "live.json").exists() and time.monotonic() < deadline:
+                    time.sleep(0.05)
             data = path.read_bytes()
             target = live / path.name
             target.write_bytes(data[: len(data) // 2])

@@ -126,10 +126,11 @@ def test_jobs_come_back_in_submission_order_even_when_a_later_one_finishes_first
 def test_workers_none_means_one_per_core_for_a_long_enough_flight(flight, local, tmp_path, monkeypatch):
     import udh_cli.mosaic.workers as workers
 
-    monkeypatch.setattr(workers.os, "cpu_count", lambda: 8)
+    assert 1 <= workers.available_cores() <= (workers.os.cpu_count() or 1)
+    monkeypatch.setattr(workers, "available_cores", lambda: 8)
     assert workers.automatic_workers(workers.POOL_MIN_FRAMES - 1) == 1  # the pool's start would not pay
     assert workers.automatic_workers(workers.POOL_MIN_FRAMES) == workers.MAX_AUTO_WORKERS == 4
-    monkeypatch.setattr(workers.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(workers, "available_cores", lambda: 2)
     assert workers.automatic_workers(500) == 2
     report = run_mosaic(flight, tmp_path / "m.png", MosaicConfig(method="auto", batch_size=4, workers=None))
     assert report["config"]["workers"] == 1  # the test flight is short

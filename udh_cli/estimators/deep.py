@@ -136,7 +136,10 @@ class DeepEstimator(Estimator):
         else:
             self.tile_network = self.network
         self.tile_coarse_network = self.network if len(self.stages) > 1 else None
-        if self.tile_coarse_model and self.tile_coarse_network is not None:
+        if self.tile_coarse_model and self.tile_coarse_network is None:
+            raise UdhError(f"method '{self.name}': tile_coarse_model runs in the tile stage, which needs a refinement stage "
+                           f"(refine_rounds is 0 or no refinement network is given)")
+        if self.tile_coarse_model:
             self.tile_coarse_network = OnnxHomographyModel.load(self.tile_coarse_model, self.device, self.threads)
             if self.tile_coarse_network.input_size != self.network.input_size:
                 raise UdhError(f"{self.tile_coarse_model}: the tiles' coarse network takes {self.tile_coarse_network.input_size}px inputs, {path} {self.network.input_size}px")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import ClassVar, Sequence
@@ -13,6 +14,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
+from udh_cli.estimators.pair import PreparedImage
 
 
 # Recently detected features, least recently used first: (method, settings, shape, digest) -> (points,
@@ -28,42 +30,54 @@ EXACT_MATCH_LIMIT = 5000
 
 class _FeatureCache:
     """Features by key, least recently used first, dropped from the front beyond ``budget_bytes`` (the newest
-    entry is always kept). Float descriptors whose values are all whole numbers in 0-255 (OpenCV's SIFT rounds
-    them so) are held as bytes, a quarter of the memory, and given back as float32: exactly the same values."""
+    entry is always kept); safe to share between threads (a Dask worker runs several). Float descriptors whose
+    values are all whole numbers in 0-255 (OpenCV's SIFT rounds them so) are held as bytes, a quarter of the
+    memory, and given back as float32: exactly the same values. Arrays given back are read-only."""
 
     def __init__(self, budget_bytes: int) -> None:
         self.budget_bytes = budget_bytes
-        self.entries: OrderedDict = OrderedDict()  # key -> (points, descriptors as held, dtype to give back)
+        self.entries: OrderedDict = OrderedDict()  # key -> (points, descriptors as held, dtype to give back, responses)
         self.held_bytes = 0
+        self.lock = threading.Lock()
 
     @staticmethod
     def _size(entry: tuple) -> int:
-        points, descriptors, _ = entry
-        return points.nbytes + (descriptors.nbytes if descriptors is not None else 0)
+        points, descriptors, _, responses = entry
+        return points.nbytes + responses.nbytes + (descriptors.nbytes if descriptors is not None else 0)
 
-    def get(self, key) -> tuple[np.ndarray, np.ndarray | None] | None:
-        entry = self.entries.get(key)
-        if entry is None:
-            return None
-        self.entries.move_to_end(key)
-        points, descriptors, dtype = entry
-        return points, descriptors if descriptors is None or descriptors.dtype == dtype else descriptors.astype(dtype)
+    def get(self, key) -> tuple[np.ndarray, np.ndarray | None, np.ndarray] | None:
+        with self.lock:
+            entry = self.entries.get(key)
+            if entry is None:
+                return None
+            self.entries.move_to_end(key)
+        points, descriptors, dtype, responses = entry
+        if descriptors is not None and descriptors.dtype != dtype:
+            descriptors = descriptors.astype(dtype)
+            descriptors.flags.writeable = False
+        return points, descriptors, responses
 
-    def put(self, key, points: np.ndarray, descriptors: np.ndarray | None) -> None:
+    def put(self, key, points: np.ndarray, descriptors: np.ndarray | None, responses: np.ndarray) -> None:
         held, dtype = descriptors, None if descriptors is None else descriptors.dtype
         if descriptors is not None and descriptors.dtype == np.float32 and descriptors.size and descriptors.min() >= 0 \
                 and descriptors.max() <= 255 and np.array_equal(descriptors, np.round(descriptors)):
             held = descriptors.astype(np.uint8)
-        points.flags.writeable = False  # shared by every later get
-        entry = (points, held, dtype)
-        self.entries[key] = entry
-        self.held_bytes += self._size(entry)
-        while len(self.entries) > 1 and self.held_bytes > self.budget_bytes:
-            self.held_bytes -= self._size(self.entries.popitem(last=False)[1])
+        for array in (points, held, responses):
+            if array is not None:
+                array.flags.writeable = False  # shared by every later get
+        entry = (points, held, dtype, responses)
+        with self.lock:
+            if key in self.entries:
+                self.held_bytes -= self._size(self.entries.pop(key))
+            self.entries[key] = entry
+            self.held_bytes += self._size(entry)
+            while len(self.entries) > 1 and self.held_bytes > self.budget_bytes:
+                self.held_bytes -= self._size(self.entries.popitem(last=False)[1])
 
     def clear(self) -> None:
-        self.entries.clear()
-        self.held_bytes = 0
+        with self.lock:
+            self.entries.clear()
+            self.held_bytes = 0
 
 
 _FEATURE_CACHE = _FeatureCache(FEATURE_CACHE_BYTES)
@@ -113,6 +127,9 @@ class FeatureRansacEstimator(Estimator):
 
     norm: ClassVar[int] = cv2.NORM_L2
     verifies_itself: ClassVar[bool] = True  # an answer needs min_inliers matches that agree on it
+    # Whether a cut or warped image may take its keypoints from its source: only a detector that finds every
+    # keypoint does so; one that keeps its N strongest would leave a small window few of them.
+    detects_on_source: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         if not 0.0 < self.ratio <= 1.0:
@@ -129,31 +146,28 @@ class FeatureRansacEstimator(Estimator):
     def _detector(self):
         raise NotImplementedError
 
-    def _detect(self, gray: np.ndarray):
-        """Keypoints and descriptors of a grey image, from :data:`_FEATURE_CACHE` when this detector has seen
-        the same pixels recently. Why: in a mosaic each frame is in several pairs (consecutive, bridge, loop
-        closures), and detection is most of a matcher's time; the key is the pixels' digest, so a changed
-        image is never served stale features."""
+    def _detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Every keypoint of a grey image: (N, 2) pixels, descriptors and (N,) responses, from
+        :data:`_FEATURE_CACHE` when this detector has seen the same pixels recently. Why: in a mosaic each frame
+        is in several pairs (consecutive, bridge, loop closures), and detection is most of a matcher's time;
+        the key is the pixels' digest, so a changed image is never served stale features. ``best_features`` is
+        applied afterwards (:meth:`_features`), to what an image keeps."""
         key = (self.name, repr(self._cache_settings()), gray.shape, hashlib.blake2b(np.ascontiguousarray(gray).data, digest_size=16).digest())
         found = _FEATURE_CACHE.get(key)
         if found is None:
-            found = self._detect_uncached(gray)
-            _FEATURE_CACHE.put(key, *found)
+            _FEATURE_CACHE.put(key, *self._detect_uncached(gray))
+            found = _FEATURE_CACHE.get(key)
         return found
 
-    def _cache_settings(self) -> tuple:
-        """The settings that change what :meth:`_detect` returns."""
-        return (self.best_features,)
-
-    def _detect_uncached(self, gray: np.ndarray):
+    def _detect_uncached(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         keypoints, descriptors = self._detector().detectAndCompute(gray, None)
         if descriptors is None or len(keypoints) == 0:
-            return np.zeros((0, 2)), None
-        if self.best_features is not None and len(keypoints) > self.best_features:
-            strongest = np.argsort([-k.response for k in keypoints])[: self.best_features]
-            keypoints = [keypoints[i] for i in strongest]
-            descriptors = descriptors[strongest]
-        return keypoint_points(keypoints), descriptors
+            keypoints, descriptors = [], None
+        return keypoint_points(keypoints), descriptors, np.array([k.response for k in keypoints], np.float32)
+
+    def _cache_settings(self) -> tuple:
+        """The detector's settings (those that change what :meth:`_detect` returns)."""
+        return ()
 
     def _match(self, descriptors_a: np.ndarray, descriptors_b: np.ndarray) -> list:
         """Each descriptor of A's two nearest in B (OpenCV DMatch lists)."""
@@ -167,20 +181,27 @@ class FeatureRansacEstimator(Estimator):
             return flann.knnMatch(descriptors_a, descriptors_b, k=2)
         return cv2.BFMatcher(self.norm).knnMatch(descriptors_a, descriptors_b, k=2)
 
-    def _features(self, image) -> tuple[np.ndarray, np.ndarray | None]:
-        """(N, 2) keypoint pixels and descriptors of a :class:`~udh_cli.estimators.pair.PreparedImage`: detected
-        on the image it was cut or warped from when it records one (:attr:`PreparedImage.source`), where the
-        cache serves them, and mapped into it, keeping those that land inside."""
-        if image.source is None:
-            return self._detect(image.grey_u8())
-        points, descriptors = self._detect(image.source.grey_u8())
-        if descriptors is None:
-            return points, None
-        points = geometry.transform_points(image.from_source, points)
-        width, height = image.size
-        inside = (np.isfinite(points).all(1) & (points[:, 0] >= 0) & (points[:, 1] >= 0)
-                  & (points[:, 0] <= width - 1) & (points[:, 1] <= height - 1))
-        return points[inside], descriptors[inside]
+    def _features(self, image: PreparedImage) -> tuple[np.ndarray, np.ndarray | None]:
+        """(N, 2) keypoint pixels and descriptors of an image, the ``best_features`` strongest. Detected on the
+        image it was cut or warped from when it records one (:attr:`PreparedImage.source`) and the detector
+        finds every keypoint (:attr:`detects_on_source`), where the cache serves them, and mapped into it,
+        keeping those that land inside."""
+        if image.source is None or not self.detects_on_source:
+            points, descriptors, responses = self._detect(image.grey_u8())
+        else:
+            points, descriptors, responses = self._detect(image.source.grey_u8())
+            points = geometry.transform_points(image.from_source, points) if len(points) else points
+            width, height = image.size
+            inside = (np.isfinite(points).all(1) & (points[:, 0] >= 0) & (points[:, 1] >= 0)
+                      & (points[:, 0] <= width - 1) & (points[:, 1] <= height - 1))
+            points, responses = points[inside], responses[inside]
+            descriptors = descriptors[inside] if descriptors is not None else None
+        if descriptors is None or not len(points):
+            return np.zeros((0, 2)), None
+        if self.best_features is not None and len(points) > self.best_features:
+            strongest = np.argsort(-responses, kind="stable")[: self.best_features]
+            points, descriptors = points[strongest], descriptors[strongest]
+        return points, descriptors
 
     def _estimate(self, pair):
         keypoints_a, descriptors_a = self._features(pair.a)  # (N, 2) pixels each
@@ -225,7 +246,7 @@ class SiftRansac(FeatureRansacEstimator):
         return cv2.SIFT_create(contrastThreshold=self.contrast_threshold)
 
     def _cache_settings(self) -> tuple:
-        return (self.best_features, self.contrast_threshold)
+        return (self.contrast_threshold,)
 
 
 @dataclass
@@ -238,10 +259,11 @@ class OrbRansac(FeatureRansacEstimator):
 
     name: ClassVar[str] = "orb"
     norm: ClassVar[int] = cv2.NORM_HAMMING
+    detects_on_source: ClassVar[bool] = False  # it keeps its orb_features strongest of what it is shown
     orb_features: int = 1000
 
     def _detector(self):
         return cv2.ORB_create(nfeatures=self.orb_features)
 
     def _cache_settings(self) -> tuple:
-        return (self.best_features, self.orb_features)
+        return (self.orb_features,)

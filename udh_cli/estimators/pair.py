@@ -44,8 +44,8 @@ class PreparedImage:
     grey: np.ndarray
     source_dtype: np.dtype
     _cache: dict[Any, np.ndarray] = field(default_factory=dict, repr=False)
-    source: "PreparedImage | None" = None
-    from_source: np.ndarray | None = None
+    source: "PreparedImage | None" = field(default=None, repr=False)
+    from_source: np.ndarray | None = field(default=None, repr=False)
 
     @classmethod
     def of(cls, image: "ImageLike", name: str = "image") -> "PreparedImage":

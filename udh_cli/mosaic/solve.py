@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
-import warnings
 
 import cv2
 import numpy as np
@@ -261,12 +260,10 @@ def solve_part(
         system, gradient = normal_equations(params)
         for _ in range(iterations):
             diagonal = system.diagonal() + 1e-12
-            with warnings.catch_warnings():
-                warnings.simplefilter("error", sparse_linalg.MatrixRankWarning)
-                try:
-                    step = _solve_symmetric(system + sparse.diags(damping * diagonal), -gradient)
-                except (sparse_linalg.MatrixRankWarning, RuntimeError):
-                    step = None
+            try:
+                step = _solve_symmetric(system + sparse.diags(damping * diagonal), -gradient)
+            except RuntimeError:  # SuperLU: an exactly singular factor
+                step = None
             if step is None or not np.isfinite(step).all():
                 damping *= 10
                 continue

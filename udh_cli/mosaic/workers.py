@@ -20,17 +20,19 @@ import threading
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, Union
 
 import numpy as np
 
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.estimators.pair import PreparedPair
+from udh_cli.mosaic.pairs import Sources
 
-# Working-size images A and B, as sent to a worker, and optionally what they were cut or warped from
-# (:data:`.pairs.Sources`, or None).
-ImagePair = tuple[np.ndarray, ...]
+# Working-size images A and B, as sent to a worker, and optionally what they were cut or warped from (None: the
+# frames themselves). The whole frames go along with a pre-warped pair whatever the method, so that a feature
+# method finds them; a network or ECC does not read them.
+ImagePair = Union[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, "Sources | None"]]
 Judged = tuple[Estimate, "float | None", "str | None"]  # the estimate, its verification score, why it is doubted
 # Per pair: the first opinion's judged answer, then each next opinion's while the answers were doubted.
 Attempts = list[Judged]
@@ -78,7 +80,7 @@ def judge_opinions(opinions: Sequence[Estimator], acceptance, pairs: Sequence[Im
     return out
 
 
-def _prepared(image_a: np.ndarray, image_b: np.ndarray, sources=None) -> PreparedPair:
+def _prepared(image_a: np.ndarray, image_b: np.ndarray, sources: Sources | None = None) -> PreparedPair:
     """The pair prepared once, each image recording the frame it was cut or warped from when ``sources`` gives it."""
     pair = PreparedPair.of(image_a, image_b)
     if sources is not None:
@@ -248,9 +250,14 @@ MAX_AUTO_WORKERS = 4
 POOL_MIN_FRAMES = 30
 
 
+def available_cores() -> int:
+    """The cores this process may run on (a container or ``taskset`` may allow fewer than the machine has)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def automatic_workers(frames: int) -> int:
     """Local processes for a flight of ``frames`` frames when none are asked for (see :data:`POOL_MIN_FRAMES`)."""
-    return min(os.cpu_count() or 1, MAX_AUTO_WORKERS) if frames >= POOL_MIN_FRAMES else 1
+    return min(available_cores(), MAX_AUTO_WORKERS) if frames >= POOL_MIN_FRAMES else 1
 
 
 def open_runner(opinions: Sequence[Estimator], acceptance, spec: EstimatorSpec | None, workers: int,
@@ -263,7 +270,7 @@ def open_runner(opinions: Sequence[Estimator], acceptance, spec: EstimatorSpec |
         if workers > 1:
             warn(f"--workers {workers} is ignored with --scheduler: the cluster's workers estimate the pairs")
         return DaskRunner(spec, scheduler)
-    workers = min(workers, os.cpu_count() or 1)
+    workers = min(workers, available_cores())
     if spec is None or workers <= 1:
         return LocalRunner(opinions, acceptance)
     return PoolRunner(spec, workers)

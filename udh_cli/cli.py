@@ -489,7 +489,9 @@ def _run() -> None:
             if type(exc).__name__ != "NoArgsIsHelpError":  # that one has printed the help already
                 context = getattr(exc, "ctx", None)
                 hint = f"; see '{context.command_path} --help'" if context is not None else ""
-                _fail(f"{exc.format_message().rstrip('.')}{hint}", exc.exit_code)
+                # Typer's choice types validate through pydantic, which starts its message with "Value error, ".
+                message = exc.format_message().replace("Value error, ", "").rstrip(".")
+                _fail(f"{message}{hint}", exc.exit_code)
             sys.exit(exc.exit_code)
         if _state["debug"]:
             raise

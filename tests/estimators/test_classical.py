@@ -263,39 +263,6 @@ def test_one_option_syntax_for_every_command():
         parse_method_options(["iterations=3"], ["sift"])
 
 
-def test_a_cut_or_warped_image_takes_its_features_from_its_source(monkeypatch):
-    """A mosaic's pre-warped loop pair: A cropped, B warped into A's frame. Their features come from the whole
-    frames (detected once, as in the frames' other pairs), mapped into the images, and give the same answer."""
-    import pickle
-
-    import udh_cli.estimators.features as features
-    from udh_cli.estimators.pair import PreparedImage, PreparedPair
-
-    features._FEATURE_CACHE.clear()
-    truth = np.array([[0.98, -0.05, 30.0], [0.05, 0.98, -12.0], [0.0, 0.0, 1.0]])
-    frame_a, frame_b = warped_pair(truth, 400, 300, seed=5)
-    prior = np.array([[0.98, -0.05, 26.0], [0.05, 0.98, -10.0], [0.0, 0.0, 1.0]])  # a chained prediction, 4 px off
-    crop = geometry.translation(-20, -15)
-    image_a = np.ascontiguousarray(frame_a[15:265, 20:370])
-    image_b = cv2.warpPerspective(frame_b, prior @ np.linalg.inv(crop), (350, 250), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    pair = PreparedPair(PreparedImage.of(image_a).cut_from(frame_a, crop), PreparedImage.of(image_b).cut_from(frame_b, crop @ np.linalg.inv(prior)))
-    calls = []
-    real = features.FeatureRansacEstimator._detect_uncached
-    monkeypatch.setattr(features.FeatureRansacEstimator, "_detect_uncached", lambda self, gray: calls.append(gray.shape) or real(self, gray))
-    sift = create_estimator("sift")
-    sift.estimate(frame_a, frame_b)
-    found = sift.estimate_pairs([pair])[0]
-    assert calls == [(300, 400), (300, 400)]  # the whole frames once each, not the crop and the warped copy
-    # The residual between the images is crop . prior^-1 . truth . crop^-1, near the identity.
-    expected = crop @ np.linalg.inv(prior) @ truth @ np.linalg.inv(crop)
-    assert found.ok and geometry.mace(found.homography, expected, 350, 250) < 0.5
-    without = sift.estimate(image_a, image_b)  # detected on the images themselves: the same answer
-    assert geometry.mace(without.homography, found.homography, 350, 250) < 0.5
-    sent = pickle.loads(pickle.dumps(pair.b))  # to a worker process: the source goes with it
-    np.testing.assert_array_equal(sent.from_source, pair.b.from_source)
-    np.testing.assert_array_equal(sent.source.grey, pair.b.source.grey)
-
-
 def test_the_feature_cache_keeps_what_its_byte_budget_holds():
     from udh_cli.estimators.features import _FeatureCache
 
@@ -324,20 +291,3 @@ def test_the_feature_cache_keeps_what_its_byte_budget_holds():
     assert list(cache.entries) == [5] and cache.held_bytes == 10 * per_frame
     cache.clear()
     assert cache.held_bytes == 0 and not cache.entries
-
-
-def test_a_cut_image_keeps_its_own_strongest_keypoints_and_orb_detects_on_it():
-    """best_features picks the strongest keypoints inside a cut image, not the whole frame's strongest (of which
-    few fall in a small loop window); ORB, which keeps its strongest N of whatever it is shown, detects on the
-    cut image itself."""
-    from udh_cli.estimators.pair import PreparedImage
-
-    frame = textured_image(640, 480, seed=9)
-    window = np.ascontiguousarray(frame[300:460, 400:620])  # a small corner of the frame
-    cut = PreparedImage.of(window).cut_from(frame, geometry.translation(-400, -300))
-    sift = create_estimator("sift", best_features=50)
-    points, _ = sift._features(cut)
-    assert len(points) == 50
-    assert (points >= 0).all() and (points[:, 0] <= 219).all() and (points[:, 1] <= 159).all()
-    orb = create_estimator("orb", orb_features=300)
-    np.testing.assert_array_equal(orb._features(cut)[0], orb._features(PreparedImage.of(window))[0])

@@ -101,28 +101,6 @@ def test_a_wrong_loop_closure_is_found_and_dropped():
     assert none_dropped == {}
 
 
-def test_loop_pair_inputs_record_the_frames_they_were_cut_and_warped_from():
-    """work_inputs' sources map each whole working frame onto the image the estimators see (for a feature
-    detector's cache, estimators.pair.PreparedImage.source)."""
-    import cv2
-
-    from udh_cli.mosaic.frames import Frame
-    from udh_cli.mosaic.pairs import PairRequest, work_inputs
-
-    rng = np.random.default_rng(3)
-    frames = [Frame(i, f"f{i}.jpg", (640, 480), cv2.GaussianBlur((rng.random((240, 320)) * 255).astype(np.uint8), (0, 0), 2)) for i in range(2)]
-    prior = np.array([[0.99, -0.03, 90.0], [0.03, 0.99, 40.0], [0.0, 0.0, 1.0]])  # full resolution
-    image_a, image_b, _, sources = work_inputs(PairRequest(0, 1, "overlap", prior), frames)
-    (frame_a, a_from_frame), (frame_b, b_from_frame) = sources
-    assert frame_a is frames[0].work and frame_b is frames[1].work
-    size = (image_a.shape[1], image_a.shape[0])
-    assert image_b.shape == image_a.shape and size != frames[0].work_size  # cropped to the covered window
-    np.testing.assert_array_equal(cv2.warpPerspective(frame_a, a_from_frame, size, flags=cv2.INTER_NEAREST), image_a)
-    redrawn = cv2.warpPerspective(frame_b, b_from_frame, size, flags=cv2.INTER_LINEAR)
-    assert np.abs(redrawn[2:-2, 2:-2].astype(int) - image_b[2:-2, 2:-2]).max() <= 1
-    assert work_inputs(PairRequest(0, 1, "consecutive"), frames)[3] is None  # the frames themselves
-
-
 def test_loop_pair_inputs_are_cropped_to_the_covered_window():
     """A pre-warped B is cut to a window that is at least 98 % real pixels, so no method sees its empty border."""
     import cv2

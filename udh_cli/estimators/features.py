@@ -11,17 +11,15 @@ from typing import ClassVar, Sequence
 import cv2
 import numpy as np
 
-from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
 from udh_cli.estimators.pair import PreparedImage
 
 
 # Recently detected features, least recently used first: (method, settings, shape, digest) -> (points,
-# descriptors), up to FEATURE_CACHE_BYTES of them. Why a budget rather than a few images: a mosaic's loop pairs
-# and GPS bridges come back to frames a strip or more earlier (brighton-beach with eight images kept: 31
-# detections for 17 frames; seneca 293 for 155 with 192 MB of float descriptors). A frame of 10,000 SIFT
-# keypoints holds 1.4 MB (descriptors kept as bytes, :class:`_FeatureCache`).
+# descriptors, responses), up to FEATURE_CACHE_BYTES of them: a budget rather than a count of images, since
+# frames differ tenfold in keypoints. A frame of 10,000 SIFT keypoints holds 1.4 MB (descriptors kept as bytes,
+# :class:`_FeatureCache`).
 FEATURE_CACHE_BYTES = 256 * 2**20
 # Above this many keypoints in an image, exact matching costs seconds (a 1600 px photo has 20,000); the
 # kd-trees then take a fraction of it for the same inliers. Below, exact matching is fast and stays exact.
@@ -127,9 +125,6 @@ class FeatureRansacEstimator(Estimator):
 
     norm: ClassVar[int] = cv2.NORM_L2
     verifies_itself: ClassVar[bool] = True  # an answer needs min_inliers matches that agree on it
-    # Whether a cut or warped image may take its keypoints from its source: only a detector that finds every
-    # keypoint does so; one that keeps its N strongest would leave a small window few of them.
-    detects_on_source: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         if not 0.0 < self.ratio <= 1.0:
@@ -182,24 +177,14 @@ class FeatureRansacEstimator(Estimator):
         return cv2.BFMatcher(self.norm).knnMatch(descriptors_a, descriptors_b, k=2)
 
     def _features(self, image: PreparedImage) -> tuple[np.ndarray, np.ndarray | None]:
-        """(N, 2) keypoint pixels and descriptors of an image, the ``best_features`` strongest. Detected on the
-        image it was cut or warped from when it records one (:attr:`PreparedImage.source`) and the detector
-        finds every keypoint (:attr:`detects_on_source`), where the cache serves them, and mapped into it,
-        keeping those that land inside."""
-        if image.source is None or not self.detects_on_source:
-            points, descriptors, responses = self._detect(image.grey_u8())
-        else:
-            points, descriptors, responses = self._detect(image.source.grey_u8())
-            points = geometry.transform_points(image.from_source, points) if len(points) else points
-            width, height = image.size
-            inside = (np.isfinite(points).all(1) & (points[:, 0] >= 0) & (points[:, 1] >= 0)
-                      & (points[:, 0] <= width - 1) & (points[:, 1] <= height - 1))
-            points, responses = points[inside], responses[inside]
-            descriptors = descriptors[inside] if descriptors is not None else None
+        """(N, 2) keypoint pixels and descriptors of an image, the ``best_features`` strongest."""
+        points, descriptors, responses = self._detect(image.grey_u8())
         if descriptors is None or not len(points):
             return np.zeros((0, 2)), None
         if self.best_features is not None and len(points) > self.best_features:
-            strongest = np.argsort(-responses, kind="stable")[: self.best_features]
+            # numpy's default sort: ties at the cut fall as when sorting OpenCV's keypoints by their responses
+            # directly, so a frame keeps the same keypoints either way.
+            strongest = np.argsort(-responses)[: self.best_features]
             points, descriptors = points[strongest], descriptors[strongest]
         return points, descriptors
 
@@ -259,7 +244,6 @@ class OrbRansac(FeatureRansacEstimator):
 
     name: ClassVar[str] = "orb"
     norm: ClassVar[int] = cv2.NORM_HAMMING
-    detects_on_source: ClassVar[bool] = False  # it keeps its orb_features strongest of what it is shown
     orb_features: int = 1000
 
     def _detector(self):

@@ -34,18 +34,11 @@ class PreparedImage:
         grey: (H, W) float32 grey in [0, 1] (:func:`udh_cli.images.to_gray_float`), read-only.
         source_dtype: the dtype of the image it was made from: 8-bit images go to feature detectors as they
             are, deeper ones are stretched to their own range first (:meth:`grey_u8`).
-        source: the whole image this one was cut or warped from, when it was (a mosaic's pre-warped loop pair:
-            A cropped, B warped into A's frame), else None.
-        from_source: (3, 3) this image's pixels from ``source``'s. Why: a feature detector then detects on the
-            source, which its cache holds from the frame's other pairs, and maps the keypoints here; a warped
-            copy is new pixels every time (seneca's ``auto`` mosaic ran SIFT's detection 382 times for 167 frames).
     """
 
     grey: np.ndarray
     source_dtype: np.dtype
     _cache: dict[Any, np.ndarray] = field(default_factory=dict, repr=False)
-    source: "PreparedImage | None" = field(default=None, repr=False)
-    from_source: np.ndarray | None = field(default=None, repr=False)
 
     @classmethod
     def of(cls, image: "ImageLike", name: str = "image") -> "PreparedImage":
@@ -93,19 +86,11 @@ class PreparedImage:
         return self._cache["u8"]
 
     def __getstate__(self) -> dict:
-        # Sent to another process: the grey image and its source only (the copies are cheaper to remake than to send).
-        return {"grey": np.array(self.grey), "source_dtype": self.source_dtype, "source": self.source, "from_source": self.from_source}
+        # Sent to another process: the grey image only (the copies are cheaper to remake than to send).
+        return {"grey": np.array(self.grey), "source_dtype": self.source_dtype}
 
     def __setstate__(self, state: dict) -> None:
         self.grey, self.source_dtype, self._cache = _read_only(state["grey"]), state["source_dtype"], {}
-        self.source, self.from_source = state.get("source"), state.get("from_source")
-
-    def cut_from(self, source: ImageLike, from_source: np.ndarray) -> "PreparedImage":
-        """This image, recorded as cut or warped from ``source`` by ``from_source`` (3, 3: this image's pixels
-        from the source's)."""
-        self.source = PreparedImage.of(source, "source image")
-        self.from_source = np.asarray(from_source, np.float64)
-        return self
 
     def flipped(self, code: int) -> "PreparedImage":
         """A new prepared image of the mirrored (``code`` 1) or upside-down (0) picture (``cv2.flip`` codes).

@@ -235,7 +235,7 @@ def _result_from_record(record: dict[str, Any], request: PairRequest, frames: Se
     """
     if not isinstance(record.get("estimates"), list) or not record["estimates"]:
         raise ValueError("no estimates")
-    image_a, _, undo, _ = work_inputs(request, frames)  # what the estimator saw (cropped when pre-warped)
+    image_a, _, undo = work_inputs(request, frames)  # what the estimator saw (cropped when pre-warped)
     size_a = (image_a.shape[1], image_a.shape[0])
     estimates = []
     for e in record["estimates"]:

@@ -142,36 +142,29 @@ class PairResult:
         }
 
 
-Sources = tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]  # per image: (whole frame, image_from_frame)
+def work_inputs(request: PairRequest, frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """The two working images for a request, and how to undo what was done to them.
 
-
-def work_inputs(request: PairRequest, frames: Sequence[Frame]) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], Sources | None]:
-    """The two working images for a request, how to undo what was done to them, and what they were made from.
-
-    Returns ``(image_a, image_b, (after, before), sources)``: an estimate ``H`` between the returned images
-    becomes the working-size ``b_from_a = after @ H @ before``. With a ``prior``, B is warped into A's frame and
+    Returns ``(image_a, image_b, (after, before))``: an estimate ``H`` between the returned images becomes
+    the working-size ``b_from_a = after @ H @ before``. With a ``prior``, B is warped into A's frame and
     both are cropped to the window where the warped B has real pixels: the empty border of a pre-warped
-    image would otherwise mislead photometric methods (ECC, NCC verification) and the networks. ``sources``
-    then gives each image's whole working frame and (3, 3) image-from-frame pixels
-    (:attr:`~udh_cli.estimators.pair.PreparedImage.source`); None when the images are the frames themselves.
+    image would otherwise mislead photometric methods (ECC, NCC verification) and the networks.
     """
     fa, fb = frames[request.a], frames[request.b]
     identity = np.eye(3)
     if request.prior is None:
-        return fa.work, fb.work, (identity, identity), None
+        return fa.work, fb.work, (identity, identity)
     prior_work = geometry.rescale_homography(request.prior, fa.size, fa.work_size, fb.size, fb.work_size)
     # B rendered in A's frame: pixel x of the warped image shows B at prior_work(x).
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     warped_b = cv2.warpPerspective(fb.work, prior_work, fa.work_size, flags=flags)
     covered = cv2.warpPerspective(np.ones_like(fb.work), prior_work, fa.work_size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
     window = covered_window(covered > 0)
-    x0, y0, x1, y1 = window if window is not None else (0, 0, *fa.work_size)
-    crop = geometry.translation(-x0, -y0)
-    sources = ((fa.work, crop), (fb.work, crop @ geometry.invert(prior_work)))
     if window is None:
-        return fa.work, warped_b, (prior_work, identity), sources
+        return fa.work, warped_b, (prior_work, identity)
+    x0, y0, x1, y1 = window
     after = prior_work @ geometry.translation(x0, y0)
-    return fa.work[y0:y1, x0:x1], warped_b[y0:y1, x0:x1], (after, crop), sources
+    return fa.work[y0:y1, x0:x1], warped_b[y0:y1, x0:x1], (after, geometry.translation(-x0, -y0))
 
 
 MIN_WINDOW = 48  # px; a smaller overlap window is not worth estimating on its own

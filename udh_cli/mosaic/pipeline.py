@@ -629,9 +629,7 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
     for round_number in range(LOOP_ROUNDS):
         requests, requested = [], []
         for part in parts:
-            # In sequence order, not best overlap first: a frame's loop pairs then come together, and a feature
-            # method's cache (estimators.features) still holds the frame when its next pair comes.
-            for a, b in sorted(wanted.get(id(part), [])):
+            for a, b in wanted.get(id(part), []):
                 requested.append((a, b))
                 prior = geometry.invert(poses[id(part)][b]) @ poses[id(part)][a]
                 requests.append(PairRequest(a, b, "overlap", prior / prior[2, 2]))

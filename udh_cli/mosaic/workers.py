@@ -20,19 +20,15 @@ import threading
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence, Union
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.estimators.pair import PreparedPair
-from udh_cli.mosaic.pairs import Sources
 
-# Working-size images A and B, as sent to a worker, and optionally what they were cut or warped from (None: the
-# frames themselves). The whole frames go along with a pre-warped pair whatever the method, so that a feature
-# method finds them; a network or ECC does not read them.
-ImagePair = Union[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, "Sources | None"]]
+ImagePair = tuple[np.ndarray, np.ndarray]  # working-size images A and B, as sent to a worker
 Judged = tuple[Estimate, "float | None", "str | None"]  # the estimate, its verification score, why it is doubted
 # Per pair: the first opinion's judged answer, then each next opinion's while the answers were doubted.
 Attempts = list[Judged]
@@ -68,7 +64,7 @@ def judge_opinions(opinions: Sequence[Estimator], acceptance, pairs: Sequence[Im
     All in the same job, so that a doubted batch never waits in the queue behind other batches for its second
     opinion. Each pair is prepared once (:mod:`udh_cli.estimators.pair`) for every opinion and the acceptance
     test."""
-    pairs = [_prepared(*pair) for pair in pairs]
+    pairs = [PreparedPair.of(a, b) for a, b in pairs]
     out: list[Attempts] = [[] for _ in pairs]
     doubted = list(range(len(pairs)))
     for opinion in opinions:
@@ -78,16 +74,6 @@ def judge_opinions(opinions: Sequence[Estimator], acceptance, pairs: Sequence[Im
             out[i].append(judged)
         doubted = [i for i in doubted if out[i][-1][2] is not None]
     return out
-
-
-def _prepared(image_a: np.ndarray, image_b: np.ndarray, sources: Sources | None = None) -> PreparedPair:
-    """The pair prepared once, each image recording the frame it was cut or warped from when ``sources`` gives it."""
-    pair = PreparedPair.of(image_a, image_b)
-    if sources is not None:
-        (frame_a, a_from_frame), (frame_b, b_from_frame) = sources
-        pair.a.cut_from(frame_a, a_from_frame)
-        pair.b.cut_from(frame_b, b_from_frame)
-    return pair
 
 
 def estimate_many_safely(method: Estimator, pairs: list[PreparedPair]) -> list[Estimate]:

@@ -49,13 +49,20 @@ class _FeatureCache:
             if entry is None:
                 return None
             self.entries.move_to_end(key)
+        return self._served(entry)
+
+    @staticmethod
+    def _served(entry: tuple) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         points, descriptors, dtype, responses = entry
         if descriptors is not None and descriptors.dtype != dtype:
             descriptors = descriptors.astype(dtype)
             descriptors.flags.writeable = False
         return points, descriptors, responses
 
-    def put(self, key, points: np.ndarray, descriptors: np.ndarray | None, responses: np.ndarray) -> None:
+    def put(self, key, points: np.ndarray, descriptors: np.ndarray | None,
+            responses: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Keep the features under ``key``; returns them as :meth:`get` would (another thread may drop them
+        from the cache before this one gets them)."""
         held, dtype = descriptors, None if descriptors is None else descriptors.dtype
         if descriptors is not None and descriptors.dtype == np.float32 and descriptors.size and descriptors.min() >= 0 \
                 and descriptors.max() <= 255 and np.array_equal(descriptors, np.round(descriptors)):
@@ -71,6 +78,7 @@ class _FeatureCache:
             self.held_bytes += self._size(entry)
             while len(self.entries) > 1 and self.held_bytes > self.budget_bytes:
                 self.held_bytes -= self._size(self.entries.popitem(last=False)[1])
+        return self._served(entry)
 
     def clear(self) -> None:
         with self.lock:
@@ -150,8 +158,7 @@ class FeatureRansacEstimator(Estimator):
         key = (self.name, repr(self._cache_settings()), gray.shape, hashlib.blake2b(np.ascontiguousarray(gray).data, digest_size=16).digest())
         found = _FEATURE_CACHE.get(key)
         if found is None:
-            _FEATURE_CACHE.put(key, *self._detect_uncached(gray))
-            found = _FEATURE_CACHE.get(key)
+            found = _FEATURE_CACHE.put(key, *self._detect_uncached(gray))
         return found
 
     def _detect_uncached(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:

@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
-
 import cv2
 import numpy as np
 from scipy import sparse

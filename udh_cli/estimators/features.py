@@ -99,8 +99,8 @@ def ratio_test_points(knn: list, points_a: np.ndarray, points_b: np.ndarray, rat
     ``points_a``, ``points_b``: (N, 2) keypoint pixels, :func:`keypoint_points`): the (M, 2) float64 pixels in A
     and in B of the matches whose best is below ``ratio`` times the second best."""
     good = [pair[0] for pair in knn if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance]
-    return (points_a[[m.queryIdx for m in good]].reshape(-1, 2).astype(np.float64),
-            points_b[[m.trainIdx for m in good]].reshape(-1, 2).astype(np.float64))
+    return (points_a[[m.queryIdx for m in good]].reshape(-1, 2).astype(np.float64, copy=False),
+            points_b[[m.trainIdx for m in good]].reshape(-1, 2).astype(np.float64, copy=False))
 
 
 @dataclass

@@ -622,16 +622,16 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
     frames = frameset.frames
     sizes = [f.size for f in frames]
     known = {(min(p.a, p.b), max(p.a, p.b)) for p in pairs}
-    poses = {id(part): part.chained for part in parts if len(part.frames) >= 3}
-    wanted = {id(part): [(a, b) for a, b, _ in overlap_candidates(part.frames, part.chained, sizes, known, config.overlap_min, config.overlap_per_frame)]
-              for part in parts if id(part) in poses}
+    # Priors and candidates come from Part.solved: the chain at first, then each round's solve.
+    wanted = {id(part): [(a, b) for a, b, _ in overlap_candidates(part.frames, part.solved, sizes, known, config.overlap_min, config.overlap_per_frame)]
+              for part in parts if len(part.frames) >= 3}
     results: dict[tuple[int, int], PairResult] = {}
     for round_number in range(LOOP_ROUNDS):
         requests, requested = [], []
         for part in parts:
             for a, b in wanted.get(id(part), []):
                 requested.append((a, b))
-                prior = geometry.invert(poses[id(part)][b]) @ poses[id(part)][a]
+                prior = geometry.invert(part.solved[b]) @ part.solved[a]
                 requests.append(PairRequest(a, b, "overlap", prior / prior[2, 2]))
         if not requests:
             break
@@ -660,12 +660,11 @@ def _close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult],
                 used = [p for p in [*pairs, *results.values()] if p.ok and p.a in members and p.b in members]
                 # From the previous round's solve, which the pairs it had already hold: nearer this round's answer
                 # than the drifted chain is.
-                poses[id(part)] = solve_part(part.reference, poses[id(part)], sizes, [pair_points(p, sizes[p.a], sizes[p.b]) for p in used], config.huber_px)
-                part.solved = poses[id(part)]  # the global solve starts from here too
+                part.solved = solve_part(part.reference, part.solved, sizes, [pair_points(p, sizes[p.a], sizes[p.b]) for p in used], config.huber_px)
                 # The solve also shows overlaps the drifted chain hid: a far partner (the next strip) for every frame
                 # that has none yet, one per frame and round, so the work stays about one pair per untied frame.
                 tied = {f for p in used if abs(p.b - p.a) > NEAR_IN_SEQUENCE for f in (p.a, p.b)}
-                found = [(a, b) for a, b, _ in overlap_candidates(part.frames, poses[id(part)], sizes, tried, config.overlap_min, 1)
+                found = [(a, b) for a, b, _ in overlap_candidates(part.frames, part.solved, sizes, tried, config.overlap_min, 1)
                          if b - a > NEAR_IN_SEQUENCE and not (a in tied and b in tied)]
                 wanted[id(part)] = [key for key in wanted[id(part)] if key in retry] + found
                 advance(1)

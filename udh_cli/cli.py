@@ -144,12 +144,12 @@ def _print_estimate(payload: dict) -> None:
 def train(
     data: Annotated[Optional[list[Path]], typer.Option("--data", "-d", help="Folder of images (synthetic pairs) or of a flight (consecutive frames). Repeat for more.")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Run folder: checkpoint.pt, best.pt, metrics.jsonl, config.json.")] = Path("runs/udh"),
-    mode: Annotated[str, typer.Option(help="unsupervised (photometric L1, no labels) or supervised (L2 on synthetic labels).")] = _TRAIN.mode,
-    arch: Annotated[Optional[str], typer.Option(help="Network: corr (CPU-friendly; the default, or --init's own), corr-global (corr with global matches, for flight motion), corr-lite (faster, slimmer), corr-fine (full-resolution refinement) or vgg-paper (the paper's 34 M network).")] = None,
+    mode: Annotated[str, typer.Option(help="unsupervised (photometric L1, no labels), supervised (L2 on synthetic labels) or match (the matcher's descriptors, from synthetic flight motion; with --motion flight).")] = _TRAIN.mode,
+    arch: Annotated[Optional[str], typer.Option(help="Network: corr (CPU-friendly; the default, or --init's own), corr-global (corr with global matches, for flight motion), corr-lite (faster, slimmer), corr-fine (full-resolution refinement), vgg-paper (the paper's 34 M network) or matcher (dense descriptors for global matching; --mode match).")] = None,
     rho: Annotated[float, typer.Option(help="Largest corner perturbation of synthetic pairs, px (paper: 16/32/45 for 85/75/65 % overlap).")] = _TRAIN.rho,
     steps: Annotated[Optional[int], typer.Option(help="Total optimiser steps (default 20000; with --resume, the run's own).")] = None,
     batch: Annotated[int, typer.Option(help="Pairs per step (per process under torchrun).")] = _TRAIN.batch,
-    lr: Annotated[Optional[float], typer.Option(help="Adam learning rate (default: the paper's, 1e-4 unsupervised, 5e-4 supervised).")] = None,
+    lr: Annotated[Optional[float], typer.Option(help="Adam learning rate (default: the paper's, 1e-4 unsupervised, 5e-4 supervised; 3e-4 match).")] = None,
     init: Annotated[Optional[str], typer.Option(help="Fine-tune from a checkpoint file or a shipped model (unsupervised, supervised).")] = None,
     teacher: Annotated[Optional[str], typer.Option(help="Distil from this checkpoint or shipped model (unsupervised mode): its answers join the loss, no labels.")] = None,
     teacher_weight: Annotated[float, typer.Option(help="Weight of the mean |offset - teacher's offset| (px) beside the photometric loss.")] = _TRAIN.teacher_weight,
@@ -168,6 +168,7 @@ def train(
     max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = _TRAIN.max_shift,
     min_overlap: Annotated[float, typer.Option(help="Flight motion: least share of B that A's view covers.")] = _TRAIN.min_overlap,
     residual: Annotated[float, typer.Option(help="Flight motion, a later round of the cascade: A pre-warped by an answer off by up to this many px (0: a first round).")] = _TRAIN.residual,
+    patch_size: Annotated[int, typer.Option(help="Network input side, px, a multiple of 32 (--mode match: the views' height; they are 4:3).")] = _TRAIN.patch_size,
     eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = _TRAIN.eval_every,
     seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = _TRAIN.seed,
     threads: Annotated[Optional[int], typer.Option(help="torch CPU threads (default: torch's choice).")] = None,
@@ -177,7 +178,7 @@ def train(
     from udh_cli.train.loop import TrainConfig, init_arch, train as run_training
 
     config = TrainConfig(
-        mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, real_fraction=real_fraction, source_side=source_side, arch=arch or init_arch(init), rho=rho, small_motion_fraction=small_motion,
+        mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, real_fraction=real_fraction, source_side=source_side, arch=arch or init_arch(init, mode), patch_size=patch_size, rho=rho, small_motion_fraction=small_motion,
         illumination=illumination, occluders=occluders, photometric=photometric, motion=motion, max_heading=max_heading, max_scale=max_scale,
         max_shift=max_shift, min_overlap=min_overlap, residual=residual, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
         checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),

@@ -13,6 +13,50 @@ from udh_cli.errors import UdhError
 MODEL_FORMAT = "udh-onnx-1"
 
 
+MATCHER_ARCH = "matcher"  # the metadata ``arch`` of a descriptor network (udh_cli.train.archs.DenseMatcher)
+
+
+def _open_udh_model(path: str | Path, device: str, threads: int | None) -> tuple[Path, object, int, float, float, dict[str, str]]:
+    """Open a udh ONNX file in onnxruntime and check its metadata: (path, session, input size, mean, std, metadata)."""
+    import onnxruntime as ort
+
+    path = Path(path)
+    if threads is not None and threads < 0:
+        raise UdhError(f"threads {threads!r}: give a positive number of CPU threads (0 or none: onnxruntime's choice)")
+    if not path.is_file():
+        raise UdhError(f"{path}: no such model file")
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    if threads:
+        options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    # Idle pool threads must sleep, not spin: an estimate interleaves each pass with NumPy and OpenCV
+    # work, and on 2 cores a spinning worker took a core from it (default cascade on 2 threads: 19.6-24.2
+    # ms spinning, 9.4-14.6 ms sleeping). Back-to-back passes alone lose a little (1.11 -> 1.23 ms).
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    try:
+        # QDQ propagation moves an int8 model's first quantize step above its first max-pool, which then
+        # runs on uint8 in NCHW, a slow kernel: 0.5 ms of a 1.6 ms pass (`udh quantize`). Off, the pool
+        # stays float32 and blocked (20 us). Float32 models have no QDQ nodes, so nothing changes for them.
+        session = ort.InferenceSession(str(path), sess_options=options, providers=providers_for(device),
+                                       disabled_optimizers=["QDQPropagationTransformer"])
+    except UdhError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - onnxruntime raises several private exception types
+        raise UdhError(f"{path}: not a loadable ONNX model ({type(exc).__name__}); give a file written by `udh export-onnx`") from None
+    metadata = dict(session.get_modelmeta().custom_metadata_map)
+    if metadata.get("udh_format") != MODEL_FORMAT:
+        raise UdhError(f"{path}: an ONNX model without udh metadata ({MODEL_FORMAT}); export it with `udh export-onnx`")
+    try:
+        size = int(metadata["input_size"])
+        mean, std = float(metadata["normalization_mean"]), float(metadata["normalization_std"])
+    except (KeyError, ValueError):
+        raise UdhError(f"{path}: the model's udh metadata is incomplete or malformed") from None
+    if not (math.isfinite(mean) and math.isfinite(std) and std > 0 and size >= 16):
+        raise UdhError(f"{path}: unusable metadata (input size {size}, mean {mean}, std {std})")
+    return path, session, size, mean, std, metadata
+
+
 def providers_for(device: str) -> list[str]:
     """onnxruntime execution providers for ``device``: auto (CUDA when present, else CPU), cpu or cuda."""
     import onnxruntime as ort
@@ -49,46 +93,14 @@ class OnnxHomographyModel:
     @classmethod
     def load(cls, path: str | Path, device: str = "auto", threads: int | None = None) -> "OnnxHomographyModel":
         """Open and check a udh ONNX model; raises :class:`UdhError` for a missing, corrupt or foreign file."""
-        import onnxruntime as ort
-
-        path = Path(path)
-        if threads is not None and threads < 0:
-            raise UdhError(f"threads {threads!r}: give a positive number of CPU threads (0 or none: onnxruntime's choice)")
-        if not path.is_file():
-            raise UdhError(f"{path}: no such model file")
-        options = ort.SessionOptions()
-        options.log_severity_level = 3
-        if threads:
-            options.intra_op_num_threads = threads
-        options.inter_op_num_threads = 1
-        # Idle pool threads must sleep, not spin: an estimate interleaves each pass with NumPy and OpenCV
-        # work, and on 2 cores a spinning worker took a core from it (default cascade on 2 threads: 19.6-24.2
-        # ms spinning, 9.4-14.6 ms sleeping). Back-to-back passes alone lose a little (1.11 -> 1.23 ms).
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        try:
-            # QDQ propagation moves an int8 model's first quantize step above its first max-pool, which then
-            # runs on uint8 in NCHW, a slow kernel: 0.5 ms of a 1.6 ms pass (`udh quantize`). Off, the pool
-            # stays float32 and blocked (20 us). Float32 models have no QDQ nodes, so nothing changes for them.
-            session = ort.InferenceSession(str(path), sess_options=options, providers=providers_for(device),
-                                           disabled_optimizers=["QDQPropagationTransformer"])
-        except UdhError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - onnxruntime raises several private exception types
-            raise UdhError(f"{path}: not a loadable ONNX model ({type(exc).__name__}); give a file written by `udh export-onnx`") from None
-        metadata = dict(session.get_modelmeta().custom_metadata_map)
-        if metadata.get("udh_format") != MODEL_FORMAT:
-            raise UdhError(f"{path}: an ONNX model without udh metadata ({MODEL_FORMAT}); export it with `udh export-onnx`")
-        try:
-            size = int(metadata["input_size"])
-            mean, std = float(metadata["normalization_mean"]), float(metadata["normalization_std"])
-        except (KeyError, ValueError):
-            raise UdhError(f"{path}: the model's udh metadata is incomplete or malformed") from None
+        path, session, size, mean, std, metadata = _open_udh_model(path, device, threads)
+        if metadata.get("arch") == MATCHER_ARCH:
+            raise UdhError(f"{path}: is a matcher (descriptors for global matching), not a homography network; "
+                           f"give it as the matcher (-O matcher_model=FILE)")
         inputs, outputs = session.get_inputs(), session.get_outputs()
         if (len(inputs) != 1 or list(inputs[0].shape[1:]) != [2, size, size] or len(outputs) != 1
                 or list(outputs[0].shape[1:]) != [4, 2]):
             raise UdhError(f"{path}: the graph's shapes do not fit its metadata (want (N,2,{size},{size}) -> (N,4,2))")
-        if not (math.isfinite(mean) and math.isfinite(std) and std > 0 and size >= 16):
-            raise UdhError(f"{path}: unusable metadata (input size {size}, mean {mean}, std {std})")
         return cls(path, session, size, mean, std, metadata)
 
     @property
@@ -110,6 +122,42 @@ class OnnxHomographyModel:
     def standardise(self, patches: np.ndarray) -> np.ndarray:
         """Grey patches in [0, 1] -> the float32 network input, standardised as in training."""
         return ((patches - self.mean) / self.std).astype(np.float32)
+
+
+@dataclass
+class OnnxMatcher:
+    """A ``matcher`` network: ``(N, 1, H, W)`` grey images -> ``(N, C, H/4, W/4)`` unit descriptors, any size
+    with H and W multiples of 4 (:mod:`udh_cli.estimators.matching` matches them).
+
+    Attributes:
+        path: the .onnx file. mean, std: the input standardisation it was trained with. metadata: as exported.
+    """
+
+    path: Path
+    session: object
+    mean: float
+    std: float
+    metadata: dict[str, str]
+
+    @classmethod
+    def load(cls, path: str | Path, device: str = "auto", threads: int | None = None) -> "OnnxMatcher":
+        """Open and check a matcher; raises :class:`UdhError` for a missing, corrupt or foreign file, or a
+        homography network given as a matcher."""
+        path, session, _, mean, std, metadata = _open_udh_model(path, device, threads)
+        inputs, outputs = session.get_inputs(), session.get_outputs()
+        if metadata.get("arch") != MATCHER_ARCH or len(inputs) != 1 or len(inputs[0].shape) != 4 or inputs[0].shape[1] != 1 \
+                or len(outputs) != 1 or len(outputs[0].shape) != 4:
+            raise UdhError(f"{path}: not a matcher (want arch '{MATCHER_ARCH}' and (N,1,H,W) -> (N,C,H/4,W/4)); "
+                           f"train one with `udh train --mode match`")
+        return cls(path, session, mean, std, metadata)
+
+    def describe(self, grey: np.ndarray) -> np.ndarray:
+        """(H, W) grey in [0, 1], H and W multiples of 4 -> (C, H/4, W/4) float32 unit descriptors."""
+        if grey.ndim != 2 or grey.shape[0] % 4 or grey.shape[1] % 4 or min(grey.shape) < 32:
+            raise UdhError(f"the matcher takes one grey image with sides multiples of 4 and at least 32 px, got {grey.shape}")
+        standardised = ((grey - self.mean) / self.std).astype(np.float32)[None, None]
+        name = self.session.get_inputs()[0].name
+        return self.session.run(None, {name: standardised})[0][0]
 
 
 def write_metadata(proto, metadata: dict[str, str]) -> None:

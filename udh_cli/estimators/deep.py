@@ -16,7 +16,8 @@ from udh_cli.flight_motion import PREWARP_BORDER
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.tiles import TileRefinement, refine_with_tiles
 from udh_cli.estimators.pair import PreparedPair
-from udh_cli.onnx_model import OnnxHomographyModel
+from udh_cli.onnx_model import OnnxHomographyModel, OnnxMatcher
+from udh_cli.estimators.matching import CONFIDENT_INLIERS, MATCH_SIDE, global_match
 from udh_cli.estimators.verify import Verifier
 
 
@@ -71,6 +72,14 @@ class DeepEstimator(Estimator):
         headings: 1 runs the network on B as given; 2 also on B turned half a turn, keeping the better-scoring
             answer. Why: a survey's strips alternate direction, and the flight network is trained for turns of
             up to 30 degrees; half a turn keeps the frame's shape (a quarter turn of a 4:3 frame would not).
+        matcher_model: a ``matcher`` network (``udh train --mode match``): for a doubted pair, its global match
+            (every 4-px cell of A against every cell of B at ``match_side`` px, mutual nearest neighbours, a
+            robust fit; :mod:`udh_cli.estimators.matching`) is tried before the search, and kept when the tile
+            stage confirms it better than the cascade's answer. It reaches any displacement, where the
+            regressing networks' whole-frame answer at 128 px is tens of px off on real flights with low
+            overlap or little texture. ``None`` takes the shipped ``<name>-matcher`` network when there is one
+            and the tile stage runs; ``""`` turns it off.
+        match_side: the longer side, px, at which the matcher describes frames.
         tiles: refine the answer on 128x128 tiles at finer levels up to full resolution with the last
             network of the cascade (:mod:`udh_cli.estimators.tiles`): the network alone is then sub-pixel
             at any frame size. None: on when the cascade has a refinement stage.
@@ -94,6 +103,8 @@ class DeepEstimator(Estimator):
     flight_model: str | None = None
     headings: int = 1
     tiles: bool | None = None
+    matcher_model: str | None = None
+    match_side: int = MATCH_SIDE
     batch_size: int = 64
     threads: int | None = None
     network: OnnxHomographyModel = field(init=False, repr=False)
@@ -101,6 +112,7 @@ class DeepEstimator(Estimator):
     first_stages: list[OnnxHomographyModel] = field(init=False, repr=False)  # the coarse networks whose cascades compete
     tile_network: OnnxHomographyModel = field(init=False, repr=False)  # the network of the tile stage
     tile_coarse_network: OnnxHomographyModel | None = field(init=False, repr=False)  # its coarse level's, if any
+    matcher: OnnxMatcher | None = field(init=False, repr=False)  # the global matcher, if any
 
     def __post_init__(self) -> None:
         from udh_cli.models_catalog import PRECISIONS, check_precision, has_shipped, shipped_onnx
@@ -153,6 +165,11 @@ class DeepEstimator(Estimator):
             self.first_stages.append(flight)
         if self.tiles is None:
             self.tiles = len(self.stages) > 1
+        if self.matcher_model is None and self.model is None and self.tiles and has_shipped(f"{self.name}-matcher", precision=None):
+            self.matcher_model = str(shipped_onnx(f"{self.name}-matcher", self.precision))
+        if not 64 <= self.match_side <= 2048:
+            raise UdhError(f"method '{self.name}': match_side ({self.match_side}) must be 64 to 2048 px")
+        self.matcher = OnnxMatcher.load(self.matcher_model, self.device, self.threads) if self.matcher_model else None
         if self.search is None:
             # Only with the tile stage: without it nothing but the 128-px score checks a searched answer, and a
             # translation alone can pass that (an untrained network on the example flight: 0.24 at 36 px off).
@@ -184,7 +201,8 @@ class DeepEstimator(Estimator):
     def _networks(self) -> list[OnnxHomographyModel]:
         """Every network this estimator runs (some more than once)."""
         tile_coarse = [self.tile_coarse_network] if self.tile_coarse_network is not None else []
-        return [*(network for network, _ in self.stages), *self.first_stages, self.tile_network, *tile_coarse]
+        matcher = [self.matcher] if self.matcher is not None else []
+        return [*(network for network, _ in self.stages), *self.first_stages, self.tile_network, *tile_coarse, *matcher]
 
     def rounds(self) -> list[OnnxHomographyModel]:
         """The network of every round of the cascade, in order."""
@@ -235,40 +253,68 @@ class DeepEstimator(Estimator):
         coarse = time.perf_counter()
         tiled = [self._tiles(pairs[i], small_h[i]) for i in range(len(pairs))] if self.tiles else [None] * len(pairs)
         tiles_done = time.perf_counter()
-        searched = [False] * len(pairs)
+        searched, matched = [False] * len(pairs), [None] * len(pairs)
         # Doubted: a low score, or (with tiles) an answer the tile levels did not confirm although the pair had
         # room for tiles, which on real flights meant a start too far off for the tiles: both are worth the
-        # large-motion search.
+        # global match and the large-motion search.
         doubtful = [i for i, score in enumerate(scores) if score < self.search_below or self._unconfirmed(tiled[i], pairs[i])]
+        if self.matcher is not None and doubtful:
+            for i in doubtful:
+                found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side)
+                if found.b_from_a is None:
+                    continue
+                h = geometry.rescale_homography(found.b_from_a, pairs[i].a.size, (s, s), pairs[i].b.size, (s, s))
+                score = self.score(small_a[i], small_b[i], h)
+                retiled = self._tiles(pairs[i], h) if self.tiles else None
+                # Tile levels first (they confirm precise answers), then a match many cells support over a
+                # cascade answer nothing confirmed, then the score.
+                confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
+                if (confirmed, found.inliers >= CONFIDENT_INLIERS, score) > (was_confirmed, False, scores[i]):
+                    small_h[i], scores[i], tiled[i], matched[i] = h, score, retiled, found
+            # A match many cells support needs no search; the search's answers are judged by score and tiles only.
+            doubtful = [i for i in doubtful if (scores[i] < self.search_below or self._unconfirmed(tiled[i], pairs[i]))
+                        and not (matched[i] is not None and matched[i].inliers >= CONFIDENT_INLIERS)]
+        matching_done = time.perf_counter()
         if self.search and doubtful:
             found, found_scores = self._search([pairs[i] for i in doubtful], small_a[doubtful], small_b[doubtful])
             for i, h, score in zip(doubtful, found, found_scores):
                 retiled = self._tiles(pairs[i], h) if self.tiles else None
                 confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
                 if (confirmed, score) > (was_confirmed, scores[i]):
-                    small_h[i], scores[i], tiled[i], searched[i] = h, score, retiled, True
+                    small_h[i], scores[i], tiled[i], searched[i], matched[i] = h, score, retiled, True, None
         finished = time.perf_counter()
         per_pair_ms = (finished - start) * 1e3 / len(pairs)
         stage_ms = {name: round((t1 - t0) * 1e3 / len(pairs), 2) for name, t0, t1 in
-                    (("prepare", start, prepared), ("network", prepared, coarse), ("tiles", coarse, tiles_done), ("search", tiles_done, finished))}
+                    (("prepare", start, prepared), ("network", prepared, coarse), ("tiles", coarse, tiles_done),
+                     ("match", tiles_done, matching_done), ("search", matching_done, finished))}
         precision = self.loaded_precision()
         out = []
-        for pair, h, confidence, was_searched, refined in zip(pairs, small_h, scores, searched, tiled):
+        for pair, h, confidence, was_searched, refined, match in zip(pairs, small_h, scores, searched, tiled, matched):
             full = self._full_resolution(h, pair)
             failure = None if full is not None else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
                        "precision": precision, "provider": self.network.provider, "stage_ms": stage_ms}
+            if match is not None:
+                details.update(matched=True, match_inliers=match.inliers, match_heading=match.heading)
             if full is not None and refined is not None:
                 full = refined.b_from_a
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
                                tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
-            stage = "tiles" if details.get("tile_levels") else "search" if was_searched else "network"
+            stage = "tiles" if details.get("tile_levels") else "search" if was_searched else "match" if match is not None else "network"
             # An answer the tile levels did not confirm, although the pair had room for tiles, is not verified
             # whatever its score: the search's best translation can score above the floor while tens of
             # pixels off (an untrained network on the example flight: 0.24 at 36 px), and a network-only
             # mosaic rejects it (pairs.Acceptance).
+            verified, verified_by = (False if self._unconfirmed(refined, pair) else None), None
+            if match is not None and verified is False and match.inliers >= CONFIDENT_INLIERS:
+                # The tiles could not confirm it (brighton-beach's trees defeat them even at the true answer), but
+                # hundreds of cells agree on it: verified by its matches, as RANSAC verifies SIFT's. Its
+                # confidence is then its support, not the 128-px score, which a pair overlapping by less than
+                # NETWORK_CHECK's 30 % cannot have (copr's frames across a gap in the files overlap by 17 %).
+                verified, verified_by = True, "matches"
+                confidence = max(confidence, match.inliers / (match.inliers + CONFIDENT_INLIERS))
             out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage,
-                                     verified=False if self._unconfirmed(refined, pair) else None))
+                                     verified=verified, verified_by=verified_by, inliers=match.inliers if match else None))
         return out
 
     def _unconfirmed(self, refined, pair: PreparedPair) -> bool:

@@ -13,7 +13,7 @@ Conventions: sizes are ``(width, height)`` in pixels, as in :mod:`udh_cli.geomet
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Union
+from typing import Any, Callable, Union
 
 import cv2
 import numpy as np
@@ -67,6 +67,12 @@ class PreparedImage:
         key = ("resized", size)
         if key not in self._cache:
             self._cache[key] = _read_only(cv2.resize(self.grey, size, interpolation=cv2.INTER_AREA))
+        return self._cache[key]
+
+    def derived(self, key: Any, make: "Callable[[], np.ndarray]") -> np.ndarray:
+        """A copy made once by ``make`` and kept read-only under ``key`` (e.g. a network's descriptors of it)."""
+        if key not in self._cache:
+            self._cache[key] = _read_only(make())
         return self._cache[key]
 
     def contrast(self, size: tuple[int, int], sigma: float) -> np.ndarray:

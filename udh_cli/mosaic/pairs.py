@@ -60,8 +60,8 @@ class Acceptance:
             return None, estimate.failure
         if estimate.confidence < self.min_confidence:
             return None, f"confidence {estimate.confidence:.2f} < {self.min_confidence}"
-        if verified_by_method:
-            return None, None
+        if verified_by_method or (estimate.verified and estimate.verified_by == "matches"):
+            return None, None  # RANSAC's support verified it (SIFT, ORB, a network's global match)
         if estimate.verified is False:  # the method itself could not confirm it (the networks' tile stage)
             return None, f"{estimate.method}: its answer is unconfirmed (for a network: its tile levels did not agree on it)"
         if self.min_verified <= 0:

@@ -179,13 +179,57 @@ class CorrelationNet(nn.Module):
         return self.head(self.regressor(volume)).view(-1, 4, 2) * OFFSET_SCALE
 
 
+class DenseMatcher(nn.Module):
+    """``matcher``: dense descriptors for global matching, the learned pipeline's answer to large motion.
+
+    The regressing networks see a whole frame squashed to 128x128 and predict 8 numbers; on real flights
+    with low overlap or little texture at that scale (brighton-beach's trees and lawns) their first answer
+    is 10-25 px off at 128 px, beyond what the tiles can pull in. This network instead describes every
+    4-px cell of a frame kept at its aspect (a few hundred px wide), and the estimator matches every cell
+    of A against every cell of B (mutual nearest neighbours, a robust fit): IHN/RAFT's global correlation
+    taken to its end, which reaches any displacement inside the frame. Features are per frame, so a mosaic
+    computes them once for every pair a frame is in.
+
+    Layout: ``corr``'s encoder (same layer names, so a trained ``corr`` initialises it; 1/4 resolution,
+    receptive field 26 px), then a residual context block of two dilated convolutions (dilation 2 and 4,
+    receptive field about 74 px) whose last batch norm starts at zero, so the block starts as the identity.
+
+    ``forward`` takes ``(N, 2, H, W)`` standardised grey pairs and returns ``(N, 2, C, H/4, W/4)`` unit
+    descriptors; :meth:`describe` does one ``(M, 1, H, W)`` stack of images. ``log_temperature`` scales the
+    cosine similarities into the matching loss's logits (learnt).
+    """
+
+    def __init__(self, encoder_widths: tuple[int, ...] = (16, 32, 64, 64)):
+        super().__init__()
+        e1, e2, e3, e4 = encoder_widths
+        self.encoder = nn.Sequential(_conv(1, e1), nn.MaxPool2d(2), _conv(e1, e2), nn.MaxPool2d(2), _conv(e2, e3), _conv(e3, e4))
+        self.context = nn.Sequential(
+            nn.Conv2d(e4, e4, 3, padding=2, dilation=2, bias=False), nn.BatchNorm2d(e4), nn.ReLU(inplace=True),
+            nn.Conv2d(e4, e4, 3, padding=4, dilation=4, bias=False), nn.BatchNorm2d(e4),
+        )
+        nn.init.zeros_(self.context[-1].weight)
+        self.log_temperature = nn.Parameter(torch.tensor(math.log(20.0)))
+
+    def describe(self, images: torch.Tensor) -> torch.Tensor:
+        """(M, 1, H, W) standardised grey -> (M, C, H/4, W/4) unit descriptors."""
+        features = self.encoder(images)
+        return F.normalize(features + self.context(features), dim=1)
+
+    def forward(self, patches: torch.Tensor) -> torch.Tensor:
+        n = patches.shape[0]
+        both = self.describe(torch.cat([patches[:, 0:1], patches[:, 1:2]], 0))
+        return torch.stack([both[:n], both[n:]], 1)
+
+
 ARCHS: dict[str, Callable[..., nn.Module]] = {
     "corr": CorrelationNet,
     "corr-lite": partial(CorrelationNet, encoder_widths=(16, 24, 32, 32), regressor_widths=(64, 96, 128), volume_kernel=1),
     "corr-global": partial(CorrelationNet, global_match=True),
     "corr-fine": partial(CorrelationNet, fine=True, radius=3, encoder_widths=(16, 32, 32, 32), regressor_widths=(64, 128, 128, 128)),
     "vgg-paper": PaperVGG,
+    "matcher": DenseMatcher,
 }
+MATCHERS = {"matcher"}  # architectures that describe cells for matching (``udh train --mode match``), not regress offsets
 
 
 def widen_from(model: nn.Module, state: dict[str, torch.Tensor]) -> list[str]:
@@ -224,4 +268,6 @@ def create_model(arch: str, patch_size: int = 128) -> nn.Module:
         raise UdhError(f"unknown architecture '{arch}'; choose one of: {', '.join(ARCHS)}")
     if patch_size % 32:
         raise UdhError(f"patch size {patch_size} must be a multiple of 32")
+    if arch in MATCHERS:
+        return ARCHS[arch]()
     return ARCHS[arch](patch_size=patch_size)

@@ -9,6 +9,8 @@ from udh_cli.flight_motion import MotionConfig
 
 DEFAULT_ARCH = "corr"  # the CPU-friendly network of udh_cli.train.archs
 PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learning rates
+# Default rates by --mode: the paper's, and for the matcher (a fine-tune of a trained encoder plus a new block).
+DEFAULT_LR = {**PAPER_LR, "match": 3e-4}
 MOTIONS = ("paper", "flight")
 PHOTOMETRIC_SPACES = ("intensity", "contrast")  # what the unsupervised loss compares (train.losses)
 DEFAULT_STEPS = 20000
@@ -20,7 +22,9 @@ class TrainConfig:
     """Everything that defines a run; stored in every checkpoint and in ``config.json``.
 
     Attributes:
-        mode: "unsupervised" (photometric L1, no labels) or "supervised" (L2 on the 4-point labels).
+        mode: "unsupervised" (photometric L1, no labels), "supervised" (L2 on the 4-point labels) or "match"
+            (the ``matcher`` descriptors, trained to find each cell's counterpart under synthetic flight motion;
+            views are ``patch_size`` high and 4:3).
         data: folders of images (synthetic pairs) or of flights (consecutive real frames), or both.
         data_kind: "auto" (flight folders are recognised by their manifest; pools and flights together
             are mixed), "pool" or "flight".
@@ -90,4 +94,4 @@ class TrainConfig:
     out: str = "runs/udh"
 
     def learning_rate(self) -> float:
-        return PAPER_LR[self.mode] if self.lr is None else self.lr
+        return DEFAULT_LR[self.mode] if self.lr is None else self.lr

@@ -18,7 +18,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.homography_files import homography_from_values, parse_numbers
-from udh_cli.flight_motion import make_motion_pairs, source_size
+from udh_cli.flight_motion import MotionConfig, make_flight_frames, make_motion_pairs, source_size
 from udh_cli.images import read_image, to_gray_u8
 from udh_cli.train.config import DEFAULT_REAL_FRACTION
 from udh_cli.synthetic import SOURCE_SIZE, PairConfig, illuminate, list_images, load_sources, make_pairs, split_holdout
@@ -222,6 +222,52 @@ class MixedData:
 
     def real_validation(self, size: int) -> Batch | None:
         return self.flight.validation(size)
+
+
+def match_view(patch_size: int) -> tuple[int, int]:
+    """(width, height) of the matching views for ``--patch-size`` P: P high, 4:3, the width a multiple of the
+    descriptor cell (4 px) so that cells tile the view exactly."""
+    return (patch_size * 4 // 3) // 4 * 4, patch_size
+
+
+class MatchData:
+    """Pairs of whole views with flight motion and their true homographies, for the ``matcher`` (``--mode match``).
+
+    Each pair is two views of a pool image (:func:`~udh_cli.flight_motion.make_flight_frames`: turns, scale
+    changes, low overlap, real-flight lighting) at the views' own 4:3 aspect, as the estimator shows a frame
+    to the matcher. The synthetic warp is the only label. Every 10th image is held out for validation.
+    ``offsets`` are the 4-point offsets of the true ``b_from_a`` in the views' pixels.
+    """
+
+    kind = "match"
+    has_labels = True
+
+    def __init__(self, folders: list[Path], config: PairConfig):
+        if config.motion is None:
+            raise UdhError("--mode match draws flight motion; add --motion flight")
+        paths = [p for folder in folders for p in (flight_frames(folder) if is_flight_folder(folder) else list_images([folder]))]
+        train_paths, held_out = split_holdout(sorted(paths))
+        if len(train_paths) < 2 or not held_out:
+            raise UdhError(f"found {len(paths)} images in {', '.join(map(str, folders))}; need at least 3 to train and hold one out")
+        self.view = match_view(config.patch_size)
+        self.motion: MotionConfig = config.motion
+        self.illumination = config.illumination
+        self.train = load_sources(train_paths, min_count=2, size_for=source_size)
+        self.held_out = load_sources(held_out, min_count=1, size_for=source_size)
+        self.description = f"{len(self.train)} images ({len(self.held_out)} held out), {self.view[0]}x{self.view[1]} views"
+
+    def _batch(self, sources: list[np.ndarray], size: int, rng: np.random.Generator) -> Batch:
+        frames_a, frames_b, truths = make_flight_frames(sources, size, self.motion, rng, self.view, self.illumination)
+        patches = np.stack([frames_a, frames_b], 1).astype(np.float32) / 255.0
+        offsets = geometry.offsets_from_homography(truths, *self.view).astype(np.float32)
+        empty = np.zeros((size, 1, 1, 1), np.float32)
+        return Batch(patches, offsets, empty, np.zeros((size, 2), np.float32), empty[:, 0])
+
+    def batch(self, rng: np.random.Generator, size: int, unsupervised: bool) -> Batch:  # noqa: ARG002 - one kind of batch
+        return self._batch(self.train, size, rng)
+
+    def validation(self, size: int, seed: int = 12345) -> Batch:
+        return self._batch(self.held_out, size, np.random.default_rng(seed))
 
 
 def half_turn_choices(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[bool]:

@@ -1,7 +1,10 @@
 """``udh export-onnx``: the CNN alone to ONNX, with the metadata the estimator needs, checked for parity.
 
 The DLT and rescaling run in the numpy geometry core at inference, so the graph is just the network:
-``patches (N, 2, S, S)`` standardised float32 -> ``offsets (N, 4, 2)`` pixels, with a dynamic batch.
+``patches (N, 2, S, S)`` standardised float32 -> ``offsets (N, 4, 2)`` pixels, with a dynamic batch. A
+``matcher`` exports its descriptor half instead: ``images (N, 1, H, W)`` -> ``descriptors (N, C, H/4, W/4)``,
+with dynamic batch and size (H and W multiples of 4); the matching runs in numpy
+(:mod:`udh_cli.estimators.matching`).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import torch
 from udh_cli.errors import UdhError
 from udh_cli.images import atomic_write_bytes, check_output_path
 from udh_cli.onnx_model import MODEL_FORMAT, write_metadata
-from udh_cli.train.archs import create_model
+from udh_cli.train.archs import MATCHERS, create_model
 from udh_cli.train.checkpoint import load_checkpoint
 
 OPSET = 18  # the torch.export-based exporter's lowest
@@ -99,7 +102,16 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
     except RuntimeError as exc:
         raise UdhError(f"{checkpoint}: the weights do not fit the '{state['config']['arch']}' architecture ({str(exc).splitlines()[0]})") from None
     model.eval()
-    dummy = torch.zeros(2, 2, size, size)
+    matcher = state["config"]["arch"] in MATCHERS
+    if matcher:
+        model = _Describer(model)
+        dummy = torch.zeros(2, 1, size, size * 4 // 3 // 4 * 4)
+        names, dims = ("images", "descriptors"), {0: torch.export.Dim("batch", min=1, max=64),
+                                                  2: 4 * torch.export.Dim("height4", min=8, max=1024),
+                                                  3: 4 * torch.export.Dim("width4", min=8, max=1024)}
+    else:
+        dummy = torch.zeros(2, 2, size, size)
+        names, dims = ("patches", "offsets"), {0: torch.export.Dim("batch", min=1, max=4096)}
     # The torch.export-based exporter (the current API; the TorchScript one is deprecated). Its own progress
     # lines and warnings about optional operator libraries (torchvision) are not the user's concern.
     exporter_log = logging.getLogger("torch.onnx")
@@ -108,9 +120,8 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
     try:
         with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
             warnings.simplefilter("ignore")
-            program = torch.onnx.export(model, (dummy,), dynamo=True, opset_version=OPSET, input_names=["patches"],
-                                        output_names=["offsets"], dynamic_shapes={"patches": {0: torch.export.Dim("batch", min=1, max=4096)}},
-                                        verbose=False)
+            program = torch.onnx.export(model, (dummy,), dynamo=True, opset_version=OPSET, input_names=[names[0]],
+                                        output_names=[names[1]], dynamic_shapes={names[0]: dims}, verbose=False)
     finally:
         exporter_log.setLevel(level)
     buffer = io.BytesIO(program.model_proto.SerializeToString())
@@ -122,20 +133,39 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
 
     # Parity: random inputs and (if given) real patches, standardised as the estimator will do.
     rng = np.random.default_rng(0)
-    inputs = rng.random((8, 2, size, size), dtype=np.float32)
-    if check_inputs is not None:
-        inputs = np.concatenate([inputs, _at_input_size(np.asarray(check_inputs, np.float32), size)])
     mean, std = state["normalization"]["mean"], state["normalization"]["std"]
-    standardised = ((inputs - mean) / std).astype(np.float32)
-    with torch.no_grad():
-        expected = model(torch.from_numpy(standardised)).numpy()
     session = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
-    got = session.run(None, {"patches": standardised})[0]
-    max_diff = float(np.abs(got - expected).max())
+    if matcher:  # two image sizes, since the graph's size is dynamic; real images are frames of any size
+        checks = [rng.random((2, 1, size, dummy.shape[-1]), dtype=np.float32), rng.random((1, 1, 96, 320), dtype=np.float32)]
+        if check_inputs is not None:
+            checks.append(np.asarray(check_inputs, np.float32)[:8, :1, : size // 4 * 4, : size // 4 * 4])
+    else:
+        inputs = rng.random((8, 2, size, size), dtype=np.float32)
+        if check_inputs is not None:
+            inputs = np.concatenate([inputs, _at_input_size(np.asarray(check_inputs, np.float32), size)])
+        checks = [inputs]
+    max_diff = 0.0
+    for inputs in checks:
+        standardised = ((inputs - mean) / std).astype(np.float32)
+        with torch.no_grad():
+            expected = model(torch.from_numpy(standardised)).numpy()
+        got = session.run(None, {names[0]: standardised})[0]
+        max_diff = max(max_diff, float(np.abs(got - expected).max()))
     if not max_diff < 1e-3:
-        raise UdhError(f"ONNX and torch disagree by {max_diff:.3g} px; the export is not trustworthy")
+        raise UdhError(f"ONNX and torch disagree by {max_diff:.3g} {'in a descriptor' if matcher else 'px'}; the export is not trustworthy")
     atomic_write_bytes(output, data)
     return {"path": str(output), "max_abs_diff": max_diff, "metadata": metadata}
+
+
+class _Describer(torch.nn.Module):
+    """A matcher's exported half: images to descriptors (:meth:`DenseMatcher.describe`)."""
+
+    def __init__(self, matcher: torch.nn.Module):
+        super().__init__()
+        self.matcher = matcher
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.matcher.describe(images)
 
 
 def _check_weights_fit(checkpoint: str | Path, state: dict[str, Any], size: int) -> None:

@@ -14,17 +14,20 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.synthetic import PairConfig
 from udh_cli.train import losses
 from udh_cli.flight_motion import MotionConfig
-from udh_cli.train.archs import create_model, widen_from
-from udh_cli.train.config import DEFAULT_ARCH, DEFAULT_STEPS, MOTIONS, PAPER_LR, PHOTOMETRIC_SPACES, TrainConfig
+from udh_cli.train.archs import MATCHERS, create_model, widen_from
+from udh_cli.train.config import DEFAULT_ARCH, DEFAULT_LR, DEFAULT_STEPS, MOTIONS, PHOTOMETRIC_SPACES, TrainConfig
 from udh_cli.train.checkpoint import load_checkpoint, save_checkpoint
-from udh_cli.train.data import Batch, open_data
+from udh_cli.train.data import Batch, MatchData, match_view, open_data
 
 # (from, to) architectures where --init widens the first regressor layer (new channels start at zero).
 WIDENINGS = {("corr", "corr-global")}
+# (from, to) architectures where --init takes the encoder only: a matcher starts from a trained network's encoder.
+ENCODER_INITS = {("corr", "matcher"), ("corr-global", "matcher")}
 
 
 def _distributed() -> tuple[int, int]:
@@ -54,9 +57,11 @@ def _standardise(patches: torch.Tensor, normalization: dict[str, float]) -> torc
     return (patches - normalization["mean"]) / normalization["std"]
 
 
-def init_arch(init: str | None) -> str:
-    """The architecture a run fine-tuning from ``init`` (a checkpoint or shipped name) has when none is asked
-    for: the checkpoint's own; :data:`DEFAULT_ARCH` without ``init``."""
+def init_arch(init: str | None, mode: str = "unsupervised") -> str:
+    """The architecture a run has when none is asked for: ``matcher`` for ``--mode match``; else the
+    checkpoint's own when fine-tuning from ``init`` (a checkpoint or shipped name), :data:`DEFAULT_ARCH` without."""
+    if mode == "match":
+        return "matcher"
     if not init:
         return DEFAULT_ARCH
     return str(load_checkpoint(resolve_init(init))["config"]["arch"])
@@ -77,8 +82,8 @@ class Trainer:
 
     def __init__(self, config: TrainConfig, resume: bool = False, threads: int | None = None, progress: bool = True,
                  overwrite: bool = False):
-        if config.mode not in PAPER_LR:
-            raise UdhError(f"unknown --mode '{config.mode}'; choose unsupervised or supervised")
+        if config.mode not in DEFAULT_LR:
+            raise UdhError(f"unknown --mode '{config.mode}'; choose unsupervised, supervised or match")
         if threads is not None and threads < 1:
             raise UdhError(f"--threads {threads}: give a positive number of CPU threads, or leave it out for torch's choice")
         self.rank, self.world = _distributed()
@@ -123,7 +128,10 @@ class Trainer:
             raise UdhError("no --data given; name one or more folders of images or flights")
         pair_config = PairConfig(config.patch_size, config.rho, config.small_motion_fraction, config.illumination, config.occluders,
                                  motion_config(config))
-        self.data = open_data([Path(d) for d in config.data], config.data_kind, pair_config, config.real_fraction, config.source_side)
+        if config.mode == "match":
+            self.data = MatchData([Path(d) for d in config.data], pair_config)
+        else:
+            self.data = open_data([Path(d) for d in config.data], config.data_kind, pair_config, config.real_fraction, config.source_side)
         if config.mode == "supervised" and not self.data.has_labels:
             raise UdhError("supervised training needs synthetic pairs from image pools; flights have no labels (use --mode unsupervised)")
         torch.manual_seed(config.seed)
@@ -139,10 +147,13 @@ class Trainer:
         elif config.init:
             init = load_checkpoint(resolve_init(config.init))
             widening = (init["config"]["arch"], config.arch) in WIDENINGS
-            if (init["config"]["arch"] != config.arch and not widening) or int(init["config"]["patch_size"]) != config.patch_size:
+            encoder_only = (init["config"]["arch"], config.arch) in ENCODER_INITS
+            if encoder_only:
+                _load_encoder(self.model, init, f"--init {config.init}")
+            elif (init["config"]["arch"] != config.arch and not widening) or int(init["config"]["patch_size"]) != config.patch_size:
                 raise UdhError(f"--init {config.init} is a {init['config']['arch']} network for {init['config']['patch_size']}px patches; "
                                f"pass --arch {init['config']['arch']}")
-            if widening:
+            elif widening:
                 widen_from(self.model, init["model"])
             else:
                 _load_weights(self.model, init, f"--init {config.init}")
@@ -240,6 +251,9 @@ class Trainer:
         return c.learning_rate() * (c.lr_final_fraction + (1 - c.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * progress)))
 
     def _loss(self, tensors: dict[str, torch.Tensor], offsets: torch.Tensor) -> torch.Tensor:
+        if self.config.mode == "match":  # ``offsets`` are the matcher's descriptors here
+            truth = geometry.homography_from_offsets(tensors["offsets"].double(), *match_view(self.config.patch_size))
+            return losses.match_loss(offsets, truth, self._bare_model().log_temperature)
         if self.config.mode == "supervised":
             return losses.supervised_loss(offsets, tensors["offsets"])
         loss = losses.photometric_loss(offsets, tensors["context_a"], tensors["origin"], tensors["clean_b"],
@@ -256,6 +270,8 @@ class Trainer:
         """Corner error on the fixed held-out set (MACE against the labels or the SIFT references); with
         mixed data also on the flights' held-out pairs, as ``val_real_*``."""
         found: dict[str, float] = {}
+        if self.config.mode == "match":
+            return self._evaluate_matcher()
         for prefix, batch in (("val", self.validation), ("val_real", self.real_validation)):
             if batch is None:
                 continue
@@ -269,6 +285,32 @@ class Trainer:
             found.update({f"{prefix}_mace_mean": float(errors.mean()), f"{prefix}_mace_median": float(np.median(errors)),
                           f"{prefix}_mace_p95": float(np.percentile(errors, 95)), f"{prefix}_identity_median": float(np.median(identity))})
         return found
+
+    def _evaluate_matcher(self) -> dict[str, float]:
+        """Corner error of the homography that the estimator's own matching (mutual nearest cells, a robust
+        fit; :mod:`udh_cli.estimators.matching`) finds from the descriptors, on the held-out views; a pair
+        without an answer counts as the identity."""
+        from udh_cli.estimators import matching
+
+        model = self._bare_model()
+        model.eval()
+        tensors = _to_tensors(self.validation, self.device)
+        width, height = match_view(self.config.patch_size)
+        errors, identity, matched = [], [], []
+        for patches, offsets in zip(tensors["patches"].split(32), tensors["offsets"].split(32)):
+            described = model(_standardise(patches, self.normalization)).cpu().numpy()
+            truths = geometry.homography_from_offsets(offsets.double().cpu().numpy(), width, height)
+            for (feat_a, feat_b), truth in zip(described, truths):
+                points_a, points_b, _ = matching.mutual_matches(feat_a, feat_b)
+                found, inliers = matching.fit_matches(points_a, points_b)
+                errors.append(float(geometry.mace(found if found is not None else np.eye(3), truth, width, height)))
+                identity.append(float(geometry.mace(np.eye(3), truth, width, height)))
+                matched.append(int(inliers.sum()))
+        model.train()
+        errors_array = np.array(errors)
+        return {"val_mace_mean": float(errors_array.mean()), "val_mace_median": float(np.median(errors_array)),
+                "val_mace_p95": float(np.percentile(errors_array, 95)), "val_identity_median": float(np.median(identity)),
+                "val_fail_10px": float(np.mean(errors_array > 10)), "val_inliers_median": float(np.median(matched))}
 
     def _log(self, record: dict[str, Any]) -> None:
         if self.rank != 0:
@@ -390,8 +432,25 @@ def _load_weights(model: torch.nn.Module, state: dict[str, Any], source: str) ->
         raise UdhError(f"{source}: its weights do not fit the {state['config']['arch']} network ({str(exc).splitlines()[0]})") from None
 
 
+def _load_encoder(model: torch.nn.Module, state: dict[str, Any], source: str) -> None:
+    """Load only the ``encoder.*`` weights of a checkpoint (a regressing network's) into ``model`` (a matcher)."""
+    encoder = {name: tensor for name, tensor in state["model"].items() if name.startswith("encoder.")}
+    try:
+        missing = [name for name in model.state_dict() if name.startswith("encoder.") and name not in encoder]
+        if missing:
+            raise RuntimeError(f"no weight for {missing[0]}")
+        model.load_state_dict(encoder, strict=False)
+    except RuntimeError as exc:
+        raise UdhError(f"{source}: its encoder does not fit the {type(model).__name__} ({str(exc).splitlines()[0]})") from None
+
+
 def _check_config(config: TrainConfig, out: Path) -> None:
     """Refuse settings that cannot train, and an output folder that cannot be written, before any work."""
+    if (config.mode == "match") != (config.arch in MATCHERS):
+        raise UdhError(f"--mode {config.mode} and --arch {config.arch} do not go together: --mode match trains "
+                       f"--arch {', '.join(sorted(MATCHERS))}, and only it")
+    if config.mode == "match" and config.teacher:
+        raise UdhError("--teacher distils a regressing network's offsets; --mode match has none")
     for name in ("steps", "batch", "eval_every", "checkpoint_every", "val_pairs", "patch_size"):
         if getattr(config, name) < 1:
             raise UdhError(f"--{name.replace('_', '-')} {getattr(config, name)}: must be at least 1")

@@ -1,4 +1,5 @@
-"""The two training objectives: the paper's unsupervised photometric loss and HomographyNet's L2 loss."""
+"""The training objectives: the paper's unsupervised photometric loss, HomographyNet's L2 loss, and the dense
+matching loss of the ``matcher`` descriptors."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import torch
 import torch.nn.functional as F
 
 from udh_cli import geometry
+from udh_cli.estimators import matching
+from udh_cli.estimators.matching import MATCH_CELL
 from udh_cli.train.config import PHOTOMETRIC_SPACES
 
 
@@ -125,3 +128,47 @@ def distillation_loss(offsets: torch.Tensor, teacher_offsets: torch.Tensor) -> t
 def corner_error(offsets: torch.Tensor, true_offsets: torch.Tensor) -> torch.Tensor:
     """(N,) mean corner distance in pixels; for a shared set of corners this is exactly MACE."""
     return (offsets - true_offsets).pow(2).sum(-1).sqrt().mean(-1)
+
+
+def cell_centres(height: int, width: int, like: torch.Tensor) -> torch.Tensor:
+    """(h * w, 2) centres (x, y) of a descriptor cell grid in input pixels, as :func:`udh_cli.estimators.matching.cell_centres`."""
+    return torch.as_tensor(matching.cell_centres(height, width), dtype=like.dtype)
+
+
+def _match_direction(from_features: torch.Tensor, to_features: torch.Tensor, to_from: torch.Tensor, scale: torch.Tensor,
+                     samples: int, generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cross-entropy of ``samples`` random cells of one view against every cell of the other: (sum, count)."""
+    n, c, h, w = from_features.shape
+    centres = cell_centres(h, w, to_from)
+    mapped = geometry.transform_points(to_from, centres.expand(n, -1, -1))  # N, hw, 2 in the other view's pixels
+    finite = torch.isfinite(mapped).all(-1)
+    cell = torch.floor(torch.nan_to_num(mapped, nan=-1.0, posinf=-1.0, neginf=-1.0) / MATCH_CELL)
+    inside = (cell[..., 0] >= 0) & (cell[..., 0] < w) & (cell[..., 1] >= 0) & (cell[..., 1] < h) & finite
+    target = (cell[..., 1].clamp(0, h - 1) * w + cell[..., 0].clamp(0, w - 1)).long()
+    # Only cells with a counterpart take part; a random subset of them keeps the logits (samples x hw) small.
+    weights = inside.to(from_features.dtype) + 1e-6
+    chosen = torch.multinomial(weights, samples, replacement=True, generator=generator)  # N, samples
+    valid = inside.gather(1, chosen).to(from_features.dtype)
+    queries = from_features.flatten(2).transpose(1, 2).gather(1, chosen.unsqueeze(-1).expand(-1, -1, c))  # N, samples, C
+    logits = scale * torch.bmm(queries, to_features.flatten(2))  # N, samples, hw
+    loss = F.cross_entropy(logits.reshape(-1, h * w), target.gather(1, chosen).reshape(-1), reduction="none")
+    return (loss * valid.reshape(-1)).sum(), valid.sum()
+
+
+def match_loss(features: torch.Tensor, b_from_a: torch.Tensor, log_temperature: torch.Tensor, samples: int = 256,
+               generator: torch.Generator | None = None) -> torch.Tensor:
+    """Dense matching loss of ``matcher`` descriptors: for cells of A that the true homography puts inside B,
+    the cross-entropy of finding their B cell among all of B's (an InfoNCE over the whole frame), and the
+    same from B to A.
+
+    Args:
+        features: (N, 2, C, h, w) unit descriptors of A and B (cells of 4 px).
+        b_from_a: (N, 3, 3) true homographies in the views' pixels (the synthetic warp: no human labels).
+        log_temperature: the similarities are multiplied by its exponential.
+        samples: cells drawn per pair and direction.
+    """
+    scale = log_temperature.exp()
+    h = b_from_a.to(features.dtype)
+    total_ab, count_ab = _match_direction(features[:, 0], features[:, 1], h, scale, samples, generator)
+    total_ba, count_ba = _match_direction(features[:, 1], features[:, 0], torch.linalg.inv(h), scale, samples, generator)
+    return (total_ab + total_ba) / (count_ab + count_ba).clamp_min(1.0)

@@ -300,3 +300,28 @@ def test_the_tiles_coarse_network_runs_only_the_tile_stage_coarse_level(tiny_onn
     # Without it the coarse network starts the tiles, as it starts the cascade.
     plain = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), flight_model="", device="cpu")
     assert plain.tile_coarse_network.path == tiny_onnx
+
+
+def test_a_doubted_pair_takes_the_global_match_and_a_confident_match_verifies_itself():
+    """A third of the frame of motion: without the search the cascade is lost; the matcher (here the block
+    descriptors of conftest, in place of a trained one) finds the shift, and its answer is marked verified by
+    its matches. The translation search is off so that only the matcher can rescue the pair."""
+    if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
+        pytest.skip("shipped unsupervised model not built yet")
+    from conftest import BlockDescriptors
+
+    scene = textured_image(700, 500, seed=12)
+    a = scene[100:356, 50:434]  # 384 x 256: described at its own size (match_side 384)
+    dx, dy = 128, 64
+    b = scene[100 + dy : 356 + dy, 50 + dx : 434 + dx]
+    truth = geometry.translation(-dx, -dy)
+    plain = create_estimator("unsupervised", device="cpu", flight_model="", search=0)
+    before = plain.estimate(a, b)
+    assert geometry.mace(before.homography, truth, 384, 256) > 20 and not before.details.get("matched")
+    plain.matcher = BlockDescriptors()
+    after = plain.estimate(a, b)
+    assert after.details["matched"] and after.details["match_inliers"] >= deep.CONFIDENT_INLIERS
+    assert geometry.mace(after.homography, truth, 384, 256) < 2.0
+    assert after.verified is not False and "match" in after.details["stage_ms"]
+    with pytest.raises(UdhError, match="match_side"):
+        create_estimator("unsupervised", device="cpu", match_side=10)

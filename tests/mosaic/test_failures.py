@@ -195,3 +195,23 @@ def test_an_answer_its_network_could_not_confirm_is_doubted_even_when_it_aligns(
     score, doubt = acceptance.judge(unconfirmed, a, b)
     assert score is None and "unconfirmed" in doubt and "tile levels" in doubt
     assert acceptance.judge(Estimate("auto", truth, 0.9, 1.0, verified=False), a, b, verified_by_method=True) == (None, None)
+
+
+def test_a_network_answer_its_global_match_verified_skips_the_photometric_check_as_sift_does():
+    """Hundreds of agreeing cell matches verify an answer (``verified_by`` "matches") as RANSAC verifies SIFT's:
+    brighton-beach's right answers score under the photometric floor. A wrong answer, so verified, would pass
+    too, which is why the estimator gives that mark only above CONFIDENT_INLIERS."""
+    from conftest import warped_pair
+    from udh_cli.estimators.base import Estimate
+    from udh_cli.mosaic.pairs import Acceptance
+
+    truth = geometry.translation(6.0, -4.0)
+    a, b = warped_pair(truth, seed=3)
+    wrong = geometry.translation(-30.0, 25.0)
+    acceptance = Acceptance()
+    score, doubt = acceptance.judge(Estimate("unsupervised", wrong, 0.9, 1.0), a, b)
+    assert "alignment check" in doubt  # unverified, a wrong answer fails the photometric check
+    matched = Estimate("unsupervised", wrong, 0.9, 1.0, verified=True, verified_by="matches", inliers=400)
+    assert acceptance.judge(matched, a, b) == (None, None)
+    low = Estimate("unsupervised", truth, 0.1, 1.0, verified=True, verified_by="matches", inliers=400)
+    assert "confidence" in acceptance.judge(low, a, b)[1]  # the confidence floor still applies

@@ -196,13 +196,13 @@ class DeepEstimator(Estimator):
         return found.pop() if len(found) == 1 else "mixed"
 
     def model_files(self) -> list[str]:
-        return sorted({str(network.path) for network in self._networks()})
+        matcher = [str(self.matcher.path)] if self.matcher is not None else []
+        return sorted({str(network.path) for network in self._networks()} | set(matcher))
 
     def _networks(self) -> list[OnnxHomographyModel]:
-        """Every network this estimator runs (some more than once)."""
+        """Every homography network this estimator runs (some more than once); the matcher is not one."""
         tile_coarse = [self.tile_coarse_network] if self.tile_coarse_network is not None else []
-        matcher = [self.matcher] if self.matcher is not None else []
-        return [*(network for network, _ in self.stages), *self.first_stages, self.tile_network, *tile_coarse, *matcher]
+        return [*(network for network, _ in self.stages), *self.first_stages, self.tile_network, *tile_coarse]
 
     def rounds(self) -> list[OnnxHomographyModel]:
         """The network of every round of the cascade, in order."""

@@ -1,0 +1,82 @@
+"""Global matching of dense descriptors (udh_cli.estimators.matching), with hand-made descriptors."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from conftest import BlockDescriptors, textured_image
+from udh_cli import geometry
+from udh_cli.estimators import matching
+from udh_cli.estimators.pair import PreparedImage
+
+
+def test_cell_centres_follow_the_pixel_centre_convention():
+    centres = matching.cell_centres(2, 3)
+    assert centres.shape == (6, 2)
+    np.testing.assert_allclose(centres[0], [1.5, 1.5])  # cell 0 covers pixels 0..3
+    np.testing.assert_allclose(centres[5], [9.5, 5.5])  # row-major: (x 2, y 1)
+
+
+def _unit(features: np.ndarray) -> np.ndarray:
+    return (features / (np.linalg.norm(features, axis=0, keepdims=True) + 1e-9)).astype(np.float32)
+
+
+def test_mutual_matches_find_a_shift_of_whole_cells():
+    rng = np.random.default_rng(0)
+    scene = _unit(rng.normal(size=(16, 20, 30)))
+    features_a, features_b = scene[:, 2:14, 3:23], scene[:, 5:17, 1:21]  # A's cell (x, y) is B's (x + 2, y - 3)
+    points_a, points_b, similarity = matching.mutual_matches(features_a, features_b)
+    exact = similarity > 0.9999
+    assert exact.sum() == 9 * 18  # every cell of the shared rows 5..13 and columns 3..20 of the scene
+    # The right cell every time; the sub-cell placement moves a match by at most half a cell (random
+    # descriptors have no smooth peak to place it by).
+    assert np.abs(points_b[exact] - points_a[exact] - [8.0, -12.0]).max() <= 2.0 + 1e-6
+    assert similarity[~exact].max() < 0.9  # the rest are chance pairs among cells only one side sees
+
+
+def test_the_peak_is_placed_between_cells_by_a_parabola():
+    # One query row against a 1 x 5 grid: similarity -(x - 2.3)^2 has its vertex 0.3 cells right of cell 2.
+    xs = np.arange(5.0)
+    similarity = (1.0 - (xs - 2.3) ** 2)[None].astype(np.float32)
+    offsets = matching._subcell(similarity, np.array([0]), np.array([2]), 1, 5)
+    np.testing.assert_allclose(offsets, [[0.3, 0.0]], atol=1e-6)
+    # At the grid's edge there is no neighbour on one side: no offset rather than a guess.
+    assert matching._subcell(similarity, np.array([0]), np.array([4]), 1, 5)[0, 0] == 0.0
+
+
+def test_the_robust_fit_recovers_a_homography_through_outliers_and_refuses_too_few():
+    rng = np.random.default_rng(1)
+    truth = np.array([[1.05, 0.02, 12.0], [-0.03, 0.98, -7.0], [1e-4, -5e-5, 1.0]])
+    points_a = rng.uniform(0, 300, (200, 2))
+    points_b = geometry.transform_points(truth, points_a) + rng.normal(0, 0.3, (200, 2))
+    points_b[:60] = rng.uniform(0, 300, (60, 2))  # 30 % wrong matches
+    found, inliers = matching.fit_matches(points_a, points_b)
+    assert found is not None and inliers[60:].mean() > 0.95 and inliers[:60].mean() < 0.1
+    assert geometry.mace(found, truth, 320, 240) < 0.5
+    assert matching.fit_matches(points_a[:5], points_b[:5])[0] is None
+
+
+def test_a_global_match_recovers_a_large_shift_and_a_half_turn_in_full_resolution_pixels():
+    scene = textured_image(400, 300, seed=3).astype(np.float32) / 255
+    a = PreparedImage.of(scene[20:212, 24:280])  # 256 x 192
+    shifted = PreparedImage.of(scene[84:276, 120:376])  # B sees A's content moved by (-96, -64): a third of the frame
+    found = matching.global_match(BlockDescriptors(), a, shifted, side=256)
+    assert found.heading == 0 and found.inliers >= matching.CONFIDENT_INLIERS
+    assert geometry.mace(found.b_from_a, geometry.translation(-96, -64), 256, 192) < 0.5
+    turned = PreparedImage.of(np.ascontiguousarray(scene[84:276, 120:376][::-1, ::-1]))
+    found = matching.global_match(BlockDescriptors(), a, turned, side=256)
+    half_turn = np.array([[-1.0, 0, 255], [0, -1.0, 191], [0, 0, 1]])
+    assert found.heading == 180
+    assert geometry.mace(found.b_from_a, half_turn @ geometry.translation(-96, -64), 256, 192) < 0.5
+    # Described at a smaller side, the answer is still in the images' own pixels.
+    found = matching.global_match(BlockDescriptors(), a, shifted, side=128)
+    assert geometry.mace(found.b_from_a, geometry.translation(-96, -64), 256, 192) < 4.0
+    # Descriptors are made once per image and size: the second match of the same frames reuses them.
+    assert any(isinstance(key, tuple) and key[0] == "descriptors" for key in a._cache)
+
+
+def test_unrelated_images_give_no_confident_match():
+    a = PreparedImage.of(textured_image(256, 192, seed=4))
+    b = PreparedImage.of(textured_image(256, 192, seed=5))
+    found = matching.global_match(BlockDescriptors(), a, b, side=256)
+    assert found.inliers < matching.CONFIDENT_INLIERS

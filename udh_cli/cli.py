@@ -86,6 +86,7 @@ def estimate(
     headings: Annotated[Optional[int], typer.Option(min=1, max=2, help="Learned methods: 2 also tries B turned half a turn (unsupervised's default), 1 only B as given.")] = None,
     tiles: Annotated[Optional[bool], typer.Option("--tiles/--no-tiles", help="Learned methods: refine on tiles up to full resolution (on when there is a refinement stage).")] = None,
     flight_model: Annotated[Optional[str], typer.Option(help="Learned methods: the flight-motion coarse network beside the first (default: the shipped one; 'none' for none).")] = None,
+    matcher_model: Annotated[Optional[str], typer.Option(help="Learned methods: the matcher whose global match a doubted answer gets (default: the shipped one with the tile stage; 'none' for none).")] = None,
     work_size: Annotated[int, typer.Option(help="Estimate with the images' longer side shrunk to this many pixels; the answer is in full-resolution pixels.")] = ESTIMATE_WORK_SIZE,
     full_resolution: Annotated[bool, typer.Option("--full-resolution", help="Estimate at the images' full resolution (slow and memory-hungry on large photos).", metavar="")] = False,
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
@@ -99,7 +100,8 @@ def estimate(
     given = {"best_features": best_features, "model": None if model is None else str(model), "device": device, "iterations": iterations,
              "refine_model": None if refine_model is None else str(refine_model), "refine_rounds": refine_rounds, "search": search,
              "precision": precision, "headings": headings, "tiles": tiles,
-             "flight_model": None if flight_model is None else ("" if flight_model.lower() == "none" else flight_model)}
+             "flight_model": None if flight_model is None else ("" if flight_model.lower() == "none" else flight_model),
+             "matcher_model": None if matcher_model is None else ("" if matcher_model.lower() == "none" else matcher_model)}
     try:
         options = {**parse_method_options(option, [method.value]).get(method.value, {}),
                    **{key: value for key, value in given.items() if value is not None}}

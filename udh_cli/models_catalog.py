@@ -16,6 +16,7 @@ SHIPPED_MODELS = {
     "unsupervised": "udh-unsupervised",
     "unsupervised-refine": "udh-unsupervised-refine",  # the fine stage run after the coarse one
     "unsupervised-flight": "udh-unsupervised-flight",  # a second coarse stage, for whole frames with flight motion
+    "unsupervised-matcher": "udh-unsupervised-matcher",  # dense descriptors for the global match of doubted pairs
     "supervised": "udh-supervised",
 }
 # int8 copies (`udh quantize`) of some of them, for inference only: the default where shipped (DeepEstimator)
@@ -87,7 +88,8 @@ def shipped_onnx(name: str, precision: str | None = "fp32") -> Path:
 
 # Shipped networks whose weights for fine-tuning are their training run's resumable checkpoint (which holds
 # them) rather than a separate .pt: one file instead of two keeps models/ under 50 MB.
-SHIPPED_RUNS = {"unsupervised-flight": "training/unsupervised-flight/checkpoint.pt"}
+SHIPPED_RUNS = {"unsupervised-flight": "training/unsupervised-flight/checkpoint.pt",
+                "unsupervised-matcher": "training/unsupervised-matcher/checkpoint.pt"}
 
 
 def shipped_checkpoint(name: str) -> Path:

@@ -35,13 +35,15 @@ def test_mutual_matches_find_a_shift_of_whole_cells():
 
 
 def test_the_peak_is_placed_between_cells_by_a_parabola():
-    # One query row against a 1 x 5 grid: similarity -(x - 2.3)^2 has its vertex 0.3 cells right of cell 2.
+    # One query against a 1 x 5 grid of 2-d descriptors whose similarity with it is 1 - (x - 2.3)^2 / 20.
     xs = np.arange(5.0)
-    similarity = (1.0 - (xs - 2.3) ** 2)[None].astype(np.float32)
-    offsets = matching._subcell(similarity, np.array([0]), np.array([2]), 1, 5)
+    similarity = 1.0 - (xs - 2.3) ** 2 / 20
+    columns = np.stack([similarity, np.sqrt(1 - similarity**2)], 1)
+    query = np.array([[1.0, 0.0]])
+    offsets = matching._subcell(query, columns, np.array([2]), 1, 5)
     np.testing.assert_allclose(offsets, [[0.3, 0.0]], atol=1e-6)
     # At the grid's edge there is no neighbour on one side: no offset rather than a guess.
-    assert matching._subcell(similarity, np.array([0]), np.array([4]), 1, 5)[0, 0] == 0.0
+    assert matching._subcell(query, columns, np.array([4]), 1, 5)[0, 0] == 0.0
 
 
 def test_the_robust_fit_recovers_a_homography_through_outliers_and_refuses_too_few():
@@ -80,3 +82,21 @@ def test_unrelated_images_give_no_confident_match():
     b = PreparedImage.of(textured_image(256, 192, seed=5))
     found = matching.global_match(BlockDescriptors(), a, b, side=256)
     assert found.inliers < matching.CONFIDENT_INLIERS
+
+
+def test_guided_matching_corrects_an_answer_a_few_pixels_off_within_its_window():
+    scene = textured_image(400, 300, seed=6).astype(np.float32) / 255
+    a, b = scene[20:212, 24:280], scene[60:252, 80:336]  # B sees A's content moved by (-56, -40)
+    features_a, features_b = BlockDescriptors().describe(a), BlockDescriptors().describe(b)
+    truth = geometry.translation(-56, -40)
+    off = geometry.translation(-56 + 5, -40 - 3)  # a first answer 5 and 3 px off: about a cell
+    points_a, points_b = matching.guided_matches(features_a, features_b, off, radius=2)
+    assert len(points_a) > 1000
+    found, inliers = matching.fit_matches(points_a, points_b, matching.GUIDED_THRESHOLD_PX)
+    assert geometry.mace(found, truth, 256, 192) < 1.0 < 5.0 < geometry.mace(off, truth, 256, 192)
+    # The refinement runs inside global_match at a larger side and keeps the first match's inliers.
+    image_a, image_b = PreparedImage.of(a), PreparedImage.of(b)
+    coarse = matching.global_match(BlockDescriptors(), image_a, image_b, side=128)
+    refined = matching.global_match(BlockDescriptors(), image_a, image_b, side=128, refine_side=256)
+    assert refined.inliers == coarse.inliers
+    assert geometry.mace(refined.b_from_a, truth, 256, 192) < 1.0

@@ -17,7 +17,7 @@ from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.tiles import TileRefinement, refine_with_tiles
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.onnx_model import OnnxHomographyModel, OnnxMatcher
-from udh_cli.estimators.matching import CONFIDENT_INLIERS, MATCH_SIDE, global_match
+from udh_cli.estimators.matching import CONFIDENT_INLIERS, MATCH_REFINE_SIDE, MATCH_SIDE, global_match
 from udh_cli.estimators.verify import Verifier
 
 
@@ -79,7 +79,9 @@ class DeepEstimator(Estimator):
             regressing networks' whole-frame answer at 128 px is tens of px off on real flights with low
             overlap or little texture. ``None`` takes the shipped ``<name>-matcher`` network when there is one
             and the tile stage runs; ``""`` turns it off.
-        match_side: the longer side, px, at which the matcher describes frames.
+        match_side: the longer side, px, at which the matcher describes frames for the global match.
+        match_refine_side: the longer side, px, at which the global match is refined by guided matching
+            (:func:`~udh_cli.estimators.matching.guided_matches`); ``None``: not refined.
         tiles: refine the answer on 128x128 tiles at finer levels up to full resolution with the last
             network of the cascade (:mod:`udh_cli.estimators.tiles`): the network alone is then sub-pixel
             at any frame size. None: on when the cascade has a refinement stage.
@@ -105,6 +107,7 @@ class DeepEstimator(Estimator):
     tiles: bool | None = None
     matcher_model: str | None = None
     match_side: int = MATCH_SIDE
+    match_refine_side: int | None = MATCH_REFINE_SIDE
     batch_size: int = 64
     threads: int | None = None
     network: OnnxHomographyModel = field(init=False, repr=False)
@@ -167,8 +170,9 @@ class DeepEstimator(Estimator):
             self.tiles = len(self.stages) > 1
         if self.matcher_model is None and self.model is None and self.tiles and has_shipped(f"{self.name}-matcher", precision=None):
             self.matcher_model = str(shipped_onnx(f"{self.name}-matcher", self.precision))
-        if not 64 <= self.match_side <= 2048:
-            raise UdhError(f"method '{self.name}': match_side ({self.match_side}) must be 64 to 2048 px")
+        if not 64 <= self.match_side <= 2048 or not (self.match_refine_side is None or 64 <= self.match_refine_side <= 4096):
+            raise UdhError(f"method '{self.name}': match_side ({self.match_side}) must be 64 to 2048 px and match_refine_side "
+                           f"({self.match_refine_side}) 64 to 4096 px or none")
         self.matcher = OnnxMatcher.load(self.matcher_model, self.device, self.threads) if self.matcher_model else None
         if self.search is None:
             # Only with the tile stage: without it nothing but the 128-px score checks a searched answer, and a
@@ -260,7 +264,7 @@ class DeepEstimator(Estimator):
         doubtful = [i for i, score in enumerate(scores) if score < self.search_below or self._unconfirmed(tiled[i], pairs[i])]
         if self.matcher is not None and doubtful:
             for i in doubtful:
-                found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side)
+                found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side, refine_side=self.match_refine_side)
                 if found.b_from_a is None:
                     continue
                 h = geometry.rescale_homography(found.b_from_a, pairs[i].a.size, (s, s), pairs[i].b.size, (s, s))

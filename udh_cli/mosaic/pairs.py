@@ -46,7 +46,8 @@ class Acceptance:
 
     An answer its own method marks unconfirmed (``Estimate.verified`` False: a network's tile levels did not
     confirm it) is doubted whatever these say, unless the method verifies itself (``auto`` keeps its best
-    unconfirmed answer and says so). Why: in a network-only mosaic of seneca 46 of the 75 pairs accepted
+    unconfirmed answer and says so). An answer verified by its matches (``verified_by`` "matches": a network's
+    global match that hundreds of cells support) skips the photometric check, as SIFT's RANSAC-verified ones do. Why: in a network-only mosaic of seneca 46 of the 75 pairs accepted
     without this were over 20 px off (against ``auto``'s), with it 1 of 28 (docs/mosaic.md, 2026-11-25).
     """
 

@@ -100,3 +100,20 @@ def test_guided_matching_corrects_an_answer_a_few_pixels_off_within_its_window()
     refined = matching.global_match(BlockDescriptors(), image_a, image_b, side=128, refine_side=256)
     assert refined.inliers == coarse.inliers
     assert geometry.mace(refined.b_from_a, truth, 256, 192) < 1.0
+
+
+def test_quarter_turns_are_tried_when_asked_and_undone_exactly():
+    scene = textured_image(400, 400, seed=7).astype(np.float32) / 255
+    a = PreparedImage.of(scene[40:232, 40:296])  # 256 x 192
+    b_view = scene[72:264, 88:344]  # A's content moved by (-48, -32)
+    for k in (1, 3):  # B is A's view turned by 90 k degrees; the matcher turns it back by the rest of a turn
+        turned = PreparedImage.of(np.ascontiguousarray(np.rot90(b_view, k)))  # 192 x 256
+        truth = matching._to_described((256, 192), (256, 192), 90 * k) @ geometry.translation(-48, -32)
+        heading = 360 - 90 * k
+        assert matching.global_match(BlockDescriptors(), a, turned, side=256).inliers < matching.CONFIDENT_INLIERS
+        found = matching.global_match(BlockDescriptors(), a, turned, side=256, headings=4)
+        assert found.heading == heading and geometry.mace(found.b_from_a, truth, 256, 192) < 0.5
+    # The turn matrix is np.rot90's: a marked pixel lands where the matrix says.
+    image = np.zeros((3, 5)); image[1, 4] = 1
+    x, y = geometry.transform_points(matching._to_described((5, 3), (5, 3), 90), np.array([[4.0, 1.0]]))[0]
+    assert np.rot90(image, 1)[int(round(y)), int(round(x))] == 1

@@ -25,6 +25,9 @@ DEFAULT_ITERATIONS = 2  # coarse rounds
 DEFAULT_REFINE_ROUNDS = 2  # measured on the held-out rho-32 bench (models/README.md)
 SEARCH_FINALISTS = 3  # large-motion search: hypotheses of a pair that get the whole cascade after screening
 PIPELINE_SEARCH = 2  # the search of the whole learned pipeline (unsupervised with its tile stage): 24 shifts
+# B's turns the global match tries (matching.HEADINGS): half turns for a survey's alternating strips, then quarter
+# turns for a strip's end, each only while no turn has found enough agreeing cells.
+MATCH_HEADINGS = 4
 # How the networks judge their own answers, on their S x S input (Verifier.score_grey, at the size given): the
 # one Verifier, whole (a tile of a 4 x 4 grid at 128 px holds too few pixels to correlate) and with at least
 # 30 % overlap: the check that the heading choice, the search and its search_below were tuned with.
@@ -264,7 +267,7 @@ class DeepEstimator(Estimator):
         doubtful = [i for i, score in enumerate(scores) if score < self.search_below or self._unconfirmed(tiled[i], pairs[i])]
         if self.matcher is not None and doubtful:
             for i in doubtful:
-                found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side, refine_side=self.match_refine_side)
+                found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side, MATCH_HEADINGS, self.match_refine_side)
                 if found.b_from_a is None:
                     continue
                 h = geometry.rescale_homography(found.b_from_a, pairs[i].a.size, (s, s), pairs[i].b.size, (s, s))
@@ -310,11 +313,12 @@ class DeepEstimator(Estimator):
             # pixels off (an untrained network on the example flight: 0.24 at 36 px), and a network-only
             # mosaic rejects it (pairs.Acceptance).
             verified, verified_by = (False if self._unconfirmed(refined, pair) else None), None
-            if match is not None and verified is False and match.inliers >= CONFIDENT_INLIERS:
-                # The tiles could not confirm it (brighton-beach's trees defeat them even at the true answer), but
-                # hundreds of cells agree on it: verified by its matches, as RANSAC verifies SIFT's. Its
-                # confidence is then its support, not the 128-px score, which a pair overlapping by less than
-                # NETWORK_CHECK's 30 % cannot have (copr's frames across a gap in the files overlap by 17 %).
+            if match is not None and match.inliers >= CONFIDENT_INLIERS:
+                # Hundreds of cells agree on it: verified by its matches, as RANSAC verifies SIFT's, whether or
+                # not the tiles confirmed it (brighton-beach's trees defeat them even at the true answer). Its
+                # confidence is then its support too, not only the 128-px score, which a pair overlapping by less
+                # than NETWORK_CHECK's 30 % cannot have (copr's frames across a gap in the files overlap by 17 %)
+                # and seneca's infrared fields rarely reach.
                 verified, verified_by = True, "matches"
                 confidence = max(confidence, match.inliers / (match.inliers + CONFIDENT_INLIERS))
             out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage,

@@ -25,6 +25,7 @@ GUIDED_THRESHOLD_PX = 4.0  # the guided fit's inlier threshold: a cell
 # SIFT's answers. With an untrained encoder, on consecutive pairs of copr, brighton-beach and seneca: right
 # answers had 185-4,000 inliers, pairs of frames six or more apart (no shared ground) 0-65 (one 151).
 CONFIDENT_INLIERS = 150
+HEADINGS = {1: (0,), 2: (0, 180), 4: (0, 180, 90, 270)}  # B's turns global_match tries, in order, by ``headings``
 
 
 def cell_centres(height: int, width: int) -> np.ndarray:
@@ -121,7 +122,7 @@ MATCH_REFINE_SIDE = 640
 @dataclass
 class MatchResult:
     """A global match: ``b_from_a`` (3, 3) in the full images' pixels (None: no answer), its inliers and the
-    mutual matches it was fitted to, and the heading of B that won (0 or 180 degrees)."""
+    mutual matches it was fitted to, and the turn of B that won (degrees counter-clockwise: 0, 90, 180, 270)."""
 
     b_from_a: np.ndarray | None
     inliers: int
@@ -140,16 +141,19 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
     (:class:`~udh_cli.onnx_model.OnnxMatcher`): describe both at ``side`` px (once per image, kept with it),
     take mutual nearest cells and fit a homography robustly. ``headings`` 2 also matches B turned half a turn
     and keeps the heading with more inliers (a survey's strips alternate direction; the descriptors are
-    trained for turns up to 45 degrees). ``refine_side``: describe both again at that larger side and match
+    trained for turns up to 45 degrees); 4 also quarter turns (a turn at a strip's end), each tried only
+    while no heading has :data:`CONFIDENT_INLIERS`. ``refine_side``: describe both again at that larger side and match
     every cell of A near where the first answer puts it (:func:`guided_matches`) for a finer fit; the
     result keeps the first match's inliers, the evidence that it is the right place."""
     size_a, size_b = match_size(image_a.size, side), match_size(image_b.size, side)
-    features_a = _described(network, image_a, size_a, turned=False)
+    features_a = _described(network, image_a, size_a, 0)
     best = MatchResult(None, 0, 0, 0)
-    for heading in ((0, 180) if headings == 2 else (0,)):
+    if headings not in HEADINGS:
+        raise ValueError(f"headings must be one of {sorted(HEADINGS)}, not {headings!r}")
+    for heading in HEADINGS[headings]:
         if best.inliers >= CONFIDENT_INLIERS:
             break
-        features_b = _described(network, image_b, size_b, turned=heading == 180)
+        features_b = _described(network, image_b, size_b, heading)
         points_a, points_b, _ = mutual_matches(features_a, features_b)
         found, inliers = fit_matches(points_a, points_b)
         if found is None or inliers.sum() <= best.inliers:
@@ -164,20 +168,22 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
 
 
 def _to_described(size: tuple[int, int], described: tuple[int, int], heading: int) -> np.ndarray:
-    """(3, 3) from an image's pixels to those of its copy resized to ``described`` and turned by ``heading``."""
-    resize = geometry.resize_matrix(size, described)
-    if heading != 180:
-        return resize
+    """(3, 3) from an image's pixels to those of its copy resized to ``described`` and turned by ``heading``
+    degrees counter-clockwise (``np.rot90`` with k = heading / 90)."""
+    out = geometry.resize_matrix(size, described)
     w, h = described
-    return np.array([[-1.0, 0, w - 1], [0, -1.0, h - 1], [0, 0, 1]]) @ resize  # (x, y) -> (w-1-x, h-1-y)
+    for _ in range(heading // 90 % 4):  # np.rot90 once: (x, y) of a w-wide image -> (y, w - 1 - x)
+        out = np.array([[0.0, 1, 0], [-1.0, 0, w - 1], [0, 0, 1]]) @ out
+        w, h = h, w
+    return out
 
 
 def _refined(network, image_a, image_b, coarse: MatchResult, side: int) -> np.ndarray | None:
     """``coarse.b_from_a`` refitted to guided matches of descriptors at ``side`` px; None when too few agree."""
     size_a, size_b = match_size(image_a.size, side), match_size(image_b.size, side)
     a_to, b_to = _to_described(image_a.size, size_a, 0), _to_described(image_b.size, size_b, coarse.heading)
-    features_a = _described(network, image_a, size_a, turned=False)
-    features_b = _described(network, image_b, size_b, turned=coarse.heading == 180)
+    features_a = _described(network, image_a, size_a, 0)
+    features_b = _described(network, image_b, size_b, coarse.heading)
     predicted = b_to @ coarse.b_from_a @ np.linalg.inv(a_to)
     points_a, points_b = guided_matches(features_a, features_b, predicted)
     found, _ = fit_matches(points_a, points_b, GUIDED_THRESHOLD_PX)
@@ -217,10 +223,11 @@ def guided_matches(features_a: np.ndarray, features_b: np.ndarray, b_from_a: np.
     return centres[rows], points_b
 
 
-def _described(network, image, size: tuple[int, int], turned: bool) -> np.ndarray:
-    """The matcher's descriptors of ``image`` at ``size`` (turned half a turn or not), made once per image."""
+def _described(network, image, size: tuple[int, int], heading: int) -> np.ndarray:
+    """The matcher's descriptors of ``image`` at ``size``, turned by ``heading`` degrees counter-clockwise
+    (:func:`_to_described`), made once per image."""
     def make() -> np.ndarray:
         grey = image.resized(size)
-        return network.describe(np.ascontiguousarray(grey[::-1, ::-1]) if turned else grey)
+        return network.describe(np.ascontiguousarray(np.rot90(grey, heading // 90 % 4)))
 
-    return image.derived(("descriptors", str(network.path), size, turned), make)
+    return image.derived(("descriptors", str(network.path), size, heading), make)

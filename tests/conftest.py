@@ -46,6 +46,15 @@ def warped_pair(b_from_a: np.ndarray, width: int = 320, height: int = 240, seed:
     return image_a, image_b
 
 
+@pytest.fixture(scope="module")
+def pool(tmp_path_factory) -> Path:
+    """A folder of 12 textured images the test makes itself (one in ten is held out by the split): training data."""
+    folder = tmp_path_factory.mktemp("pool")
+    for i in range(12):
+        cv2.imwrite(str(folder / f"img{i:02d}.png"), textured_image(320, 240, seed=100 + i))
+    return folder
+
+
 @pytest.fixture
 def shared_data() -> Path:
     """The real data at ../shared/data next to the repository; skips the test when it is absent."""

@@ -4,13 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
 
-from conftest import textured_image  # noqa: E402
 from udh_cli import geometry  # noqa: E402
 from udh_cli.errors import UdhError  # noqa: E402
 from udh_cli.onnx_model import OnnxHomographyModel, OnnxMatcher  # noqa: E402
@@ -20,14 +18,6 @@ from udh_cli.train.checkpoint import load_checkpoint  # noqa: E402
 from udh_cli.train.data import match_view  # noqa: E402
 from udh_cli.train.export import export_onnx  # noqa: E402
 from udh_cli.train.loop import TrainConfig, Trainer, init_arch, train  # noqa: E402
-
-
-@pytest.fixture(scope="module")
-def pool(tmp_path_factory) -> Path:
-    folder = tmp_path_factory.mktemp("match-pool")
-    for i in range(12):
-        cv2.imwrite(str(folder / f"img{i:02d}.png"), textured_image(480, 360, seed=200 + i))
-    return folder
 
 
 def match_config(pool: Path, out: Path, **changes) -> TrainConfig:

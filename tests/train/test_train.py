@@ -26,15 +26,6 @@ from udh_cli.train.loop import TrainConfig, Trainer, train  # noqa: E402
 REPO = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(scope="module")
-def pool(tmp_path_factory) -> Path:
-    """A folder of 12 textured images the test makes itself (one in ten is held out by the split)."""
-    folder = tmp_path_factory.mktemp("pool")
-    for i in range(12):
-        cv2.imwrite(str(folder / f"img{i:02d}.png"), textured_image(320, 240, seed=100 + i))
-    return folder
-
-
 def tiny_config(pool: Path, out: Path, **changes) -> TrainConfig:
     """32-pixel patches, rho 6: small enough to learn something in seconds on a CPU."""
     base = TrainConfig(data=[str(pool)], patch_size=32, rho=6.0, small_motion_fraction=0.0, steps=300, batch=32,

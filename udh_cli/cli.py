@@ -218,8 +218,12 @@ def export_onnx(
         real = np.stack([pairs.patch_a, pairs.patch_b], 1)
     result = run_export(checkpoint, output, real)
     meta = result["metadata"]
-    console.print(f"wrote {result['path']}: {meta['arch']} ({meta['mode']}), {meta['steps']} steps, "
-                  f"input {meta['input_size']}px; max |onnx - torch| = {result['max_abs_diff']:.2e} px")
+    if meta["mode"] == "match":  # descriptors of images of any size, not offsets of a fixed input
+        console.print(f"wrote {result['path']}: {meta['arch']} ({meta['mode']}), {meta['steps']} steps, images of any size "
+                      f"(sides multiples of 4); max |onnx - torch| = {result['max_abs_diff']:.2e} in a descriptor")
+    else:
+        console.print(f"wrote {result['path']}: {meta['arch']} ({meta['mode']}), {meta['steps']} steps, "
+                      f"input {meta['input_size']}px; max |onnx - torch| = {result['max_abs_diff']:.2e} px")
 
 
 @app.command()

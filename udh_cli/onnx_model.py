@@ -96,7 +96,7 @@ class OnnxHomographyModel:
         path, session, size, mean, std, metadata = _open_udh_model(path, device, threads)
         if metadata.get("arch") == MATCHER_ARCH:
             raise UdhError(f"{path}: is a matcher (descriptors for global matching), not a homography network; "
-                           f"give it as the matcher (-O matcher_model=FILE)")
+                           f"a matcher runs beside the networks: --matcher-model FILE (-O matcher_model=FILE in mosaic and bench)")
         inputs, outputs = session.get_inputs(), session.get_outputs()
         if (len(inputs) != 1 or list(inputs[0].shape[1:]) != [2, size, size] or len(outputs) != 1
                 or list(outputs[0].shape[1:]) != [4, 2]):

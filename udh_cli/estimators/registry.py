@@ -24,6 +24,7 @@ ESTIMATORS: dict[str, tuple[str, str, str]] = {
     "identity": ("udh_cli.estimators.identity", "IdentityEstimator", "no motion; the baseline"),
     "unsupervised": ("udh_cli.estimators.deep", "UnsupervisedEstimator", "the unsupervised deep network (onnxruntime)"),
     "supervised": ("udh_cli.estimators.deep", "SupervisedEstimator", "supervised HomographyNet (onnxruntime)"),
+    "matcher": ("udh_cli.estimators.matched", "MatcherEstimator", "the learned matcher alone: dense descriptors, mutual nearest cells, MAGSAC++"),
     "unsupervised+ecc": ("udh_cli.estimators.refined", "UnsupervisedEccOptions", "unsupervised network, then coarse-to-fine ECC"),
     "auto": ("udh_cli.estimators.refined", "AutoOptions", "unsupervised+ecc, verified; SIFT+ECC, the full cascade, then mirrored/flipped/swapped views while it does not verify"),
 }

@@ -1,0 +1,43 @@
+"""``--method matcher``: the learned matcher alone (udh_cli.estimators.matched)."""
+
+from __future__ import annotations
+
+import pytest
+
+from conftest import BlockDescriptors, export_tiny_network, textured_image
+from udh_cli import geometry
+from udh_cli.errors import UdhError
+from udh_cli.estimators import create_estimator
+
+
+@pytest.fixture(scope="module")
+def matcher(tmp_path_factory):
+    """The method with an untrained matcher file loaded, then its network swapped for the block descriptors."""
+    path = export_tiny_network(tmp_path_factory.mktemp("matcher"), "matcher", seed=0)
+    estimator = create_estimator("matcher", model=str(path), device="cpu")
+    assert estimator.model_files() == [str(path)]
+    estimator.network = BlockDescriptors()
+    return estimator
+
+
+def test_the_matcher_alone_finds_a_large_shift_and_verifies_it_by_its_matches(matcher):
+    scene = textured_image(700, 500, seed=12)
+    a, b = scene[100:356, 50:434], scene[164:420, 178:562]  # 384 x 256, A's content moved by (-128, -64)
+    estimate = matcher.estimate(a, b)
+    assert estimate.ok and estimate.verified and estimate.verified_by == "matches"
+    assert estimate.inliers >= 150 and estimate.confidence > 0.5
+    assert geometry.mace(estimate.homography, geometry.translation(-128, -64), 384, 256) < 1.0
+
+
+def test_frames_that_share_nothing_are_a_failure_that_says_why(matcher):
+    estimate = matcher.estimate(textured_image(384, 256, seed=1), textured_image(384, 256, seed=2))
+    assert not estimate.ok and "cells agree" in estimate.failure
+
+
+def test_bad_options_are_refused(tmp_path):
+    path = export_tiny_network(tmp_path, "matcher", seed=0)
+    for options, message in (({"headings": 3}, "headings"), ({"side": 10}, "side"), ({"min_inliers": 2}, "min_inliers")):
+        with pytest.raises(UdhError, match=message):
+            create_estimator("matcher", model=str(path), **options)
+    with pytest.raises(UdhError, match="not a matcher"):
+        create_estimator("matcher", model=str(export_tiny_network(tmp_path, "corr", seed=0)))

@@ -86,10 +86,10 @@ def shipped_onnx(name: str, precision: str | None = "fp32") -> Path:
     return _shipped(name, ".onnx")
 
 
-# Shipped networks whose weights for fine-tuning are their training run's resumable checkpoint (which holds
-# them) rather than a separate .pt: one file instead of two keeps models/ under 50 MB.
-SHIPPED_RUNS = {"unsupervised-flight": "training/unsupervised-flight/checkpoint.pt",
-                "unsupervised-matcher": "training/unsupervised-matcher/checkpoint.pt"}
+# Shipped networks whose weights for fine-tuning are kept with their training run (weights.pt: the weights the
+# ONNX file was exported from, without the optimiser state) rather than as a .pt beside the ONNX file.
+SHIPPED_RUNS = {"unsupervised-flight": "training/unsupervised-flight/weights.pt",
+                "unsupervised-matcher": "training/unsupervised-matcher/weights.pt"}
 
 
 def shipped_checkpoint(name: str) -> Path:

@@ -19,6 +19,10 @@ MATCH_CELL = 4  # px of the described image per descriptor cell (the matcher's t
 # correct one is up to about a cell off.
 FIT_THRESHOLD_PX = 6.0
 MIN_MATCHES = 12  # fewer inliers than this and the fit is no answer
+# Lowe's ratio for the global match's cells (mutual_matches). Chosen on consecutive pairs of copr, brighton-beach and
+# seneca and on pairs of frames from different flights (docs/estimators.md, "The global match").
+DISTINCT_RATIO = 0.95
+TEXTURE_FLOOR = 0.01  # grey standard deviation ([0, 1]) under which a cell is flat (textured_cells): 2.5 of 255
 GUIDED_RADIUS = 2  # cells either way around the first answer that guided matching searches (8 px at its side)
 GUIDED_THRESHOLD_PX = 4.0  # the guided fit's inlier threshold: a cell
 # Inliers above which a match needs no second heading, and above which it verifies itself, as RANSAC verifies
@@ -34,11 +38,19 @@ def cell_centres(height: int, width: int) -> np.ndarray:
     return np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64) * MATCH_CELL + (MATCH_CELL - 1) / 2
 
 
-def mutual_matches(features_a: np.ndarray, features_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mutual nearest neighbours between two descriptor grids.
+def mutual_matches(features_a: np.ndarray, features_b: np.ndarray, ratio: float = DISTINCT_RATIO,
+                   valid_a: np.ndarray | None = None, valid_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mutual nearest neighbours between two descriptor grids that are also distinct: an A cell's best B cell
+    must be nearer than ``ratio`` times the best B cell outside its 3 x 3 neighbourhood (Lowe's ratio test, with
+    the neighbours left out because the descriptors of adjacent cells overlap).
+
+    Why the ratio test: in a featureless region (water, a grey test card, snow) every cell has the same
+    descriptor, and mutual nearest neighbours alone still pair them up by the order of ties: a flat grey pair
+    gave 361 "agreeing" cells and a confident identity.
 
     Args:
         features_a, features_b: (C, h, w) unit descriptors (any h, w each).
+        valid_a, valid_b: (h, w) masks of the cells that may be matched (None: all), e.g. :func:`textured_cells`.
 
     Returns:
         ``points_a``, ``points_b`` (K, 2) cell centres in pixels of each described image, and ``similarity``
@@ -48,23 +60,41 @@ def mutual_matches(features_a: np.ndarray, features_b: np.ndarray) -> tuple[np.n
     _, hb, wb = features_b.shape
     flat_a = np.ascontiguousarray(features_a.reshape(c, -1).T, dtype=np.float32)  # cells x C
     flat_b = np.ascontiguousarray(features_b.reshape(c, -1).T, dtype=np.float32)
-    best_b, best_a = _best_rows(flat_a, flat_b), _best_rows(flat_b, flat_a)
-    mutual = np.nonzero(best_a[best_b] == np.arange(len(best_b)))[0]
+    (best_b, first, second), (best_a, _, _) = _best_rows(flat_a, flat_b, wb), _best_rows(flat_b, flat_a, wa)
+    distance = lambda cosine: np.sqrt(np.clip(2.0 - 2.0 * cosine, 0.0, None))  # noqa: E731 - unit vectors
+    distinct = distance(first) < ratio * distance(second)
+    keep = (best_a[best_b] == np.arange(len(best_b))) & distinct
+    if valid_a is not None:
+        keep &= valid_a.ravel()
+    if valid_b is not None:
+        keep &= valid_b.ravel()[best_b]
+    mutual = np.nonzero(keep)[0]
     target = best_b[mutual]
     points_b = cell_centres(hb, wb)[target] + MATCH_CELL * _subcell(flat_a[mutual], flat_b, target, hb, wb)
-    return cell_centres(ha, wa)[mutual], points_b, np.einsum("kc,kc->k", flat_a[mutual], flat_b[target])
+    return cell_centres(ha, wa)[mutual], points_b, first[mutual]
 
 
-def _best_rows(rows: np.ndarray, columns: np.ndarray, block: int = 1024) -> np.ndarray:
-    """For every row descriptor (N, C), the index of its most similar column descriptor (M, C).
+def _best_rows(rows: np.ndarray, columns: np.ndarray, width: int, block: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For every row descriptor (N, C): the index of its most similar column descriptor (M, C, a grid ``width``
+    cells wide), that similarity, and the highest similarity outside the 3 x 3 cells around it.
 
     Why blocks of rows, each reduced along its own rows: numpy's argmax down the columns of a 6,912 x 6,912
     matrix took 0.7 s at 384 px (strided reads), against about 0.1 s for both directions this way, and the
     matrix is never whole in memory."""
-    out = np.empty(len(rows), np.int64)
+    best = np.empty(len(rows), np.int64)
+    first, second = np.empty(len(rows), np.float32), np.empty(len(rows), np.float32)
     for start in range(0, len(rows), block):
-        out[start : start + block] = (rows[start : start + block] @ columns.T).argmax(1)
-    return out
+        similarity = rows[start : start + block] @ columns.T
+        index = similarity.argmax(1)
+        lines = np.arange(len(index))
+        best[start : start + len(index)], first[start : start + len(index)] = index, similarity[lines, index]
+        x, y = index % width, index // width
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                near = (x + dx >= 0) & (x + dx < width) & (y + dy >= 0) & ((y + dy) * width + x + dx < columns.shape[0])
+                similarity[lines[near], ((y + dy) * width + x + dx)[near]] = -np.inf
+        second[start : start + len(index)] = similarity.max(1)
+    return best, first, second
 
 
 def _subcell(queries: np.ndarray, columns: np.ndarray, peaks: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -154,7 +184,8 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
         if best.inliers >= CONFIDENT_INLIERS:
             break
         features_b = _described(network, image_b, size_b, heading)
-        points_a, points_b, _ = mutual_matches(features_a, features_b)
+        points_a, points_b, _ = mutual_matches(features_a, features_b, valid_a=textured_cells(image_a, size_a, 0),
+                                               valid_b=textured_cells(image_b, size_b, heading))
         found, inliers = fit_matches(points_a, points_b)
         if found is None or inliers.sum() <= best.inliers:
             continue
@@ -221,6 +252,22 @@ def guided_matches(features_a: np.ndarray, features_b: np.ndarray, b_from_a: np.
     target = candidates[np.arange(len(rows)), similarity.argmax(1)]
     points_b = cell_centres(hb, wb)[target] + MATCH_CELL * _subcell(flat_a[rows], flat_b, target, hb, wb)
     return centres[rows], points_b
+
+
+def textured_cells(image, size: tuple[int, int], heading: int = 0) -> np.ndarray:
+    """(h, w) mask of the descriptor cells of ``image`` described at ``size`` and turned by ``heading`` whose
+    12 x 12 px neighbourhood varies by more than :data:`TEXTURE_FLOOR` (standard deviation, grey in [0, 1]).
+
+    Why: where the image is flat the descriptors encode only the distance to the frame's border (the network's
+    zero padding), the same in every frame; a flat grey pair matched its border cells 324 times."""
+    def make() -> np.ndarray:
+        grey = np.ascontiguousarray(np.rot90(image.resized(size), heading // 90 % 4)).astype(np.float32)
+        mean = cv2.blur(grey, (12, 12))
+        deviation = np.sqrt(np.clip(cv2.blur(grey * grey, (12, 12)) - mean * mean, 0.0, None))
+        cells = deviation[MATCH_CELL // 2 :: MATCH_CELL, MATCH_CELL // 2 :: MATCH_CELL]
+        return cells[: grey.shape[0] // MATCH_CELL, : grey.shape[1] // MATCH_CELL] > TEXTURE_FLOOR
+
+    return image.derived(("textured cells", size, heading), make)
 
 
 def _described(network, image, size: tuple[int, int], heading: int) -> np.ndarray:

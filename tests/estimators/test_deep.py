@@ -191,11 +191,15 @@ def test_search_finds_a_shift_beyond_the_networks_range():
     b = scene[100 + dy:500 + dy, 50 + dx:650 + dx]
     truth = geometry.translation(-dx, -dy)  # x_B = x_A - shift
     # The paper-motion network alone (no flight-motion network beside it), without and with the search (the default).
-    plain = create_estimator("unsupervised", device="cpu", flight_model="", search=0).estimate(a, b)
-    searched = create_estimator("unsupervised", device="cpu", flight_model="").estimate(a, b)
+    plain = create_estimator("unsupervised", device="cpu", flight_model="", search=0, matcher_model="").estimate(a, b)
+    searched = create_estimator("unsupervised", device="cpu", flight_model="", matcher_model="").estimate(a, b)
     assert geometry.mace(plain.homography, truth, 600, 400) > 50
     assert searched.details["searched"] and geometry.mace(searched.homography, truth, 600, 400) < 10
     assert searched.confidence > plain.confidence + 0.3
+    # Without the search, the shipped matcher's global match rescues the doubted pair instead, verified by its cells.
+    matched = create_estimator("unsupervised", device="cpu", flight_model="", search=0).estimate(a, b)
+    assert matched.details["matched"] and not matched.details["searched"] and matched.verified_by == "matches"
+    assert geometry.mace(matched.homography, truth, 600, 400) < 3
     with pytest.raises(UdhError, match="search .* must be 0"):
         create_estimator("unsupervised", device="cpu", search=-1)
 
@@ -262,7 +266,7 @@ def test_an_answer_is_verified_only_when_enough_tile_levels_accept_it(monkeypatc
     truth = geometry.translation(8.0, -5.0)
     a, b = warped_pair(truth, 600, 400, seed=4)
     monkeypatch.setattr(deep, "refine_with_tiles", lambda network, a, b, h, *args, **kwargs: TileResult(h, used, 0.8, 0.5, run))
-    estimate = create_estimator("unsupervised", device="cpu", search=0).estimate(a, b)
+    estimate = create_estimator("unsupervised", device="cpu", search=0, matcher_model="").estimate(a, b)
     assert estimate.ok and estimate.details["tile_levels"] == used
     assert estimate.verified is verified
 
@@ -315,7 +319,7 @@ def test_a_doubted_pair_takes_the_global_match_and_a_confident_match_verifies_it
     dx, dy = 128, 64
     b = scene[100 + dy : 356 + dy, 50 + dx : 434 + dx]
     truth = geometry.translation(-dx, -dy)
-    plain = create_estimator("unsupervised", device="cpu", flight_model="", search=0)
+    plain = create_estimator("unsupervised", device="cpu", flight_model="", search=0, matcher_model="")
     before = plain.estimate(a, b)
     assert geometry.mace(before.homography, truth, 384, 256) > 20 and not before.details.get("matched")
     plain.matcher = BlockDescriptors()

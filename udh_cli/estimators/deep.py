@@ -172,7 +172,7 @@ class DeepEstimator(Estimator):
         if self.tiles is None:
             self.tiles = len(self.stages) > 1
         if self.matcher_model is None and self.model is None and self.tiles and has_shipped(f"{self.name}-matcher", precision=None):
-            self.matcher_model = str(shipped_onnx(f"{self.name}-matcher", "fp32"))  # float32 only: 0.3 MB, run on doubted pairs
+            self.matcher_model = str(shipped_onnx(f"{self.name}-matcher", "fp32"))  # float32 only: 0.57 MB, run on doubted pairs
         if not 64 <= self.match_side <= 2048 or not (self.match_refine_side is None or 64 <= self.match_refine_side <= 4096):
             raise UdhError(f"method '{self.name}': match_side ({self.match_side}) must be 64 to 2048 px and match_refine_side "
                            f"({self.match_refine_side}) 64 to 4096 px or none")

@@ -117,3 +117,13 @@ def test_quarter_turns_are_tried_when_asked_and_undone_exactly():
     image = np.zeros((3, 5)); image[1, 4] = 1
     x, y = geometry.transform_points(matching._to_described((5, 3), (5, 3), 90), np.array([[4.0, 1.0]]))[0]
     assert np.rot90(image, 1)[int(round(y)), int(round(x))] == 1
+
+
+def test_flat_cells_are_left_out_and_a_flat_pair_has_no_match():
+    image = np.full((64, 96), 0.5, np.float32)
+    image[16:48, 40:80] = textured_image(40, 32, seed=8).astype(np.float32) / 255
+    mask = matching.textured_cells(PreparedImage.of(image), (96, 64))
+    assert mask.shape == (16, 24)
+    assert mask[8, 15] and not mask[1, 1] and not mask[8, 2]  # inside the texture; the flat corner and side
+    flat = PreparedImage.of(np.full((192, 256), 0.5, np.float32))
+    assert matching.global_match(BlockDescriptors(), flat, flat, side=256).b_from_a is None

@@ -26,8 +26,9 @@ TEXTURE_FLOOR = 0.01  # grey standard deviation ([0, 1]) under which a cell is f
 GUIDED_RADIUS = 2  # cells either way around the first answer that guided matching searches (8 px at its side)
 GUIDED_THRESHOLD_PX = 4.0  # the guided fit's inlier threshold: a cell
 # Inliers above which a match needs no second heading, and above which it verifies itself, as RANSAC verifies
-# SIFT's answers. With an untrained encoder, on consecutive pairs of copr, brighton-beach and seneca: right
-# answers had 185-4,000 inliers, pairs of frames six or more apart (no shared ground) 0-65 (one 151).
+# SIFT's answers. With the shipped matcher, 200 pairs of frames from different flights (copr, brighton-beach,
+# seneca, boruszyn-kite) reached at most 27; right consecutive pairs of those flights had 185 to over 4,000. At
+# 100, seneca's network-only loops went from 2.06 to 2.93 px (docs/training.md).
 CONFIDENT_INLIERS = 150
 HEADINGS = {1: (0,), 2: (0, 180), 4: (0, 180, 90, 270)}  # B's turns global_match tries, in order, by ``headings``
 
@@ -46,7 +47,8 @@ def mutual_matches(features_a: np.ndarray, features_b: np.ndarray, ratio: float 
 
     Why the ratio test: in a featureless region (water, a grey test card, snow) every cell has the same
     descriptor, and mutual nearest neighbours alone still pair them up by the order of ties: a flat grey pair
-    gave 361 "agreeing" cells and a confident identity.
+    gave 361 "agreeing" cells and a confident identity. The ratio test removes those; the cells near the frame's
+    border, which differ only by the network's padding, are left to ``valid_a`` / ``valid_b``.
 
     Args:
         features_a, features_b: (C, h, w) unit descriptors (any h, w each).

@@ -329,3 +329,20 @@ def test_a_doubted_pair_takes_the_global_match_and_a_confident_match_verifies_it
     assert after.verified is not False and "match" in after.details["stage_ms"]
     with pytest.raises(UdhError, match="match_side"):
         create_estimator("unsupervised", device="cpu", match_side=10)
+
+
+def test_a_folded_global_match_never_replaces_the_cascades_answer(monkeypatch):
+    """However many cells agree, a match that folds the frame is no answer: the cascade's stands, unmarked."""
+    if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
+        pytest.skip("shipped unsupervised model not built yet")
+    from udh_cli.estimators.matching import MatchResult
+
+    a, b = warped_pair(geometry.translation(6.0, -4.0), seed=5)
+    folded = np.array([[-1.0, 0.0, 100.0], [0.0, 1.0, 0.0], [0.01, 0.0, 1.0]])
+    monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(folded, 400, 500, 0))
+    # Every pair doubted, no tiles to outrank the match: only the fold check stands between it and the answer.
+    matcher = str(models_dir() / f"{SHIPPED_MODELS['unsupervised-matcher']}.onnx")
+    estimator = create_estimator("unsupervised", device="cpu", search=0, search_below=1.0, tiles=False, matcher_model=matcher)
+    estimate = estimator.estimate(a, b)
+    assert estimate.ok and not estimate.details.get("matched") and estimate.verified_by is None
+    assert geometry.mace(estimate.homography, geometry.translation(6.0, -4.0), 320, 240) < 3

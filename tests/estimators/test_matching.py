@@ -127,3 +127,8 @@ def test_flat_cells_are_left_out_and_a_flat_pair_has_no_match():
     assert mask[8, 15] and not mask[1, 1] and not mask[8, 2]  # inside the texture; the flat corner and side
     flat = PreparedImage.of(np.full((192, 256), 0.5, np.float32))
     assert matching.global_match(BlockDescriptors(), flat, flat, side=256).b_from_a is None
+
+
+def test_a_sliver_of_a_frame_gets_no_match_rather_than_an_error():
+    sliver = PreparedImage.of(textured_image(600, 40, seed=9))  # 15:1: 384 x 24 px described, under the matcher's 32
+    assert matching.global_match(BlockDescriptors(), sliver, sliver).b_from_a is None

@@ -146,6 +146,7 @@ class Estimator:
             confidence = 0.0
             if typed.get("verified"):
                 typed["verified"] = False
+                typed.pop("verified_by", None)  # nothing verified a failure
         return Estimate(self.name, homography, float(np.clip(confidence, 0.0, 1.0)), elapsed_ms, failure, details, **typed)
 
 

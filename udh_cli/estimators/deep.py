@@ -17,7 +17,7 @@ from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.tiles import TileRefinement, refine_with_tiles
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.onnx_model import OnnxHomographyModel, OnnxMatcher
-from udh_cli.estimators.matching import CONFIDENT_INLIERS, MATCH_REFINE_SIDE, MATCH_SIDE, global_match
+from udh_cli.estimators.matching import CONFIDENT_INLIERS, MATCH_REFINE_SIDE, MATCH_SIDE, MAX_MATCH_SIDE, global_match
 from udh_cli.estimators.verify import Verifier
 
 
@@ -173,8 +173,8 @@ class DeepEstimator(Estimator):
             self.tiles = len(self.stages) > 1
         if self.matcher_model is None and self.model is None and self.tiles and has_shipped(f"{self.name}-matcher", precision=None):
             self.matcher_model = str(shipped_onnx(f"{self.name}-matcher", "fp32"))  # float32 only: 0.57 MB, run on doubted pairs
-        if not 64 <= self.match_side <= 2048 or not (self.match_refine_side is None or 64 <= self.match_refine_side <= 4096):
-            raise UdhError(f"method '{self.name}': match_side ({self.match_side}) must be 64 to 2048 px and match_refine_side "
+        if not 64 <= self.match_side <= MAX_MATCH_SIDE or not (self.match_refine_side is None or 64 <= self.match_refine_side <= 4096):
+            raise UdhError(f"method '{self.name}': match_side ({self.match_side}) must be 64 to {MAX_MATCH_SIDE} px and match_refine_side "
                            f"({self.match_refine_side}) 64 to 4096 px or none")
         self.matcher = OnnxMatcher.load(self.matcher_model, self.device, self.threads) if self.matcher_model else None
         if self.search is None:
@@ -271,6 +271,8 @@ class DeepEstimator(Estimator):
                 if found.b_from_a is None:
                     continue
                 h = geometry.rescale_homography(found.b_from_a, pairs[i].a.size, (s, s), pairs[i].b.size, (s, s))
+                if not geometry.is_valid_homography(h, s, s):  # a folded fit is no answer, however many cells agree
+                    continue
                 score = self.score(small_a[i], small_b[i], h)
                 retiled = self._tiles(pairs[i], h) if self.tiles else None
                 # Tile levels first (they confirm precise answers), then a match many cells support over a

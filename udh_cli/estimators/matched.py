@@ -13,7 +13,7 @@ from typing import ClassVar
 
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
-from udh_cli.estimators.matching import CONFIDENT_INLIERS, HEADINGS, MATCH_REFINE_SIDE, MATCH_SIDE, global_match
+from udh_cli.estimators.matching import CONFIDENT_INLIERS, HEADINGS, MATCH_REFINE_SIDE, MATCH_SIDE, MAX_MATCH_SIDE, global_match
 from udh_cli.onnx_model import OnnxMatcher
 
 
@@ -26,9 +26,9 @@ class MatcherEstimator(Estimator):
         device, threads: onnxruntime's ("auto", "cpu" or "cuda"; None: onnxruntime's default threads).
         side, refine_side: the longer side, px, of the global match and of its guided refinement (None: none).
         headings: B's turns tried (1: as given; 2: also half a turn; 4: also quarter turns), each only while
-            fewer than ``min_inliers`` cells agree.
+            fewer than :data:`~udh_cli.estimators.matching.CONFIDENT_INLIERS` cells agree.
         min_inliers: agreeing cells an answer needs (:data:`~udh_cli.estimators.matching.CONFIDENT_INLIERS`:
-            pairs of frames from different flights reached at most 35).
+            pairs of frames from different flights reached at most 27).
 
     Confidence is the support, ``n / (n + min_inliers)`` for ``n`` agreeing cells.
     """
@@ -49,8 +49,8 @@ class MatcherEstimator(Estimator):
 
         if self.headings not in HEADINGS:
             raise UdhError(f"method 'matcher': headings ({self.headings}) must be one of {', '.join(map(str, HEADINGS))}")
-        if not 64 <= self.side <= 2048 or not (self.refine_side is None or 64 <= self.refine_side <= 4096) or self.min_inliers < 4:
-            raise UdhError(f"method 'matcher': side ({self.side}) must be 64 to 2048 px, refine_side ({self.refine_side}) "
+        if not 64 <= self.side <= MAX_MATCH_SIDE or not (self.refine_side is None or 64 <= self.refine_side <= 4096) or self.min_inliers < 4:
+            raise UdhError(f"method 'matcher': side ({self.side}) must be 64 to {MAX_MATCH_SIDE} px, refine_side ({self.refine_side}) "
                            f"64 to 4096 px or none, and min_inliers ({self.min_inliers}) at least 4")
         path = self.model if self.model is not None else shipped_onnx("unsupervised-matcher", "fp32")
         self.network = OnnxMatcher.load(path, self.device, self.threads)

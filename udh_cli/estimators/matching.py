@@ -19,6 +19,10 @@ MATCH_CELL = 4  # px of the described image per descriptor cell (the matcher's t
 # correct one is up to about a cell off.
 FIT_THRESHOLD_PX = 6.0
 MIN_MATCHES = 12  # fewer inliers than this and the fit is no answer
+# The global match compares every cell with every cell: its cost grows as the side's fourth power (768 px, 4:3:
+# 27,648 cells, about 3.5 GFLOP of similarities a direction), so its side is bounded; the guided refinement is not.
+MAX_MATCH_SIDE = 768
+MIN_DESCRIBED_SIDE = 32  # px: the matcher's smallest input (OnnxMatcher.describe); smaller images get no match
 # Lowe's ratio for the global match's cells (mutual_matches). Chosen on consecutive pairs of copr, brighton-beach and
 # seneca and on pairs of frames from different flights (docs/estimators.md, "The global match").
 DISTINCT_RATIO = 0.95
@@ -178,8 +182,10 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
     every cell of A near where the first answer puts it (:func:`guided_matches`) for a finer fit; the
     result keeps the first match's inliers, the evidence that it is the right place."""
     size_a, size_b = match_size(image_a.size, side), match_size(image_b.size, side)
-    features_a = _described(network, image_a, size_a, 0)
     best = MatchResult(None, 0, 0, 0)
+    if min(*size_a, *size_b) < MIN_DESCRIBED_SIDE:  # a sliver of a frame (over 12:1 at 384 px): nothing to match
+        return best
+    features_a = _described(network, image_a, size_a, 0)
     if headings not in HEADINGS:
         raise ValueError(f"headings must be one of {sorted(HEADINGS)}, not {headings!r}")
     for heading in HEADINGS[headings]:
@@ -240,7 +246,8 @@ def guided_matches(features_a: np.ndarray, features_b: np.ndarray, b_from_a: np.
     centres = cell_centres(ha, wa)
     predicted = geometry.transform_points(b_from_a, centres)
     finite = np.isfinite(predicted).all(1)
-    cell = np.floor(np.where(finite[:, None], predicted, -1e6) / MATCH_CELL).astype(np.int64)
+    # Cell j spans pixels [4j - 0.5, 4j + 3.5) in the pixel-centre convention.
+    cell = np.floor((np.where(finite[:, None], predicted, -1e6) + 0.5) / MATCH_CELL).astype(np.int64)
     inside = finite & (cell[:, 0] >= 0) & (cell[:, 0] < wb) & (cell[:, 1] >= 0) & (cell[:, 1] < hb)
     rows, cell = np.nonzero(inside)[0], cell[inside]
     steps = [(dx, dy) for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)]

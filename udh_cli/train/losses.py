@@ -142,7 +142,8 @@ def _match_direction(from_features: torch.Tensor, to_features: torch.Tensor, to_
     centres = cell_centres(h, w, to_from)
     mapped = geometry.transform_points(to_from, centres.expand(n, -1, -1))  # N, hw, 2 in the other view's pixels
     finite = torch.isfinite(mapped).all(-1)
-    cell = torch.floor(torch.nan_to_num(mapped, nan=-1.0, posinf=-1.0, neginf=-1.0) / MATCH_CELL)
+    # Cell j spans pixels [4j - 0.5, 4j + 3.5) in the pixel-centre convention.
+    cell = torch.floor((torch.nan_to_num(mapped, nan=-1.0, posinf=-1.0, neginf=-1.0) + 0.5) / MATCH_CELL)
     inside = (cell[..., 0] >= 0) & (cell[..., 0] < w) & (cell[..., 1] >= 0) & (cell[..., 1] < h) & finite
     target = (cell[..., 1].clamp(0, h - 1) * w + cell[..., 0].clamp(0, w - 1)).long()
     # Only cells with a counterpart take part; a random subset of them keeps the logits (samples x hw) small.

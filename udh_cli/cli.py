@@ -100,8 +100,7 @@ def estimate(
     given = {"best_features": best_features, "model": None if model is None else str(model), "device": device, "iterations": iterations,
              "refine_model": None if refine_model is None else str(refine_model), "refine_rounds": refine_rounds, "search": search,
              "precision": precision, "headings": headings, "tiles": tiles,
-             "flight_model": None if flight_model is None else ("" if flight_model.lower() == "none" else flight_model),
-             "matcher_model": None if matcher_model is None else ("" if matcher_model.lower() == "none" else matcher_model)}
+             "flight_model": _model_or_off(flight_model), "matcher_model": _model_or_off(matcher_model)}
     try:
         options = {**parse_method_options(option, [method.value]).get(method.value, {}),
                    **{key: value for key, value in given.items() if value is not None}}
@@ -188,6 +187,12 @@ def train(
     last = run_training(config, resume=resume, threads=threads, overwrite=overwrite, on_note=lambda note: err_console.print(f"note: {note}"))
     summary = ", ".join(f"{k} {v:.4g}" for k, v in last.items() if isinstance(v, float))
     console.print(f"done at step {last.get('step')}: {summary}; checkpoints in {out}")
+
+
+def _model_or_off(value: str | None) -> str | None:
+    """A model option of the command line as the estimator takes it: 'none' turns the network off (""), no value
+    keeps the estimator's default (None)."""
+    return None if value is None else ("" if value.lower() == "none" else value)
 
 
 def _require_torch() -> None:

@@ -75,20 +75,38 @@ def providers_for(device: str) -> list[str]:
 
 
 @dataclass
-class OnnxHomographyModel:
-    """A network mapping ``(N, 2, S, S)`` patches to ``(N, 4, 2)`` 4-point offsets (see geometry).
-
-    Attributes:
-        path: the .onnx file. input_size: S. mean, std: the input standardisation it was trained with.
-        metadata: every key the exporter embedded (arch, mode, rho, steps, training data...).
-    """
+class _UdhOnnxModel:
+    """What every loaded udh network has: its file, its onnxruntime session, the input standardisation it was
+    trained with, and the metadata the exporter embedded (arch, mode, rho, steps, training data...)."""
 
     path: Path
     session: object
-    input_size: int
     mean: float
     std: float
     metadata: dict[str, str]
+
+    @property
+    def provider(self) -> str:
+        """The execution provider that runs this network ("CUDAExecutionProvider", "CPUExecutionProvider"...):
+        what actually ran, which ``--device auto`` or a CPU-only onnxruntime may make differ from the request."""
+        providers = self.session.get_providers()
+        return providers[0] if providers else "unknown"
+
+    def standardise(self, grey: np.ndarray) -> np.ndarray:
+        """Grey values in [0, 1] (patches or images, any shape) -> the float32 network input, standardised as in
+        training."""
+        return ((grey - self.mean) / self.std).astype(np.float32)
+
+
+@dataclass
+class OnnxHomographyModel(_UdhOnnxModel):
+    """A network mapping ``(N, 2, S, S)`` patches to ``(N, 4, 2)`` 4-point offsets (see geometry).
+
+    Attributes:
+        input_size: S (the rest: :class:`_UdhOnnxModel`).
+    """
+
+    input_size: int
 
     @classmethod
     def load(cls, path: str | Path, device: str = "auto", threads: int | None = None) -> "OnnxHomographyModel":
@@ -101,14 +119,7 @@ class OnnxHomographyModel:
         if (len(inputs) != 1 or list(inputs[0].shape[1:]) != [2, size, size] or len(outputs) != 1
                 or list(outputs[0].shape[1:]) != [4, 2]):
             raise UdhError(f"{path}: the graph's shapes do not fit its metadata (want (N,2,{size},{size}) -> (N,4,2))")
-        return cls(path, session, size, mean, std, metadata)
-
-    @property
-    def provider(self) -> str:
-        """The execution provider that runs this network ("CUDAExecutionProvider", "CPUExecutionProvider"...):
-        what actually ran, which ``--device auto`` or a CPU-only onnxruntime may make differ from the request."""
-        providers = self.session.get_providers()
-        return providers[0] if providers else "unknown"
+        return cls(path=path, session=session, mean=mean, std=std, metadata=metadata, input_size=size)
 
     def predict_offsets(self, patches: np.ndarray, batch_size: int = 64) -> np.ndarray:
         """``patches`` (N, 2, S, S) grey in [0, 1] -> (N, 4, 2) float64 offsets in pixels of the S x S input."""
@@ -119,25 +130,10 @@ class OnnxHomographyModel:
         outputs = [self.session.run(None, {name: standardised[i : i + batch_size]})[0] for i in range(0, len(patches), batch_size)]
         return np.concatenate(outputs).astype(np.float64)
 
-    def standardise(self, patches: np.ndarray) -> np.ndarray:
-        """Grey patches in [0, 1] -> the float32 network input, standardised as in training."""
-        return ((patches - self.mean) / self.std).astype(np.float32)
-
-
 @dataclass
-class OnnxMatcher:
+class OnnxMatcher(_UdhOnnxModel):
     """A ``matcher`` network: ``(N, 1, H, W)`` grey images -> ``(N, C, H/4, W/4)`` unit descriptors, any size
-    with H and W multiples of 4 (:mod:`udh_cli.estimators.matching` matches them).
-
-    Attributes:
-        path: the .onnx file. mean, std: the input standardisation it was trained with. metadata: as exported.
-    """
-
-    path: Path
-    session: object
-    mean: float
-    std: float
-    metadata: dict[str, str]
+    with H and W multiples of 4 (:mod:`udh_cli.estimators.matching` matches them)."""
 
     @classmethod
     def load(cls, path: str | Path, device: str = "auto", threads: int | None = None) -> "OnnxMatcher":
@@ -149,13 +145,13 @@ class OnnxMatcher:
                 or len(outputs) != 1 or len(outputs[0].shape) != 4:
             raise UdhError(f"{path}: not a matcher (want arch '{MATCHER_ARCH}' and (N,1,H,W) -> (N,C,H/4,W/4)); "
                            f"train one with `udh train --mode match`")
-        return cls(path, session, mean, std, metadata)
+        return cls(path=path, session=session, mean=mean, std=std, metadata=metadata)
 
     def describe(self, grey: np.ndarray) -> np.ndarray:
         """(H, W) grey in [0, 1], H and W multiples of 4 -> (C, H/4, W/4) float32 unit descriptors."""
         if grey.ndim != 2 or grey.shape[0] % 4 or grey.shape[1] % 4 or min(grey.shape) < 32:
             raise UdhError(f"the matcher takes one grey image with sides multiples of 4 and at least 32 px, got {grey.shape}")
-        standardised = ((grey - self.mean) / self.std).astype(np.float32)[None, None]
+        standardised = self.standardise(grey)[None, None]
         name = self.session.get_inputs()[0].name
         return self.session.run(None, {name: standardised})[0][0]
 

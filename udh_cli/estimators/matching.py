@@ -62,11 +62,10 @@ def mutual_matches(features_a: np.ndarray, features_b: np.ndarray, ratio: float 
         ``points_a``, ``points_b`` (K, 2) cell centres in pixels of each described image, and ``similarity``
         (K,), the cosine of each match.
     """
-    c, ha, wa = features_a.shape
+    _, ha, wa = features_a.shape
     _, hb, wb = features_b.shape
-    flat_a = np.ascontiguousarray(features_a.reshape(c, -1).T, dtype=np.float32)  # cells x C
-    flat_b = np.ascontiguousarray(features_b.reshape(c, -1).T, dtype=np.float32)
-    (best_b, first, second), (best_a, _, _) = _best_rows(flat_a, flat_b, wb), _best_rows(flat_b, flat_a, wa)
+    flat_a, flat_b = _cells(features_a), _cells(features_b)
+    (best_b, first, second), (best_a, _, _) = _best_rows(flat_a, flat_b, wb), _best_rows(flat_b, flat_a)
     distance = lambda cosine: np.sqrt(np.clip(2.0 - 2.0 * cosine, 0.0, None))  # noqa: E731 - unit vectors
     distinct = distance(first) < ratio * distance(second)
     keep = (best_a[best_b] == np.arange(len(best_b))) & distinct
@@ -80,20 +79,30 @@ def mutual_matches(features_a: np.ndarray, features_b: np.ndarray, ratio: float 
     return cell_centres(ha, wa)[mutual], points_b, first[mutual]
 
 
-def _best_rows(rows: np.ndarray, columns: np.ndarray, width: int, block: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For every row descriptor (N, C): the index of its most similar column descriptor (M, C, a grid ``width``
-    cells wide), that similarity, and the highest similarity outside the 3 x 3 cells around it.
+def _cells(features: np.ndarray) -> np.ndarray:
+    """(C, h, w) descriptors -> (h * w, C) contiguous float32 rows, one a cell, row by row."""
+    return np.ascontiguousarray(features.reshape(features.shape[0], -1).T, dtype=np.float32)
+
+
+def _best_rows(rows: np.ndarray, columns: np.ndarray, width: int | None = None,
+               block: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """For every row descriptor (N, C): the index of its most similar column descriptor (M, C), that similarity,
+    and, given the columns' grid ``width`` in cells, the highest similarity outside the 3 x 3 cells around it
+    (None without: the ratio test needs it in one direction only).
 
     Why blocks of rows, each reduced along its own rows: numpy's argmax down the columns of a 6,912 x 6,912
     matrix took 0.7 s at 384 px (strided reads), against about 0.1 s for both directions this way, and the
     matrix is never whole in memory."""
     best = np.empty(len(rows), np.int64)
-    first, second = np.empty(len(rows), np.float32), np.empty(len(rows), np.float32)
+    first = np.empty(len(rows), np.float32)
+    second = np.empty(len(rows), np.float32) if width is not None else None
     for start in range(0, len(rows), block):
         similarity = rows[start : start + block] @ columns.T
         index = similarity.argmax(1)
         lines = np.arange(len(index))
         best[start : start + len(index)], first[start : start + len(index)] = index, similarity[lines, index]
+        if second is None:
+            continue
         x, y = index % width, index // width
         for dy in (-1, 0, 1):
             for dx in (-1, 0, 1):
@@ -185,14 +194,14 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
     best = MatchResult(None, 0, 0, 0)
     if min(*size_a, *size_b) < MIN_DESCRIBED_SIDE:  # a sliver of a frame (over 12:1 at 384 px): nothing to match
         return best
-    features_a = _described(network, image_a, size_a, 0)
     if headings not in HEADINGS:
         raise ValueError(f"headings must be one of {sorted(HEADINGS)}, not {headings!r}")
+    features_a, textured_a = _described(network, image_a, size_a, 0), textured_cells(image_a, size_a, 0)
     for heading in HEADINGS[headings]:
         if best.inliers >= CONFIDENT_INLIERS:
             break
         features_b = _described(network, image_b, size_b, heading)
-        points_a, points_b, _ = mutual_matches(features_a, features_b, valid_a=textured_cells(image_a, size_a, 0),
+        points_a, points_b, _ = mutual_matches(features_a, features_b, valid_a=textured_a,
                                                valid_b=textured_cells(image_b, size_b, heading))
         found, inliers = fit_matches(points_a, points_b)
         if found is None or inliers.sum() <= best.inliers:
@@ -239,10 +248,9 @@ def guided_matches(features_a: np.ndarray, features_b: np.ndarray, b_from_a: np.
 
     Why: at a finer scale there are four times the cells and every frame is alike somewhere; a window
     around a known answer keeps the comparison local and cheap (K x (2r+1)^2 dot products)."""
-    c, ha, wa = features_a.shape
+    _, ha, wa = features_a.shape
     _, hb, wb = features_b.shape
-    flat_a = np.ascontiguousarray(features_a.reshape(c, -1).T, dtype=np.float32)
-    flat_b = np.ascontiguousarray(features_b.reshape(c, -1).T, dtype=np.float32)
+    flat_a, flat_b = _cells(features_a), _cells(features_b)
     centres = cell_centres(ha, wa)
     predicted = geometry.transform_points(b_from_a, centres)
     finite = np.isfinite(predicted).all(1)
@@ -270,7 +278,7 @@ def textured_cells(image, size: tuple[int, int], heading: int = 0) -> np.ndarray
     Why: where the image is flat the descriptors encode only the distance to the frame's border (the network's
     zero padding), the same in every frame; a flat grey pair matched its border cells 324 times."""
     def make() -> np.ndarray:
-        grey = np.ascontiguousarray(np.rot90(image.resized(size), heading // 90 % 4)).astype(np.float32)
+        grey = _turned(image, size, heading).astype(np.float32)
         mean = cv2.blur(grey, (12, 12))
         deviation = np.sqrt(np.clip(cv2.blur(grey * grey, (12, 12)) - mean * mean, 0.0, None))
         cells = deviation[MATCH_CELL // 2 :: MATCH_CELL, MATCH_CELL // 2 :: MATCH_CELL]
@@ -282,8 +290,9 @@ def textured_cells(image, size: tuple[int, int], heading: int = 0) -> np.ndarray
 def _described(network, image, size: tuple[int, int], heading: int) -> np.ndarray:
     """The matcher's descriptors of ``image`` at ``size``, turned by ``heading`` degrees counter-clockwise
     (:func:`_to_described`), made once per image."""
-    def make() -> np.ndarray:
-        grey = image.resized(size)
-        return network.describe(np.ascontiguousarray(np.rot90(grey, heading // 90 % 4)))
+    return image.derived(("descriptors", str(network.path), size, heading), lambda: network.describe(_turned(image, size, heading)))
 
-    return image.derived(("descriptors", str(network.path), size, heading), make)
+
+def _turned(image, size: tuple[int, int], heading: int) -> np.ndarray:
+    """``image`` resized to ``size`` and turned by ``heading`` degrees counter-clockwise, as :func:`_to_described` maps it."""
+    return np.ascontiguousarray(np.rot90(image.resized(size), heading // 90 % 4))

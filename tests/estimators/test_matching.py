@@ -34,6 +34,18 @@ def test_mutual_matches_find_a_shift_of_whole_cells():
     assert similarity[~exact].max() < 0.9  # the rest are chance pairs among cells only one side sees
 
 
+def test_a_cell_whose_best_match_prefers_another_cell_is_not_mutual():
+    # Two A cells both nearest to B's cell 0; only the more similar one (A's cell 1) is its mutual match.
+    b = _unit(np.eye(4, dtype=np.float32).reshape(4, 1, 4) + 0.0)  # B: 1 x 4 grid of one-hot descriptors
+    a = np.zeros((4, 1, 2), np.float32)
+    a[:, 0, 0] = [0.8, 0.6, 0.0, 0.0]  # cosine 0.8 with B's cell 0, 0.6 with cell 1
+    a[:, 0, 1] = [0.9, 0.0, 0.0, 0.436]  # cosine 0.9 with B's cell 0
+    points_a, points_b, similarity = matching.mutual_matches(_unit(a), b, ratio=1.0)
+    assert len(points_a) == 1
+    np.testing.assert_allclose(points_a[0], [5.5, 1.5])  # A's cell 1
+    np.testing.assert_allclose(similarity, [0.9], atol=1e-3)
+
+
 def test_the_peak_is_placed_between_cells_by_a_parabola():
     # One query against a 1 x 5 grid of 2-d descriptors whose similarity with it is 1 - (x - 2.3)^2 / 20.
     xs = np.arange(5.0)

@@ -288,6 +288,6 @@ def test_the_feature_cache_keeps_what_its_byte_budget_holds():
     cache.put(4, *fractional)  # not whole numbers: held as they are
     assert np.array_equal(cache.get(4)[1], fractional[1])
     cache.put(5, *features(1000))  # larger than the budget alone: kept, everything else dropped
-    assert list(cache.entries) == [5] and cache.held_bytes == 10 * per_frame
+    assert list(cache.recent.entries) == [5] and cache.held_bytes == 10 * per_frame
     cache.clear()
-    assert cache.held_bytes == 0 and not cache.entries
+    assert cache.held_bytes == 0 and not cache.recent.entries

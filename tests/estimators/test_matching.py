@@ -89,6 +89,32 @@ def test_a_global_match_recovers_a_large_shift_and_a_half_turn_in_full_resolutio
     assert any(isinstance(key, tuple) and key[0] == "descriptors" for key in a._cache)
 
 
+def test_a_frame_is_described_once_for_every_pair_it_is_in_and_never_stale():
+    class Counting(BlockDescriptors):
+        path = "counting blocks"  # its own entries in the process-wide cache
+
+        def __init__(self):
+            self.described = 0
+
+        def describe(self, grey):
+            self.described += 1
+            return super().describe(grey)
+
+    network = Counting()
+    scene = textured_image(400, 300, seed=7).astype(np.float32) / 255
+    frames = [scene[20 + 24 * k : 212 + 24 * k, 24 + 32 * k : 280 + 32 * k] for k in range(3)]  # whole cells apart
+    matching._DESCRIPTORS.clear()
+    # As a mosaic does: each pair prepares its images anew, and the middle frame is B, then A.
+    for a, b in ((frames[0], frames[1]), (frames[1], frames[2])):
+        found = matching.global_match(network, PreparedImage.of(a), PreparedImage.of(b), side=256, headings=1)
+        assert geometry.mace(found.b_from_a, geometry.translation(-32, -24), 256, 192) < 0.5
+    assert network.described == 3
+    changed = frames[2].copy()
+    changed[:8] = 0
+    matching.global_match(network, PreparedImage.of(frames[1]), PreparedImage.of(changed), side=256, headings=1)
+    assert network.described == 4  # new pixels, new descriptors
+
+
 def test_unrelated_images_give_no_confident_match():
     a = PreparedImage.of(textured_image(256, 192, seed=4))
     b = PreparedImage.of(textured_image(256, 192, seed=5))

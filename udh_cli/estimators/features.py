@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
-import threading
-from collections import OrderedDict
 from dataclasses import dataclass
 from typing import ClassVar, Sequence
 
@@ -14,9 +11,10 @@ import numpy as np
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimator
 from udh_cli.estimators.pair import PreparedImage
+from udh_cli.estimators.recent import RecentCache, pixels_digest
 
 
-# Recently detected features, least recently used first: (method, settings, shape, digest) -> (points,
+# Recently detected features, least recently used first: (method, settings, pixels' digest) -> (points,
 # descriptors, responses), up to FEATURE_CACHE_BYTES of them: a budget rather than a count of images, since
 # frames differ tenfold in keypoints. A frame of 10,000 SIFT keypoints holds 1.4 MB (descriptors kept as bytes,
 # :class:`_FeatureCache`).
@@ -27,16 +25,16 @@ EXACT_MATCH_LIMIT = 5000
 
 
 class _FeatureCache:
-    """Features by key, least recently used first, dropped from the front beyond ``budget_bytes`` (the newest
-    entry is always kept); safe to share between threads (a Dask worker runs several). Float descriptors whose
-    values are all whole numbers in 0-255 (OpenCV's SIFT rounds them so) are held as bytes, a quarter of the
-    memory, and given back as float32: exactly the same values. Arrays given back are read-only."""
+    """Features by key in a :class:`~udh_cli.estimators.recent.RecentCache` of ``budget_bytes``. Float
+    descriptors whose values are all whole numbers in 0-255 (OpenCV's SIFT rounds them so) are held as bytes, a
+    quarter of the memory, and given back as float32: exactly the same values. Arrays given back are read-only."""
 
     def __init__(self, budget_bytes: int) -> None:
-        self.budget_bytes = budget_bytes
-        self.entries: OrderedDict = OrderedDict()  # key -> (points, descriptors as held, dtype to give back, responses)
-        self.held_bytes = 0
-        self.lock = threading.Lock()
+        self.recent = RecentCache(budget_bytes, self._size)
+
+    @property
+    def held_bytes(self) -> int:
+        return self.recent.held_bytes
 
     @staticmethod
     def _size(entry: tuple) -> int:
@@ -44,12 +42,8 @@ class _FeatureCache:
         return points.nbytes + responses.nbytes + (descriptors.nbytes if descriptors is not None else 0)
 
     def get(self, key) -> tuple[np.ndarray, np.ndarray | None, np.ndarray] | None:
-        with self.lock:
-            entry = self.entries.get(key)
-            if entry is None:
-                return None
-            self.entries.move_to_end(key)
-        return self._served(entry)
+        entry = self.recent.get(key)
+        return None if entry is None else self._served(entry)
 
     @staticmethod
     def _served(entry: tuple) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
@@ -70,20 +64,10 @@ class _FeatureCache:
         for array in (points, held, responses):
             if array is not None:
                 array.flags.writeable = False  # shared by every later get
-        entry = (points, held, dtype, responses)
-        with self.lock:
-            if key in self.entries:
-                self.held_bytes -= self._size(self.entries.pop(key))
-            self.entries[key] = entry
-            self.held_bytes += self._size(entry)
-            while len(self.entries) > 1 and self.held_bytes > self.budget_bytes:
-                self.held_bytes -= self._size(self.entries.popitem(last=False)[1])
-        return self._served(entry)
+        return self._served(self.recent.put(key, (points, held, dtype, responses)))
 
     def clear(self) -> None:
-        with self.lock:
-            self.entries.clear()
-            self.held_bytes = 0
+        self.recent.clear()
 
 
 _FEATURE_CACHE = _FeatureCache(FEATURE_CACHE_BYTES)
@@ -151,11 +135,10 @@ class FeatureRansacEstimator(Estimator):
 
     def _detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """Every keypoint of a grey image: (N, 2) pixels, descriptors and (N,) responses, from
-        :data:`_FEATURE_CACHE` when this detector has seen the same pixels recently. Why: in a mosaic each frame
-        is in several pairs (consecutive, bridge, loop closures), and detection is most of a matcher's time;
-        the key is the pixels' digest, so a changed image is never served stale features. ``best_features`` is
+        :data:`_FEATURE_CACHE` when this detector has seen the same pixels recently (:mod:`udh_cli.estimators.recent`:
+        detection is most of a feature matcher's time). ``best_features`` is
         applied afterwards (:meth:`_features`), to what an image keeps."""
-        key = (self.name, repr(self._cache_settings()), gray.shape, hashlib.blake2b(np.ascontiguousarray(gray).data, digest_size=16).digest())
+        key = (self.name, repr(self._cache_settings()), pixels_digest(gray))
         found = _FEATURE_CACHE.get(key)
         if found is None:
             found = _FEATURE_CACHE.put(key, *self._detect_uncached(gray))

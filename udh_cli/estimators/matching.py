@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
+from udh_cli.estimators.recent import RecentCache, pixels_digest
 
 MATCH_CELL = 4  # px of the described image per descriptor cell (the matcher's two 2x pools)
 # Inlier threshold of the robust fit, px of the described image: a match is a cell (4 px) against a cell, so a
@@ -35,6 +36,12 @@ GUIDED_THRESHOLD_PX = 4.0  # the guided fit's inlier threshold: a cell
 # 100, seneca's network-only loops went from 2.06 to 2.93 px (docs/training.md).
 CONFIDENT_INLIERS = 150
 HEADINGS = {1: (0,), 2: (0, 180), 4: (0, 180, 90, 270)}  # B's turns global_match tries, in order, by ``headings``
+# Descriptors of recently seen images, by the matcher, size, turn and the pixels' digest (recent.py): a frame of
+# a mosaic is A in one pair and B in the next, and describing it at both sides costs about as much as the global
+# match itself (0.24 s at 384 and 640 px for a 1000 x 750 frame). A frame's descriptors hold 7-13 MB (64
+# channels at 384 and 640 px, more with turned copies), so this keeps the last 10-20 frames.
+DESCRIPTOR_CACHE_BYTES = 128 * 2**20
+_DESCRIPTORS = RecentCache(DESCRIPTOR_CACHE_BYTES, lambda features: features.nbytes)
 
 
 def cell_centres(height: int, width: int) -> np.ndarray:
@@ -292,8 +299,13 @@ def textured_cells(image, size: tuple[int, int], heading: int = 0) -> np.ndarray
 
 def _described(network, image, size: tuple[int, int], heading: int) -> np.ndarray:
     """The matcher's descriptors of ``image`` at ``size``, turned by ``heading`` degrees counter-clockwise
-    (:func:`_to_described`), made once per image."""
-    return image.derived(("descriptors", str(network.path), size, heading), lambda: network.describe(_turned(image, size, heading)))
+    (:func:`_to_described`), made once per image and kept a while for the next pair it is in (:data:`_DESCRIPTORS`)."""
+    def make() -> np.ndarray:
+        digest = bytes(image.derived(("digest",), lambda: np.frombuffer(pixels_digest(image.grey), np.uint8)))
+        return _DESCRIPTORS.get_or_make(("descriptors", str(network.path), size, heading, digest),
+                                        lambda: network.describe(_turned(image, size, heading)))
+
+    return image.derived(("descriptors", str(network.path), size, heading), make)
 
 
 def _turned(image, size: tuple[int, int], heading: int) -> np.ndarray:

@@ -346,3 +346,27 @@ def test_a_folded_global_match_never_replaces_the_cascades_answer(monkeypatch):
     estimate = estimator.estimate(a, b)
     assert estimate.ok and not estimate.details.get("matched") and estimate.verified_by is None
     assert geometry.mace(estimate.homography, geometry.translation(6.0, -4.0), 320, 240) < 3
+
+
+def test_a_confident_match_is_the_answer_even_where_the_tiles_would_move_it(monkeypatch):
+    """The tile levels rank the candidates, but a match hundreds of cells agree on is more precise than they
+    are: its own homography is the answer, and the stage says so."""
+    if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
+        pytest.skip("shipped unsupervised model not built yet")
+    from udh_cli.estimators.matching import MatchResult
+    from udh_cli.estimators.tiles import TileResult
+
+    truth = geometry.translation(6.0, -4.0)
+    a, b = warped_pair(truth, seed=5)
+    monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 400, 500, 0))
+    moved = geometry.translation(10.0, 0.0) @ truth  # two levels "confirm" an answer 10 px off
+    monkeypatch.setattr(deep, "refine_with_tiles", lambda *args, **kwargs: TileResult(moved, 2, 1.0, 0.5, 2))
+    matcher = str(models_dir() / f"{SHIPPED_MODELS['unsupervised-matcher']}.onnx")
+    estimator = create_estimator("unsupervised", device="cpu", search=0, search_below=1.0, matcher_model=matcher)
+    estimate = estimator.estimate(a, b)
+    assert estimate.stage == "match" and estimate.verified_by == "matches"
+    assert geometry.mace(estimate.homography, truth, 320, 240) < 1e-6
+    # Below the confident support the tiles' answer stands, as for any other candidate.
+    monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 40, 500, 0))
+    estimate = estimator.estimate(a, b)
+    assert estimate.stage == "tiles" and geometry.mace(estimate.homography, moved, 320, 240) < 1e-6

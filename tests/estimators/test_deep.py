@@ -348,9 +348,9 @@ def test_a_folded_global_match_never_replaces_the_cascades_answer(monkeypatch):
     assert geometry.mace(estimate.homography, geometry.translation(6.0, -4.0), 320, 240) < 3
 
 
-def test_a_confident_match_is_the_answer_even_where_the_tiles_would_move_it(monkeypatch):
-    """The tile levels rank the candidates, but a match hundreds of cells agree on is more precise than they
-    are: its own homography is the answer, and the stage says so."""
+def test_a_confident_match_outranks_what_the_tiles_confirmed_and_is_kept_as_matched(monkeypatch):
+    """A match hundreds of cells agree on beats a doubted cascade answer that tile levels accepted, and its own
+    homography is the answer: the tile stage is less precise than guided matching."""
     if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
         pytest.skip("shipped unsupervised model not built yet")
     from udh_cli.estimators.matching import MatchResult
@@ -358,15 +358,23 @@ def test_a_confident_match_is_the_answer_even_where_the_tiles_would_move_it(monk
 
     truth = geometry.translation(6.0, -4.0)
     a, b = warped_pair(truth, seed=5)
+    moved = geometry.translation(30.0, 0.0) @ truth
+    tile_calls = []
+
+    def tiles(*args, **kwargs):  # two levels accept the cascade's answer, 30 px off; none accepts anything else
+        tile_calls.append(1)
+        return TileResult(moved, 2, 1.0, 0.5, 2) if len(tile_calls) == 1 else TileResult(args[3], 0, 0.0, float("nan"), 2)
+
+    monkeypatch.setattr(deep, "refine_with_tiles", tiles)
     monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 400, 500, 0))
-    moved = geometry.translation(10.0, 0.0) @ truth  # two levels "confirm" an answer 10 px off
-    monkeypatch.setattr(deep, "refine_with_tiles", lambda *args, **kwargs: TileResult(moved, 2, 1.0, 0.5, 2))
     matcher = str(models_dir() / f"{SHIPPED_MODELS['unsupervised-matcher']}.onnx")
     estimator = create_estimator("unsupervised", device="cpu", search=0, search_below=1.0, matcher_model=matcher)
     estimate = estimator.estimate(a, b)
     assert estimate.stage == "match" and estimate.verified_by == "matches"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 1e-6
-    # Below the confident support the tiles' answer stands, as for any other candidate.
+    assert len(tile_calls) == 1  # the confident match is not tiled
+    # Below the confident support, the answer the tile levels confirmed stands.
+    tile_calls.clear()
     monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 40, 500, 0))
     estimate = estimator.estimate(a, b)
     assert estimate.stage == "tiles" and geometry.mace(estimate.homography, moved, 320, 240) < 1e-6

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,8 +17,9 @@ MODEL_FORMAT = "udh-onnx-1"
 MATCHER_ARCH = "matcher"  # the metadata ``arch`` of a descriptor network (udh_cli.train.archs.DenseMatcher)
 
 
-def _open_udh_model(path: str | Path, device: str, threads: int | None) -> tuple[Path, object, int, float, float, dict[str, str]]:
-    """Open a udh ONNX file in onnxruntime and check its metadata: (path, session, input size, mean, std, metadata)."""
+def _open_udh_model(path: str | Path, device: str, threads: int | None) -> tuple[Path, object, int, float, float, dict[str, str], str]:
+    """Open a udh ONNX file in onnxruntime and check its metadata: (path, session, input size, mean, std, metadata,
+    identity), the identity being a digest of the bytes the session was made from."""
     import onnxruntime as ort
 
     path = Path(path)
@@ -38,7 +40,8 @@ def _open_udh_model(path: str | Path, device: str, threads: int | None) -> tuple
         # QDQ propagation moves an int8 model's first quantize step above its first max-pool, which then
         # runs on uint8 in NCHW, a slow kernel: 0.5 ms of a 1.6 ms pass (`udh quantize`). Off, the pool
         # stays float32 and blocked (20 us). Float32 models have no QDQ nodes, so nothing changes for them.
-        session = ort.InferenceSession(str(path), sess_options=options, providers=providers_for(device),
+        model_bytes = path.read_bytes()
+        session = ort.InferenceSession(model_bytes, sess_options=options, providers=providers_for(device),
                                        disabled_optimizers=["QDQPropagationTransformer"])
     except UdhError:
         raise
@@ -54,7 +57,7 @@ def _open_udh_model(path: str | Path, device: str, threads: int | None) -> tuple
         raise UdhError(f"{path}: the model's udh metadata is incomplete or malformed") from None
     if not (math.isfinite(mean) and math.isfinite(std) and std > 0 and size >= 16):
         raise UdhError(f"{path}: unusable metadata (input size {size}, mean {mean}, std {std})")
-    return path, session, size, mean, std, metadata
+    return path, session, size, mean, std, metadata, hashlib.blake2b(model_bytes, digest_size=16).hexdigest()
 
 
 def providers_for(device: str) -> list[str]:
@@ -84,6 +87,9 @@ class _UdhOnnxModel:
     mean: float
     std: float
     metadata: dict[str, str]
+    # A digest of the model's bytes as loaded: what a result computed by this network is keyed by, since a file
+    # rewritten under the same name in a long-lived process (a Dask worker, a notebook) is another network.
+    identity: str
 
     @property
     def provider(self) -> str:
@@ -111,7 +117,7 @@ class OnnxHomographyModel(_UdhOnnxModel):
     @classmethod
     def load(cls, path: str | Path, device: str = "auto", threads: int | None = None) -> "OnnxHomographyModel":
         """Open and check a udh ONNX model; raises :class:`UdhError` for a missing, corrupt or foreign file."""
-        path, session, size, mean, std, metadata = _open_udh_model(path, device, threads)
+        path, session, size, mean, std, metadata, identity = _open_udh_model(path, device, threads)
         if metadata.get("arch") == MATCHER_ARCH:
             raise UdhError(f"{path}: is a matcher (descriptors for global matching), not a homography network; "
                            f"a matcher runs beside the networks: --matcher-model FILE (-O matcher_model=FILE in mosaic and bench)")
@@ -119,7 +125,7 @@ class OnnxHomographyModel(_UdhOnnxModel):
         if (len(inputs) != 1 or list(inputs[0].shape[1:]) != [2, size, size] or len(outputs) != 1
                 or list(outputs[0].shape[1:]) != [4, 2]):
             raise UdhError(f"{path}: the graph's shapes do not fit its metadata (want (N,2,{size},{size}) -> (N,4,2))")
-        return cls(path=path, session=session, mean=mean, std=std, metadata=metadata, input_size=size)
+        return cls(path=path, session=session, mean=mean, std=std, metadata=metadata, identity=identity, input_size=size)
 
     def predict_offsets(self, patches: np.ndarray, batch_size: int = 64) -> np.ndarray:
         """``patches`` (N, 2, S, S) grey in [0, 1] -> (N, 4, 2) float64 offsets in pixels of the S x S input."""
@@ -139,13 +145,13 @@ class OnnxMatcher(_UdhOnnxModel):
     def load(cls, path: str | Path, device: str = "auto", threads: int | None = None) -> "OnnxMatcher":
         """Open and check a matcher; raises :class:`UdhError` for a missing, corrupt or foreign file, or a
         homography network given as a matcher."""
-        path, session, _, mean, std, metadata = _open_udh_model(path, device, threads)
+        path, session, _, mean, std, metadata, identity = _open_udh_model(path, device, threads)
         inputs, outputs = session.get_inputs(), session.get_outputs()
         if metadata.get("arch") != MATCHER_ARCH or len(inputs) != 1 or len(inputs[0].shape) != 4 or inputs[0].shape[1] != 1 \
                 or len(outputs) != 1 or len(outputs[0].shape) != 4:
             raise UdhError(f"{path}: not a matcher (want arch '{MATCHER_ARCH}' and (N,1,H,W) -> (N,C,H/4,W/4)); "
                            f"train one with `udh train --mode match`")
-        return cls(path=path, session=session, mean=mean, std=std, metadata=metadata)
+        return cls(path=path, session=session, mean=mean, std=std, metadata=metadata, identity=identity)
 
     def describe(self, grey: np.ndarray) -> np.ndarray:
         """(H, W) grey in [0, 1], H and W multiples of 4 -> (C, H/4, W/4) float32 unit descriptors."""

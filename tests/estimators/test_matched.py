@@ -41,3 +41,27 @@ def test_bad_options_are_refused(tmp_path):
             create_estimator("matcher", model=str(path), **options)
     with pytest.raises(UdhError, match="not a matcher"):
         create_estimator("matcher", model=str(export_tiny_network(tmp_path, "corr", seed=0)))
+
+
+def test_a_model_file_rewritten_in_place_is_never_served_the_old_descriptors(tmp_path):
+    """The descriptor cache outlives a network (a Dask worker, a notebook): it keys by the model's bytes."""
+    import shutil
+
+    from udh_cli.estimators import matching
+    from udh_cli.estimators.pair import PreparedImage
+    from udh_cli.onnx_model import OnnxMatcher
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    first, second = export_tiny_network(tmp_path / "a", "matcher", seed=0), export_tiny_network(tmp_path / "b", "matcher", seed=1)
+    image = textured_image(128, 96, seed=3).astype("float32") / 255
+    path = tmp_path / "model.onnx"
+    shutil.copy(first, path)
+    old = OnnxMatcher.load(path, "cpu", 1)
+    described_old = matching._described(old, PreparedImage.of(image), (128, 96), 0)
+    shutil.copy(second, path)
+    new = OnnxMatcher.load(path, "cpu", 1)
+    assert new.identity != old.identity and OnnxMatcher.load(path, "cpu", 1).identity == new.identity
+    described_new = matching._described(new, PreparedImage.of(image), (128, 96), 0)
+    assert not (described_new == described_old).all()
+    assert (described_new == new.describe(image)).all()

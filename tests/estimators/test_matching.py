@@ -46,6 +46,15 @@ def test_a_cell_whose_best_match_prefers_another_cell_is_not_mutual():
     np.testing.assert_allclose(similarity, [0.9], atol=1e-3)
 
 
+def test_cells_that_tie_for_a_match_give_one_match():
+    # A's cells 0 and 1 are the same descriptor, both nearest B's cell 0: one match, from the first.
+    b = _unit(np.eye(4, dtype=np.float32).reshape(4, 1, 4))
+    a = np.zeros((4, 1, 2), np.float32)
+    a[:, 0, 0] = a[:, 0, 1] = [0.9, 0.0, 0.0, 0.436]
+    points_a, _, _ = matching.mutual_matches(_unit(a), b, ratio=1.0)
+    np.testing.assert_allclose(points_a, [[1.5, 1.5]])
+
+
 def test_the_peak_is_placed_between_cells_by_a_parabola():
     # One query against a 1 x 5 grid of 2-d descriptors whose similarity with it is 1 - (x - 2.3)^2 / 20.
     xs = np.arange(5.0)

@@ -82,6 +82,10 @@ def mutual_matches(features_a: np.ndarray, features_b: np.ndarray, ratio: float 
     if valid_b is not None:
         keep &= valid_b.ravel()[best_b]
     mutual = np.nonzero(keep)[0]
+    # Two A cells can tie for a column's maximum (identical neighbourhoods: saturated or repeated patches); one
+    # match a B cell, the first A cell, as the argmax of the reverse direction would choose.
+    _, first_of_each = np.unique(best_b[mutual], return_index=True)
+    mutual = mutual[np.sort(first_of_each)]
     target = best_b[mutual]
     points_b = cell_centres(hb, wb)[target] + MATCH_CELL * _subcell(flat_a[mutual], flat_b, target, hb, wb)
     return cell_centres(ha, wa)[mutual], points_b, first[mutual]
@@ -300,12 +304,16 @@ def textured_cells(image, size: tuple[int, int], heading: int = 0) -> np.ndarray
 def _described(network, image, size: tuple[int, int], heading: int) -> np.ndarray:
     """The matcher's descriptors of ``image`` at ``size``, turned by ``heading`` degrees counter-clockwise
     (:func:`_to_described`), made once per image and kept a while for the next pair it is in (:data:`_DESCRIPTORS`)."""
-    def make() -> np.ndarray:
-        digest = bytes(image.derived(("digest",), lambda: np.frombuffer(pixels_digest(image.grey), np.uint8)))
-        return _DESCRIPTORS.get_or_make(("descriptors", str(network.path), size, heading, digest),
-                                        lambda: network.describe(_turned(image, size, heading)))
+    # The network by its loaded bytes (OnnxMatcher.identity) where it has them, so that a model file rewritten in
+    # a long-lived process is never served the old model's descriptors; the image by the pixels it is described
+    # from, a digest of 0.4 MB at 384 px rather than of the whole frame.
+    network_key = getattr(network, "identity", "") or str(network.path)
 
-    return image.derived(("descriptors", str(network.path), size, heading), make)
+    def make() -> np.ndarray:
+        key = ("descriptors", network_key, heading, pixels_digest(image.resized(size)))
+        return _DESCRIPTORS.get_or_make(key, lambda: network.describe(_turned(image, size, heading)))
+
+    return image.derived(("descriptors", network_key, size, heading), make)
 
 
 def _turned(image, size: tuple[int, int], heading: int) -> np.ndarray:

@@ -329,6 +329,8 @@ def test_a_doubted_pair_takes_the_global_match_and_a_confident_match_verifies_it
     assert after.verified is not False and "match" in after.details["stage_ms"]
     with pytest.raises(UdhError, match="match_side"):
         create_estimator("unsupervised", device="cpu", match_side=10)
+    with pytest.raises(UdhError, match="match_escalate_side"):
+        create_estimator("unsupervised", device="cpu", match_escalate_side=10)
 
 
 def test_a_folded_global_match_never_replaces_the_cascades_answer(monkeypatch):

@@ -36,7 +36,7 @@ def test_frames_that_share_nothing_are_a_failure_that_says_why(matcher):
 
 def test_bad_options_are_refused(tmp_path):
     path = export_tiny_network(tmp_path, "matcher", seed=0)
-    for options, message in (({"headings": 3}, "headings"), ({"side": 10}, "side"), ({"min_inliers": 2}, "min_inliers")):
+    for options, message in (({"headings": 3}, "headings"), ({"side": 10}, "side"), ({"escalate_side": 4096}, "escalate_side"), ({"min_inliers": 2}, "min_inliers")):
         with pytest.raises(UdhError, match=message):
             create_estimator("matcher", model=str(path), **options)
     with pytest.raises(UdhError, match="not a matcher"):

@@ -124,6 +124,24 @@ def test_a_frame_is_described_once_for_every_pair_it_is_in_and_never_stale():
     assert network.described == 4  # new pixels, new descriptors
 
 
+def test_a_match_too_coarse_to_be_confident_is_tried_again_at_the_larger_side():
+    # A sliver of overlap: at 96 px (24 x 18 cells) too few cells are shared to reach the threshold; at 256 px
+    # (64 x 48 cells) enough are, and the answer is the finer one.
+    scene = textured_image(600, 300, seed=8).astype(np.float32) / 255
+    a = PreparedImage.of(scene[40:232, 24:280])
+    b = PreparedImage.of(scene[40:232, 216:472])  # A's content moved by 192 px: a quarter of the frame shared
+    coarse = matching.global_match(BlockDescriptors(), a, b, side=96, headings=1)
+    assert coarse.inliers < matching.CONFIDENT_INLIERS and coarse.side == 96
+    escalated = matching.global_match(BlockDescriptors(), a, b, side=96, headings=1, escalate_side=256)
+    assert escalated.side == 256 and escalated.inliers >= matching.CONFIDENT_INLIERS
+    assert geometry.mace(escalated.b_from_a, geometry.translation(-192, 0), 256, 192) < 0.5
+    # Never beyond the frames' own pixels: asked for 768 px, 256-px frames are described at 256.
+    assert matching.global_match(BlockDescriptors(), a, b, side=96, headings=1, escalate_side=768).side == 256
+    # A confident first match is not tried again.
+    whole = PreparedImage.of(scene[40:232, 56:312])
+    assert matching.global_match(BlockDescriptors(), a, whole, side=256, headings=1, escalate_side=512).side == 256
+
+
 def test_unrelated_images_give_no_confident_match():
     a = PreparedImage.of(textured_image(256, 192, seed=4))
     b = PreparedImage.of(textured_image(256, 192, seed=5))

@@ -83,6 +83,9 @@ class DeepEstimator(Estimator):
             overlap or little texture. ``None`` takes the shipped ``<name>-matcher`` network when there is one
             and the tile stage runs; ``""`` turns it off.
         match_side: the longer side, px, at which the matcher describes frames for the global match.
+        match_escalate_side: the longer side, px, of a second global match for a pair whose first found fewer
+            than :data:`~udh_cli.estimators.matching.CONFIDENT_INLIERS` agreeing cells (frames overlapping by a
+            sliver); ``None``: none. It costs about four times the first, on the pairs that fail it only.
         match_refine_side: the longer side, px, at which the global match is refined by guided matching
             (:func:`~udh_cli.estimators.matching.guided_matches`); ``None``: not refined.
         tiles: refine the answer on 128x128 tiles at finer levels up to full resolution with the last
@@ -110,6 +113,7 @@ class DeepEstimator(Estimator):
     tiles: bool | None = None
     matcher_model: str | None = None
     match_side: int = MATCH_SIDE
+    match_escalate_side: int | None = MAX_MATCH_SIDE
     match_refine_side: int | None = MATCH_REFINE_SIDE
     batch_size: int = 64
     threads: int | None = None
@@ -173,9 +177,10 @@ class DeepEstimator(Estimator):
             self.tiles = len(self.stages) > 1
         if self.matcher_model is None and self.model is None and self.tiles and has_shipped(f"{self.name}-matcher", precision=None):
             self.matcher_model = str(shipped_onnx(f"{self.name}-matcher", "fp32"))  # float32 only: 0.57 MB, run on doubted pairs
-        if not 64 <= self.match_side <= MAX_MATCH_SIDE or not (self.match_refine_side is None or 64 <= self.match_refine_side <= 4096):
-            raise UdhError(f"method '{self.name}': match_side ({self.match_side}) must be 64 to {MAX_MATCH_SIDE} px and match_refine_side "
-                           f"({self.match_refine_side}) 64 to 4096 px or none")
+        if not 64 <= self.match_side <= MAX_MATCH_SIDE or not (self.match_refine_side is None or 64 <= self.match_refine_side <= 4096) \
+                or not (self.match_escalate_side is None or 64 <= self.match_escalate_side <= MAX_MATCH_SIDE):
+            raise UdhError(f"method '{self.name}': match_side ({self.match_side}) and match_escalate_side ({self.match_escalate_side}, or "
+                           f"none) must be 64 to {MAX_MATCH_SIDE} px and match_refine_side ({self.match_refine_side}) 64 to 4096 px or none")
         self.matcher = OnnxMatcher.load(self.matcher_model, self.device, self.threads) if self.matcher_model else None
         if self.search is None:
             # Only with the tile stage: without it nothing but the 128-px score checks a searched answer, and a
@@ -267,7 +272,8 @@ class DeepEstimator(Estimator):
         doubtful = [i for i, score in enumerate(scores) if score < self.search_below or self._unconfirmed(tiled[i], pairs[i])]
         if self.matcher is not None and doubtful:
             for i in doubtful:
-                found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side, MATCH_HEADINGS, self.match_refine_side)
+                found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side, MATCH_HEADINGS, self.match_refine_side,
+                                     self.match_escalate_side)
                 if found.b_from_a is None:
                     continue
                 h = geometry.rescale_homography(found.b_from_a, pairs[i].a.size, (s, s), pairs[i].b.size, (s, s))
@@ -306,7 +312,7 @@ class DeepEstimator(Estimator):
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
                        "precision": precision, "provider": self.network.provider, "stage_ms": stage_ms}
             if match is not None:
-                details.update(matched=True, match_inliers=match.inliers, match_heading=match.heading)
+                details.update(matched=True, match_inliers=match.inliers, match_heading=match.heading, match_side=match.side)
             confident_match = match is not None and match.inliers >= CONFIDENT_INLIERS
             if full is not None and refined is not None:
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),

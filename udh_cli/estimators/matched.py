@@ -25,6 +25,8 @@ class MatcherEstimator(Estimator):
         model: path of a matcher ONNX file; ``None`` takes the shipped ``unsupervised-matcher``.
         device, threads: onnxruntime's ("auto", "cpu" or "cuda"; None: onnxruntime's default threads).
         side, refine_side: the longer side, px, of the global match and of its guided refinement (None: none).
+        escalate_side: the longer side, px, of a second global match when the first finds fewer than
+            ``min_inliers`` (:func:`~udh_cli.estimators.matching.global_match`; None: none).
         headings: B's turns tried (1: as given; 2: also half a turn; 4: also quarter turns), each only while
             fewer than :data:`~udh_cli.estimators.matching.CONFIDENT_INLIERS` cells agree.
         min_inliers: agreeing cells an answer needs (:data:`~udh_cli.estimators.matching.CONFIDENT_INLIERS`:
@@ -40,6 +42,7 @@ class MatcherEstimator(Estimator):
     threads: int | None = None
     side: int = MATCH_SIDE
     refine_side: int | None = MATCH_REFINE_SIDE
+    escalate_side: int | None = MAX_MATCH_SIDE
     headings: int = 4
     min_inliers: int = CONFIDENT_INLIERS
     network: OnnxMatcher = field(init=False, repr=False)
@@ -49,9 +52,11 @@ class MatcherEstimator(Estimator):
 
         if self.headings not in HEADINGS:
             raise UdhError(f"method 'matcher': headings ({self.headings}) must be one of {', '.join(map(str, HEADINGS))}")
-        if not 64 <= self.side <= MAX_MATCH_SIDE or not (self.refine_side is None or 64 <= self.refine_side <= 4096) or self.min_inliers < 4:
-            raise UdhError(f"method 'matcher': side ({self.side}) must be 64 to {MAX_MATCH_SIDE} px, refine_side ({self.refine_side}) "
-                           f"64 to 4096 px or none, and min_inliers ({self.min_inliers}) at least 4")
+        if not 64 <= self.side <= MAX_MATCH_SIDE or not (self.refine_side is None or 64 <= self.refine_side <= 4096) or self.min_inliers < 4 \
+                or not (self.escalate_side is None or 64 <= self.escalate_side <= MAX_MATCH_SIDE):
+            raise UdhError(f"method 'matcher': side ({self.side}) and escalate_side ({self.escalate_side}, or none) must be 64 to "
+                           f"{MAX_MATCH_SIDE} px, refine_side ({self.refine_side}) 64 to 4096 px or none, and min_inliers "
+                           f"({self.min_inliers}) at least 4")
         path = self.model if self.model is not None else shipped_onnx("unsupervised-matcher", "fp32")
         self.network = OnnxMatcher.load(path, self.device, self.threads)
 
@@ -59,10 +64,10 @@ class MatcherEstimator(Estimator):
         return [str(self.network.path)]
 
     def _estimate(self, pair):
-        found = global_match(self.network, pair.a, pair.b, self.side, self.headings, self.refine_side)
+        found = global_match(self.network, pair.a, pair.b, self.side, self.headings, self.refine_side, self.escalate_side)
         if found.b_from_a is None or found.inliers < self.min_inliers:
             raise EstimationFailed(f"{found.inliers} of {found.matches} matched cells agree (need {self.min_inliers}); "
                                    f"the frames may not overlap, or lack texture")
-        details = {"inliers": found.inliers, "matches": found.matches, "heading": found.heading,
+        details = {"inliers": found.inliers, "matches": found.matches, "heading": found.heading, "side": found.side,
                    "verified": True, "verified_by": "matches"}
         return found.b_from_a, found.inliers / (found.inliers + self.min_inliers), details

@@ -181,12 +181,14 @@ MATCH_REFINE_SIDE = 640
 @dataclass
 class MatchResult:
     """A global match: ``b_from_a`` (3, 3) in the full images' pixels (None: no answer), its inliers and the
-    mutual matches it was fitted to, and the turn of B that won (degrees counter-clockwise: 0, 90, 180, 270)."""
+    mutual matches it was fitted to, the turn of B that won (degrees counter-clockwise: 0, 90, 180, 270), and
+    the longer side, px, at which the frames were described for it."""
 
     b_from_a: np.ndarray | None
     inliers: int
     matches: int
     heading: int
+    side: int = MATCH_SIDE
 
 
 def match_size(size: tuple[int, int], side: int) -> tuple[int, int]:
@@ -195,23 +197,52 @@ def match_size(size: tuple[int, int], side: int) -> tuple[int, int]:
     return tuple(max(8, int(round(v * scale / MATCH_CELL)) * MATCH_CELL) for v in size)  # type: ignore[return-value]
 
 
-def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: int = 2, refine_side: int | None = None) -> MatchResult:
+def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: int = 2, refine_side: int | None = None,
+                 escalate_side: int | None = None) -> MatchResult:
     """Match two :class:`~udh_cli.estimators.pair.PreparedImage` s with a matcher
     (:class:`~udh_cli.onnx_model.OnnxMatcher`): describe both at ``side`` px (once per image, kept with it),
     take mutual nearest cells and fit a homography robustly. ``headings`` 2 also matches B turned half a turn
     and keeps the heading with more inliers (a survey's strips alternate direction; the descriptors are
     trained for turns up to 45 degrees); 4 also quarter turns (a turn at a strip's end), each tried only
-    while no heading has :data:`CONFIDENT_INLIERS`. ``refine_side``: describe both again at that larger side and match
-    every cell of A near where the first answer puts it (:func:`guided_matches`) for a finer fit; the
-    result keeps the first match's inliers, the evidence that it is the right place."""
-    size_a, size_b = match_size(image_a.size, side), match_size(image_b.size, side)
-    best = MatchResult(None, 0, 0, 0)
-    if min(*size_a, *size_b) < MIN_DESCRIBED_SIDE:  # a sliver of a frame (over 12:1 at 384 px): nothing to match
-        return best
+    while no heading has :data:`CONFIDENT_INLIERS`. ``escalate_side``: when no heading reaches
+    :data:`CONFIDENT_INLIERS`, match again at this larger side (at most :data:`MAX_MATCH_SIDE` and the smaller
+    frame's longer side), the best heading so far first, and keep whichever found more. ``refine_side``: describe both again at that larger side and
+    match every cell of A near where the answer puts it (:func:`guided_matches`) for a finer fit; the result
+    keeps the global match's inliers, the evidence that it is the right place.
+
+    Why escalate: where two frames overlap by a sliver (a strip's end on seneca, 4-11 %), too few cells of 384 px
+    lie in the overlap to reach the threshold however right the match, and four times the cells do (27 -> 229 and
+    66 -> 455 cells), while pairs of frames from different flights stayed at most 34 at 768 px (60 pairs;
+    docs/estimators.md). Only the pairs that fail at ``side`` pay for it."""
+    best = _match_at(network, image_a, image_b, side, HEADINGS[_checked_headings(headings)])
+    # Never finer than the smaller frame's own pixels: upsampled cells add no evidence, only correlated matches.
+    finer_side = min(escalate_side or 0, MAX_MATCH_SIDE, max(image_a.size), max(image_b.size))
+    if best.inliers < CONFIDENT_INLIERS and finer_side > side:
+        order = (best.heading, *[h for h in HEADINGS[headings] if h != best.heading])
+        finer = _match_at(network, image_a, image_b, finer_side, order)
+        if finer.inliers > best.inliers:
+            best = finer
+    if best.b_from_a is not None and refine_side and refine_side > best.side:
+        finer_h = _refined(network, image_a, image_b, best, refine_side)
+        if finer_h is not None:
+            best = MatchResult(finer_h, best.inliers, best.matches, best.heading, best.side)
+    return best
+
+
+def _checked_headings(headings: int) -> int:
     if headings not in HEADINGS:
         raise ValueError(f"headings must be one of {sorted(HEADINGS)}, not {headings!r}")
+    return headings
+
+
+def _match_at(network, image_a, image_b, side: int, turns: tuple[int, ...]) -> MatchResult:
+    """The global match at ``side`` px, trying B turned by each of ``turns`` in order until one is confident."""
+    size_a, size_b = match_size(image_a.size, side), match_size(image_b.size, side)
+    best = MatchResult(None, 0, 0, 0, side)
+    if min(*size_a, *size_b) < MIN_DESCRIBED_SIDE:  # a sliver of a frame (over 12:1 at 384 px): nothing to match
+        return best
     features_a, textured_a = _described(network, image_a, size_a, 0), textured_cells(image_a, size_a, 0)
-    for heading in HEADINGS[headings]:
+    for heading in turns:
         if best.inliers >= CONFIDENT_INLIERS:
             break
         features_b = _described(network, image_b, size_b, heading)
@@ -221,11 +252,7 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
         if found is None or inliers.sum() <= best.inliers:
             continue
         full = np.linalg.inv(_to_described(image_b.size, size_b, heading)) @ found @ _to_described(image_a.size, size_a, 0)
-        best = MatchResult(full / full[2, 2], int(inliers.sum()), len(points_a), heading)
-    if best.b_from_a is not None and refine_side and refine_side > side:
-        finer = _refined(network, image_a, image_b, best, refine_side)
-        if finer is not None:
-            best = MatchResult(finer, best.inliers, best.matches, best.heading)
+        best = MatchResult(full / full[2, 2], int(inliers.sum()), len(points_a), heading, side)
     return best
 
 

@@ -38,8 +38,8 @@ CONFIDENT_INLIERS = 150
 HEADINGS = {1: (0,), 2: (0, 180), 4: (0, 180, 90, 270)}  # B's turns global_match tries, in order, by ``headings``
 # Descriptors of recently seen images, by the matcher, size, turn and the pixels' digest (recent.py): a frame of
 # a mosaic is A in one pair and B in the next, and describing it at both sides costs about as much as the global
-# match itself (0.24 s at 384 and 640 px for a 1000 x 750 frame). A frame's descriptors hold 7-13 MB (64
-# channels at 384 and 640 px, more with turned copies), so this keeps the last 10-20 frames.
+# match itself (0.24 s at 384 and 640 px for a 1000 x 750 frame). A frame's descriptors hold 7 MB (64 channels
+# at 384 and 640 px) to about 40 MB (turned copies and the second look at 768 px), so this keeps the last 3-20 frames.
 DESCRIPTOR_CACHE_BYTES = 128 * 2**20
 _DESCRIPTORS = RecentCache(DESCRIPTOR_CACHE_BYTES, lambda features: features.nbytes)
 

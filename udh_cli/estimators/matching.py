@@ -206,7 +206,7 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
     trained for turns up to 45 degrees); 4 also quarter turns (a turn at a strip's end), each tried only
     while no heading has :data:`CONFIDENT_INLIERS`. ``escalate_side``: when no heading reaches
     :data:`CONFIDENT_INLIERS`, match again at this larger side (at most :data:`MAX_MATCH_SIDE` and the smaller
-    frame's longer side), the best heading so far first, and keep whichever found more. ``refine_side``: describe both again at that larger side and
+    frame's longer side), from the best heading so far and its half turn, and keep whichever found more. ``refine_side``: describe both again at that larger side and
     match every cell of A near where the answer puts it (:func:`guided_matches`) for a finer fit; the result
     keeps the global match's inliers, the evidence that it is the right place.
 
@@ -218,7 +218,9 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
     # Never finer than the smaller frame's own pixels: upsampled cells add no evidence, only correlated matches.
     finer_side = min(escalate_side or 0, MAX_MATCH_SIDE, max(image_a.size), max(image_b.size))
     if best.inliers < CONFIDENT_INLIERS and finer_side > side:
-        order = (best.heading, *[h for h in HEADINGS[headings] if h != best.heading])
+        # The best turn so far and its half turn: a strip's end turns B by half a turn. All four turns placed one
+        # more of seneca's frames (167 against 166, the same 11 parts and loops) in 593 s instead of 379 s.
+        order = tuple(h for h in (best.heading, (best.heading + 180) % 360) if h in HEADINGS[headings])
         finer = _match_at(network, image_a, image_b, finer_side, order)
         if finer.inliers > best.inliers:
             best = finer

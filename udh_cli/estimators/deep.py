@@ -281,7 +281,11 @@ class DeepEstimator(Estimator):
                     continue
                 score = self.score(small_a[i], small_b[i], h)
                 confident = found.inliers >= CONFIDENT_INLIERS
-                retiled = self._tiles(pairs[i], h) if self.tiles and not confident else None  # a confident match is kept as it is
+                # A match hundreds of cells agree on is kept as the guided matching left it, not tiled: the tile
+                # stage is less precise than it (flight-motion benchmark: one accepted coarse level moved 0.5-1.3 px
+                # matches to 6-23 px; consecutive pairs at 800 px against SIFT references, median: copr 0.91 px
+                # kept against 1.20 px tiled, where the tiles confirmed it).
+                retiled = self._tiles(pairs[i], h) if self.tiles and not confident else None
                 # A match many cells support first: a doubted cascade answer that one tile level accepted was
                 # 204 px off where 1,077 cells put the match 0.2 px from the truth (flight-motion benchmark).
                 # Then tile levels (they confirm precise answers), then the score.
@@ -313,25 +317,17 @@ class DeepEstimator(Estimator):
                        "precision": precision, "provider": self.network.provider, "stage_ms": stage_ms}
             if match is not None:
                 details.update(matched=True, match_inliers=match.inliers, match_heading=match.heading, match_side=match.side)
-            confident_match = match is not None and match.inliers >= CONFIDENT_INLIERS
-            if full is not None and refined is not None:
+            if full is not None and refined is not None:  # never for a confident match: it is not tiled
+                full = refined.b_from_a
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
                                tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
-            if full is not None and confident_match:
-                # An answer hundreds of cells agree on stays as the guided matching left it: the tile stage is less
-                # precise than it (flight-motion benchmark: one accepted coarse level moved 0.5-1.3 px matches to
-                # 6-23 px; consecutive pairs at 800 px against SIFT references, median: copr 0.91 px kept against
-                # 1.20 px tiled, where the tiles confirmed it).
-                full = match.b_from_a
-            elif full is not None and refined is not None:
-                full = refined.b_from_a
-            stage = "match" if confident_match else "tiles" if details.get("tile_levels") else "search" if was_searched else "match" if match is not None else "network"
+            stage = "tiles" if details.get("tile_levels") else "search" if was_searched else "match" if match is not None else "network"
             # An answer the tile levels did not confirm, although the pair had room for tiles, is not verified
             # whatever its score: the search's best translation can score above the floor while tens of
             # pixels off (an untrained network on the example flight: 0.24 at 36 px), and a network-only
             # mosaic rejects it (pairs.Acceptance).
             verified, verified_by = (False if self._unconfirmed(refined, pair) else None), None
-            if confident_match:
+            if match is not None and match.inliers >= CONFIDENT_INLIERS:
                 # Hundreds of cells agree on it: verified by its matches, as RANSAC verifies SIFT's, whether or
                 # not the tiles confirmed it (brighton-beach's trees defeat them even at the true answer). Its
                 # confidence is then its support too, not only the 128-px score, which a pair overlapping by less

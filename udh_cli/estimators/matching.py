@@ -206,15 +206,18 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
     trained for turns up to 45 degrees); 4 also quarter turns (a turn at a strip's end), each tried only
     while no heading has :data:`CONFIDENT_INLIERS`. ``escalate_side``: when no heading reaches
     :data:`CONFIDENT_INLIERS`, match again at this larger side (at most :data:`MAX_MATCH_SIDE` and the smaller
-    frame's longer side), from the best heading so far and its half turn, and keep whichever found more. ``refine_side``: describe both again at that larger side and
-    match every cell of A near where the answer puts it (:func:`guided_matches`) for a finer fit; the result
-    keeps the global match's inliers, the evidence that it is the right place.
+    frame's longer side), from the best heading so far and its half turn, and keep whichever found more.
+    ``refine_side``: describe both again at that larger side and match every cell of A near where the answer
+    puts it (:func:`guided_matches`) for a finer fit; the result keeps the global match's inliers, the evidence
+    that it is the right place.
 
     Why escalate: where two frames overlap by a sliver (a strip's end on seneca, 4-11 %), too few cells of 384 px
     lie in the overlap to reach the threshold however right the match, and four times the cells do (27 -> 229 and
     66 -> 455 cells), while pairs of frames from different flights stayed at most 34 at 768 px (60 pairs;
     docs/estimators.md). Only the pairs that fail at ``side`` pay for it."""
-    best = _match_at(network, image_a, image_b, side, HEADINGS[_checked_headings(headings)])
+    if headings not in HEADINGS:
+        raise ValueError(f"headings must be one of {sorted(HEADINGS)}, not {headings!r}")
+    best = _match_at(network, image_a, image_b, side, HEADINGS[headings])
     # Never finer than the smaller frame's own pixels: upsampled cells add no evidence, only correlated matches.
     finer_side = min(escalate_side or 0, MAX_MATCH_SIDE, max(image_a.size), max(image_b.size))
     if best.inliers < CONFIDENT_INLIERS and finer_side > side:
@@ -229,12 +232,6 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
         if finer_h is not None:
             best = MatchResult(finer_h, best.inliers, best.matches, best.heading, best.side)
     return best
-
-
-def _checked_headings(headings: int) -> int:
-    if headings not in HEADINGS:
-        raise ValueError(f"headings must be one of {sorted(HEADINGS)}, not {headings!r}")
-    return headings
 
 
 def _match_at(network, image_a, image_b, side: int, turns: tuple[int, ...]) -> MatchResult:

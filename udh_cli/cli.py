@@ -294,7 +294,7 @@ def simulate(
 from udh_cli.mosaic.composite import BLENDS as _BLENDS  # noqa: E402 - the --blend choices live there
 from udh_cli.mosaic.gains import EXPOSURES as _EXPOSURES  # noqa: E402 - the --exposure choices live there
 from udh_cli.mosaic.seams import SEAM_FINDERS as _SEAM_FINDERS  # noqa: E402 - the --seams choices live there
-from udh_cli.mosaic.pipeline import MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
+from udh_cli.mosaic.pipeline import SOLVES as _SOLVES, MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
 from udh_cli.mosaic.follow import FollowConfig as _FollowConfig  # noqa: E402
 from udh_cli.mosaic.workers import MAX_AUTO_WORKERS as _MAX_AUTO_WORKERS, POOL_MIN_FRAMES as _POOL_MIN_FRAMES  # noqa: E402
 
@@ -303,6 +303,7 @@ _FOLLOW = _FollowConfig()
 Blend = _choices("Blend", _BLENDS)
 Exposure = _choices("Exposure", _EXPOSURES)
 SeamFinder = _choices("SeamFinder", _SEAM_FINDERS)
+SolveModel = _choices("SolveModel", _SOLVES)
 
 
 @app.command()
@@ -320,6 +321,7 @@ def mosaic(
     blend: Annotated[Blend, typer.Option("--blend", case_sensitive=False, help="How overlapping frames are mixed.")] = Blend(_MOSAIC.blend),
     max_size: Annotated[Optional[int], typer.Option("--max-size", help="Downscale the mosaic so its longest side is at most this many pixels.")] = _MOSAIC.max_size,
     max_frame_scale: Annotated[float, typer.Option("--max-frame-scale", help="Report (leave out) frames the solve draws more than this many times larger or smaller than the reference frame.")] = _MOSAIC.max_frame_scale,
+    solve: Annotated[SolveModel, typer.Option("--solve", case_sensitive=False, help="The global solve's model: homography (a free one per frame) or camera (a pinhole camera per frame over flat ground, one focal length: no projective drift on long surveys, the map drawn on the ground).")] = SolveModel(_MOSAIC.solve),
     rectify: Annotated[bool, typer.Option("--rectify/--no-rectify", help="Without GPS or ground-control anchors, draw the map on the plane its frames look down on on average (nadir surveys) instead of in the reference frame's own view.")] = _MOSAIC.rectify,
     exposure: Annotated[Exposure, typer.Option("--exposure", case_sensitive=False, help="Exposure compensation (OpenCV's): per-channel gain maps over blocks, per-channel gains, one gain, or none.")] = Exposure(_MOSAIC.exposure),
     seams: Annotated[SeamFinder, typer.Option("--seams", case_sensitive=False, help="Seam finder (OpenCV's): dynamic programming or graph cut on colour, or central (each pixel from the frame that sees it nearest its centre).")] = SeamFinder(_MOSAIC.seams),
@@ -347,7 +349,7 @@ def mosaic(
     options = parse_method_options(method_option, [method.value, *([fallback] if fallback and fallback != method.value else [])])
     config = _MosaicConfig(
         method=method.value, fallback=fallback, method_options=options.get(method.value, {}), fallback_options=options.get(fallback, {}) if fallback else {}, work_size=work_size, order=order, every=every, min_confidence=min_confidence, min_verified=min_verified,
-        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, rectify=rectify, exposure=exposure.value, seams=seams.value, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, gps_sigma_m=gps_sigma, gcp_sigma_m=gcp_sigma, workers=workers, scheduler=scheduler,
+        blend=blend.value, max_size=max_size, max_frame_scale=max_frame_scale, rectify=rectify, solve=solve.value, exposure=exposure.value, seams=seams.value, overlap_per_frame=overlap_per_frame, gps_pairs=gps_pairs, gps_sigma_m=gps_sigma, gcp_sigma_m=gcp_sigma, workers=workers, scheduler=scheduler,
     )
     reporter = Reporter(console=err_console, progress=not quiet)
     if follow:

@@ -290,8 +290,9 @@ def gps_of(ground_xy: np.ndarray, gps: GpsConfig) -> tuple[float, float]:
     return latitude, longitude
 
 
-def _jpeg_with_gps(image: np.ndarray, quality: int, latitude: float, longitude: float) -> bytes:
-    """JPEG bytes of a BGR frame with EXIF GPS (Pillow: OpenCV writes no EXIF)."""
+def _jpeg_with_gps(image: np.ndarray, quality: int, latitude: float, longitude: float, focal_35mm: int) -> bytes:
+    """JPEG bytes of a BGR frame with EXIF GPS and the 35 mm equivalent focal length, as a drone's camera writes
+    them (Pillow: OpenCV writes no EXIF)."""
     import io
 
     from PIL import Image
@@ -304,6 +305,7 @@ def _jpeg_with_gps(image: np.ndarray, quality: int, latitude: float, longitude: 
     exif = Image.Exif()
     exif.get_ifd(0x8825).update({1: "N" if latitude >= 0 else "S", 2: dms(abs(latitude)), 3: "E" if longitude >= 0 else "W",
                                  4: dms(abs(longitude))})
+    exif.get_ifd(0x8769)[0xA405] = focal_35mm  # FocalLengthIn35mmFilm: focal length over the longer side x 36 mm
     buffer = io.BytesIO()
     Image.fromarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB)).save(buffer, "JPEG", quality=quality, exif=exif)
     return buffer.getvalue()
@@ -340,7 +342,7 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
             centre = geometry.transform_points(frame.ground_from_frame, np.array([[(width - 1) / 2, (height - 1) / 2]]))[0]
             record["gps"] = dict(zip(("latitude", "longitude"), gps_of(centre, gps)))
             jitter = noise.normal(0.0, gps.noise_m, 2) / gps.metres_per_pixel if gps.noise_m > 0 else np.zeros(2)
-            data = _jpeg_with_gps(frame.image, config.jpeg_quality, *gps_of(centre + jitter, gps))
+            data = _jpeg_with_gps(frame.image, config.jpeg_quality, *gps_of(centre + jitter, gps), round(36 * config.focal_px / max(width, height)))
         atomic_write_bytes(folder / name, data)
         records.append(record)
     pairs = []

@@ -202,3 +202,17 @@ def test_rectify_draws_on_the_ground_without_changing_the_frames_relations(accur
     # The map's shape is what changes: the reference frame's own tilt no longer bends it (3.99 -> 1.22 px median
     # when written).
     assert before["map_shape"]["median_px"] > 3.0 and after["map_shape"]["median_px"] < 1.5
+
+
+def test_the_camera_model_draws_the_map_on_the_ground(accurate_run, tmp_path):
+    folder, _, report = accurate_run
+    cameras = run_mosaic(folder, tmp_path / "cameras.png", MosaicConfig(method="sift", solve="camera"))
+    part = cameras["parts"][0]
+    assert part["plane"] == "ground (camera model)" and report["parts"][0]["cameras"] is None
+    assert cameras["summary"]["placed"] == 10
+    # No EXIF focal length: 0.7 of the longer side is assumed and held (the simulator's camera has 450 px,
+    # tilted by up to 2 degrees; with 336 px the tilts come out smaller, as they trade with it).
+    assert part["cameras"]["focal_px"] == pytest.approx(0.7 * 480)
+    assert 0.5 < part["cameras"]["tilt_deg"]["max"] < 3.0
+    before, after = report["ground_truth_error"]["map_shape"], cameras["ground_truth_error"]["map_shape"]
+    assert after["median_px"] < 0.2 < 3.0 < before["median_px"]  # 0.08 and 3.99 px when written

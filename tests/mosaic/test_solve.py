@@ -130,7 +130,7 @@ def test_the_sparse_system_solves_as_its_dense_form_does(monkeypatch):
     points = [pair_points(p, SIZE, SIZE) for p in pairs]
     sparse_answer = solve_part(0, chained, sizes, points)
     dense_solves = []
-    monkeypatch.setattr(solve_module, "_solve_symmetric", lambda matrix, rhs: dense_solves.append(1) or np.linalg.solve(matrix.toarray(), rhs))
+    monkeypatch.setattr(solve_module, "solve_symmetric", lambda matrix, rhs: dense_solves.append(1) or np.linalg.solve(matrix.toarray(), rhs))
     dense_answer = solve_part(0, chained, sizes, points)
     assert dense_solves  # the dense solve did replace the sparse one
     assert _max_error(sparse_answer, dense_answer) < 1e-6

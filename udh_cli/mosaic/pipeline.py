@@ -32,7 +32,7 @@ from udh_cli.mosaic.outputs import (StagedFiles, cameras_path, check_outputs_are
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.lens import read_cameras
-from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, undistort_by_fitted_lens
+from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, focal_from_exif, undistort_by_fitted_lens
 from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
 from udh_cli.mosaic.workers import EstimatorSpec, automatic_workers, open_runner
 from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
@@ -43,7 +43,8 @@ from udh_cli.mosaic.pairs import Acceptance, PairRequest, PairResult
 from udh_cli.mosaic.quicklook import live_picture_path, live_record_path
 from udh_cli.mosaic.pairwise import corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
-from udh_cli.mosaic.rectify import rectifying_homography
+from udh_cli.mosaic.cameras import CameraSolution, solve_cameras
+from udh_cli.mosaic.rectify import keep_reference_view, rectifying_homography
 from udh_cli.mosaic.solve import Anchors, pair_points, pair_rms_px, solve_part, solve_with_rejection, summarise
 from udh_cli.mosaic.truth import corner_errors_vs_truth, map_shape_errors, summarise_truth
 from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
@@ -90,6 +91,10 @@ class MosaicConfig:
         seams: where one frame gives way to the next (:mod:`.seams`: ``dp``, ``graphcut``, ``central``); with
             ``blend`` ``feather`` the frames are averaged and there are no seams.
         preview: also write a small JPEG preview beside the mosaic.
+        solve: the global solve's model (:data:`SOLVES`): ``homography``, a free homography per frame
+            (:mod:`.solve`), or ``camera``, a pinhole camera per frame over one flat ground, all sharing one
+            focal length (:mod:`.cameras`): the map is then drawn on that ground. The camera model starts from
+            the homography solve's answer.
     """
 
     method: str = DEFAULT_METHOD
@@ -123,6 +128,7 @@ class MosaicConfig:
     max_canvas_bytes: int = compositing.DEFAULT_MAX_CANVAS_BYTES
     batch_size: int = 16
     preview: bool = True
+    solve: str = "homography"
 
 
 @dataclass
@@ -139,7 +145,8 @@ class Part:
     file: Path | None = None
     preview: Path | None = None
     dropped: dict[int, str] = field(default_factory=dict)  # frame -> why it was taken out of the part
-    rectified: bool = False  # solved on the ground's plane (rectify.py) rather than in the reference frame's view
+    rectified: bool = False  # solved on the ground's plane (rectify.py, cameras.py) rather than in the reference frame's view
+    cameras: CameraSolution | None = None  # the camera-model solve's answer (--solve camera)
 
 
 def check_output(output: Path) -> None:
@@ -205,10 +212,13 @@ def check_config(config: MosaicConfig) -> None:
         raise UdhError(f"--gcp-sigma {config.gcp_sigma_m}: give the ground-control points' error in metres (e.g. 0.05), or 0 for off")
     if config.gps_sigma_m > 0 and importlib.util.find_spec("pyproj") is None:  # fail before the pairs, not after
         raise UdhError("--gps-sigma needs pyproj to put the GPS fixes on a map: pip install pyproj (or pip install '.[geo]')")
+    if config.solve not in SOLVES:
+        raise UdhError(f"--solve {config.solve}: choose one of {', '.join(SOLVES)}")
     if config.every < 1 or config.overlap_per_frame < 0 or config.gps_pairs < 0:
         raise UdhError("--every must be at least 1, and --overlap-pairs and --gps-pairs at least 0")
 
 
+SOLVES = ("homography", "camera")  # the global solve's models (MosaicConfig.solve)
 MOSAIC_SEARCH = 2  # the learned methods' large-motion search, on for mosaics unless the user sets it
 
 
@@ -703,6 +713,16 @@ def solve_anchors(frameset: FrameSet, config: MosaicConfig, reporter: Reporter, 
     return found
 
 
+def _focal_px(frameset: FrameSet) -> float:
+    """The camera-model solve's starting focal length, pixels: a --camera file's, else EXIF's 35 mm equivalent,
+    else :data:`.lens_fit.DEFAULT_FOCAL` of the longer side (it is solved from there)."""
+    longest = max(frameset.frames[0].size)
+    if frameset.lens is not None:
+        return float(frameset.lens.focal_x * longest)
+    metadata = next((f.metadata for f in frameset.frames if f.metadata is not None and f.metadata.focal_length_35mm), None)
+    return focal_from_exif(metadata.focal_length_35mm if metadata is not None else None)[0] * longest
+
+
 def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], config: MosaicConfig, reporter: Reporter,
            anchors: Anchors | None = None) -> dict[str, Any]:
     """Global solve per part (with ``anchors``, :func:`solve_anchors`); fills every pair's consistency figures
@@ -727,6 +747,12 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
                                     f"{residual:.1f} px from the joint solution, which improved without it")
             inside = [p for i, p in enumerate(inside) if i not in dropped]
             points = [p for i, p in enumerate(points) if i not in dropped]
+            if config.solve == "camera" and len({sizes[i] for i in part.frames}) > 1:
+                reporter.warn(f"--solve camera: the part of {frameset.frames[part.reference].name} mixes frame sizes, so not one camera; "
+                              "it keeps the homography solve")
+            elif config.solve == "camera":
+                part.cameras = solve_cameras(part.reference, part.solved, sizes, points, _focal_px(frameset), config.huber_px, anchors=anchors)
+                part.solved = part.cameras.ref_from
             for pair, pts in zip(inside, points):
                 before, after = pair_rms_px(part.chained, pts), pair_rms_px(part.solved, pts)
                 pair.consistency_px = {"before": before, "after": after, "loop": id(pair) not in part.tree}
@@ -736,7 +762,12 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
                     loops_after.append(after)
             # Anchors already put the plane on the ground (solve.solve_part); without them it is rectified here,
             # after the consistency figures, which stay in the reference frame's pixels.
-            plane = rectifying_homography(part.solved, sizes, part.reference, config.max_frame_scale) if config.rectify and anchors is None else None
+            if part.cameras is not None:  # the cameras' ground, whatever --rectify says: the model knows it
+                plane = keep_reference_view(part.cameras.ground_from_ref, part.solved, sizes, part.reference, config.max_frame_scale)
+            elif config.rectify and anchors is None:
+                plane = rectifying_homography(part.solved, sizes, part.reference, config.max_frame_scale)
+            else:
+                plane = None
             if plane is not None:
                 part.solved = {i: plane @ h for i, h in part.solved.items()}
                 part.rectified = True
@@ -909,7 +940,12 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, opin
                 "height": p.canvas.size[1],
                 "scale": p.canvas.scale,
                 "reference_frame": p.reference,
-                "plane": "ground (rectified)" if p.rectified else "reference frame",
+                "plane": ("ground (camera model)" if p.cameras is not None else "ground (rectified)") if p.rectified else "reference frame",
+                # --solve camera: the shared focal length and how far each camera looked from straight down
+                "cameras": None if p.cameras is None else {
+                    "focal_px": p.cameras.focal_px,
+                    "tilt_deg": {"median": float(np.median(list(p.cameras.tilt_deg.values()))), "max": max(p.cameras.tilt_deg.values())},
+                },
                 "frames": p.frames,
             }
             for p in multi

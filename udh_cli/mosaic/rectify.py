@@ -74,11 +74,17 @@ def rectifying_homography(ref_from: dict[int, np.ndarray], sizes: Sequence[tuple
         return None
     perspective = _perspective_row(ref_from, sizes)
     shape = _conformal_shape({i: perspective @ h for i, h in ref_from.items()}, sizes)
-    plane = shape @ perspective
-    # Keep the reference frame where it was: its centre fixed, and no scale or turn at that centre.
+    return keep_reference_view(shape @ perspective, ref_from, sizes, reference, max_frame_scale)
+
+
+def keep_reference_view(plane: np.ndarray, ref_from: dict[int, np.ndarray], sizes: Sequence[tuple[int, int]], reference: int,
+                        max_frame_scale: float = 3.0) -> np.ndarray | None:
+    """``plane`` (3, 3), a homography of the mosaic plane onto the ground, followed by the similarity that keeps
+    the reference frame's centre, scale and heading where they were, so that the map's units stay
+    reference-frame pixels near the reference; None when the result is not finite or would make a drawable
+    frame degenerate (:func:`geometry.is_valid_homography`)."""
     centre = np.array([(sizes[reference][0] - 1) / 2, (sizes[reference][1] - 1) / 2])
-    anchor = ref_from[reference]
-    at = geometry.transform_points(anchor, centre[None])[0]
+    at = geometry.transform_points(ref_from[reference], centre[None])[0]
     j = geometry.homography_jacobian(plane, at)
     scale_cos, scale_sin = (j[0, 0] + j[1, 1]) / 2, (j[1, 0] - j[0, 1]) / 2
     local = np.array([[scale_cos, -scale_sin, 0.0], [scale_sin, scale_cos, 0.0], [0.0, 0.0, 1.0]])

@@ -132,7 +132,7 @@ def _project_with_jacobian(params: np.ndarray, points: np.ndarray) -> tuple[np.n
     return np.stack([u, v], -1), np.stack([du, dv], -2)
 
 
-def _huber(errors: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+def huber(errors: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
     """Huber cost and IRLS weight of point residual norms (any shape)."""
     cost = np.where(errors <= k, 0.5 * errors**2, k * (errors - 0.5 * k))
     weight = np.where(errors <= k, 1.0, k / np.maximum(errors, 1e-12))
@@ -173,7 +173,7 @@ def solve_part(
     """
     frames = [i for i in sorted(initial) if i != reference]
     anchored = [] if anchors is None else [row for row, frame in enumerate(anchors.frames) if int(frame) in initial]
-    if anchored and not _anchors_hold(anchors, anchored):
+    if anchored and not anchors_hold(anchors, anchored):
         anchored = []
     if not frames or not (points or anchored):
         return dict(initial)
@@ -215,9 +215,9 @@ def solve_part(
         total = 0.0
         if points:
             residual = _project_with_jacobian(current[slot_a], points_a)[0] - _project_with_jacobian(current[slot_b], points_b)[0]
-            total += float(_huber(np.sqrt((residual**2).sum(-1)), k)[0].sum())
+            total += float(huber(np.sqrt((residual**2).sum(-1)), k)[0].sum())
         if anchored:
-            total += float(_huber(np.sqrt((anchor_terms(current)[0] ** 2).sum(-1)), k_anchor)[0].sum())
+            total += float(huber(np.sqrt((anchor_terms(current)[0] ** 2).sum(-1)), k_anchor)[0].sum())
         return total
 
     # 8x8 block (row, column) indices inside the system, shared by every block.
@@ -239,14 +239,14 @@ def solve_part(
             proj_a, jac_a = _project_with_jacobian(current[slot_a], points_a)
             proj_b, jac_b = _project_with_jacobian(current[slot_b], points_b)
             residual = proj_a - proj_b  # P, K, 2
-            _, weight = _huber(np.sqrt((residual**2).sum(-1)), k)  # P, K
+            _, weight = huber(np.sqrt((residual**2).sum(-1)), k)  # P, K
             for s1, j1, sign1 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
                 np.add.at(gradient, s1, sign1 * np.einsum("pk,pkij,pki->pj", weight, j1, residual))
                 for s2, j2, sign2 in ((slot_a, jac_a, 1.0), (slot_b, jac_b, -1.0)):
                     add(s1, s2, sign1 * sign2 * np.einsum("pk,pkij,pkil->pjl", weight, j1, j2))
         if anchored:
             residual, jacobian = anchor_terms(current)
-            _, weight = _huber(np.sqrt((residual**2).sum(-1)), k_anchor)  # A
+            _, weight = huber(np.sqrt((residual**2).sum(-1)), k_anchor)  # A
             np.add.at(gradient, anchor_slots, np.einsum("a,aij,ai->aj", weight, jacobian, residual))
             add(anchor_slots, anchor_slots, np.einsum("a,aij,ail->ajl", weight, jacobian, jacobian))
         system = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(8 * free, 8 * free))
@@ -260,7 +260,7 @@ def solve_part(
         for _ in range(iterations):
             diagonal = system.diagonal() + 1e-12
             try:
-                step = _solve_symmetric(system + sparse.diags(damping * diagonal), -gradient)
+                step = solve_symmetric(system + sparse.diags(damping * diagonal), -gradient)
             except RuntimeError:  # SuperLU: an exactly singular factor
                 step = None
             if step is None or not np.isfinite(step).all():
@@ -303,7 +303,7 @@ def solve_part(
     return out
 
 
-def _solve_symmetric(matrix: sparse.spmatrix, rhs: np.ndarray) -> np.ndarray:
+def solve_symmetric(matrix: sparse.spmatrix, rhs: np.ndarray) -> np.ndarray:
     """Solve the damped normal equations ``matrix @ x = rhs`` (symmetric positive definite, (8F, 8F) sparse).
 
     SuperLU in its symmetric mode: a minimum-degree ordering of the matrix's own graph and pivots kept on the
@@ -317,7 +317,7 @@ def _solve_symmetric(matrix: sparse.spmatrix, rhs: np.ndarray) -> np.ndarray:
     return factor.solve(rhs)
 
 
-def _anchors_hold(anchors: Anchors, rows: list[int]) -> bool:
+def anchors_hold(anchors: Anchors, rows: list[int]) -> bool:
     """Whether anchors ``rows`` lie on :data:`MIN_ANCHOR_FRAMES` frames or more, spread over an area."""
     if len({int(anchors.frames[r]) for r in rows}) < MIN_ANCHOR_FRAMES:
         return False

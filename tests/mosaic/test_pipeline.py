@@ -216,3 +216,6 @@ def test_the_camera_model_draws_the_map_on_the_ground(accurate_run, tmp_path):
     assert 0.5 < part["cameras"]["tilt_deg"]["max"] < 3.0
     before, after = report["ground_truth_error"]["map_shape"], cameras["ground_truth_error"]["map_shape"]
     assert after["median_px"] < 0.2 < 3.0 < before["median_px"]  # 0.08 and 3.99 px when written
+    with pytest.raises(UdhError, match="--solve bundle: choose one of homography, camera"):
+        run_mosaic(folder, tmp_path / "bad.png", MosaicConfig(method="sift", solve="bundle"))
+    assert not (tmp_path / "bad.png").exists()

@@ -383,6 +383,10 @@ def _print_mosaic(report: dict) -> None:
             table.add_row("error vs ground truth (px)", "- (the ground truth names no placed frame with its reference)")
     for part in report["parts"]:
         table.add_row(f"mosaic part {part['part']}" if len(report["parts"]) > 1 else "mosaic", f"{part['file']} ({part['width']}x{part['height']}, {len(part['frames'])} frames)")
+    cameras = [part["cameras"] for part in report["parts"] if part.get("cameras")]
+    if cameras:  # --solve camera: what the solve assumed and found
+        tilts = [c["tilt_deg"]["max"] for c in cameras]
+        table.add_row("cameras", f"focal length {cameras[0]['focal_px']:.0f} px (held), tilt from straight down up to {max(tilts):.1f} degrees")
     table.add_row("sidecar", report["sidecar"])
     table.add_row("time (s)", ", ".join(f"{k} {v:.1f}" for k, v in report["timings_s"].items()))
     console.print(table)

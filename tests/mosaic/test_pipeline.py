@@ -14,6 +14,7 @@ from udh_cli.mosaic import MosaicConfig, run_mosaic
 from udh_cli.mosaic.composite import plan_canvas
 from udh_cli.simulate import load_ground_truth
 
+from conftest import run_main
 from mosaic_flights import ACCURATE, SMALL, make_flight
 
 
@@ -218,4 +219,14 @@ def test_the_camera_model_draws_the_map_on_the_ground(accurate_run, tmp_path):
     assert after["median_px"] < 0.2 < 3.0 < before["median_px"]  # 0.08 and 3.99 px when written
     with pytest.raises(UdhError, match="--solve bundle: choose one of homography, camera"):
         run_mosaic(folder, tmp_path / "bad.png", MosaicConfig(method="sift", solve="bundle"))
+    assert not (tmp_path / "bad.png").exists()
+
+
+def test_the_command_line_reports_the_cameras_and_refuses_an_unknown_model(accurate_run, tmp_path, monkeypatch, capfd):
+    folder = accurate_run[0]
+    code, out, _ = run_main(monkeypatch, capfd, "mosaic", str(folder), "-o", str(tmp_path / "m.png"), "-m", "sift", "--solve", "camera", "-q")
+    assert code == 0
+    assert "focal length 336 px (held)" in " ".join(out.split())  # no EXIF focal length: 0.7 of 480 px
+    code, out, err = run_main(monkeypatch, capfd, "mosaic", str(folder), "-o", str(tmp_path / "bad.png"), "-m", "sift", "--solve", "bundle")
+    assert code == 2 and "Traceback" not in err and "bundle" in err
     assert not (tmp_path / "bad.png").exists()

@@ -157,3 +157,27 @@ def test_anchors_pull_the_frames_to_their_fixes(survey):
     # Exact fixes and exact pairs agree: the anchors change nothing.
     exact = solve_cameras(reference, true_ref_from, sizes, points, focal_px=FOCAL, anchors=_fixes(ground_from, 0.05))
     assert _map_error(exact.ref_from, exact.ground_from_ref, ground_from) < 1e-4
+
+
+def test_a_frame_turned_by_half_a_turn_is_solved():
+    # Lawn-mower return strips fly back at a half turn; the rotation's conversion must hold there exactly.
+    cameras = np.array([[0.0, 0.0, 0.0, 400.0, 400.0, FOCAL], [0.0, 0.0, np.pi, 480.0, 400.0, FOCAL]])
+    ground_from = ground_from_frame(cameras, FOCAL, np.tile(CENTRE, (2, 1)))
+    points = _pairs(ground_from, 0.0, np.random.default_rng(0))
+    true_ref_from = {i: np.linalg.inv(ground_from[0]) @ g for i, g in enumerate(ground_from)}
+    solution = solve_cameras(0, true_ref_from, [SIZE] * 2, points, focal_px=FOCAL)
+    assert geometry.corner_errors(solution.ref_from[1], true_ref_from[1] / true_ref_from[1][2, 2], *SIZE).max() < 1e-6
+    assert max(solution.tilt_deg.values()) < 1e-6
+
+
+def test_an_anchor_far_from_the_others_does_not_bend_the_map(survey):
+    cameras, ground_from, reference, true_ref_from = survey
+    points = _pairs(ground_from, 0.05, np.random.default_rng(2))
+    fixes = _fixes(ground_from, 0.05)
+    wrong = fixes.positions.copy()
+    wrong[5] += [40.0, -25.0]  # a GPS glitch of 47 m, 940 ground px
+    glitched = Anchors(fixes.frames, fixes.pixels, wrong, fixes.sigma_m)
+    sizes = [SIZE] * len(cameras)
+    solution = solve_cameras(reference, true_ref_from, sizes, points, focal_px=FOCAL, anchors=glitched)
+    # The anchors' Huber loss lets it go: the map stays the pairs' (0.06 px without the glitch).
+    assert _map_error(solution.ref_from, solution.ground_from_ref, ground_from) < 0.2

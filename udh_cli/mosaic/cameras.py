@@ -20,9 +20,10 @@ is the starting ground; the reference keeps its ``X``, ``Y``, ``Z`` and the Rodr
 gauge: a similarity of the ground), while its roll and pitch, which the homography solve could not tell, are
 solved with the others.
 
-The Jacobian is taken by central differences of each frame's 6 parameters and the focal length (13 batched
-evaluations of every pair's points), and Levenberg-Marquardt runs on the sparse normal equations like the
-homography solve's, with the same Huber loss.
+The Jacobian is taken by central differences, each of the 6 camera parameters moved in every frame at once (a
+residual sees at most two frames; 12 batched evaluations of every pair's points), and the Levenberg-Marquardt of
+the homography solve (:func:`.solve.levenberg_marquardt`) runs on the sparse normal equations, with the same
+Huber loss.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
+import cv2
 import numpy as np
 from scipy import sparse
 
@@ -37,16 +39,16 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.mosaic.georef import fit_similarity
 from udh_cli.mosaic.lens_fit import DEFAULT_FOCAL
-from udh_cli.mosaic.solve import ANCHOR_HUBER_SIGMAS, Anchors, PairPoints, anchors_hold, huber, solve_symmetric
+from udh_cli.mosaic.solve import ANCHOR_HUBER_SIGMAS, Anchors, PairPoints, anchors_hold, huber, levenberg_marquardt
 
 PARAMETERS = 6  # per frame: Rodrigues vector (3), X, Y, Z
 GAUGE = (2, 3, 4, 5)  # the reference's parameters held fixed: its yaw, X, Y and Z
 # Central-difference steps: radians for the rotation; a share of the altitude for the position and of f for f.
 ROTATION_STEP = 1e-6
 POSITION_STEP = 1e-6
-# Levenberg-Marquardt iterations at most. The focal length trades with the cameras' tilts along a shallow valley
-# (a nadir survey shows it only through its few degrees of tilt): a noiseless test survey started 20 % short of
-# its focal length was 0.04 px from the ground after 60 iterations and 4e-6 px after 200.
+# Levenberg-Marquardt iterations at most. A solved focal length trades with the cameras' tilts along a shallow
+# valley, which needs about 200 (tests/mosaic/test_cameras.py); with it held the solve stops far sooner, once
+# a step gains less than 1e-10 of the cost.
 ITERATIONS = 200
 
 
@@ -109,17 +111,8 @@ def camera_from_homography(frame_from_ground: np.ndarray, focal: float, centre: 
     if position[2] < 0:  # the homography's sign is free: the camera is above the ground
         rotation[:, :2] *= -1
         position = rotation.T @ (-m[:, 2]) / scale
-    rvec = _rodrigues_of(rotation)
+    rvec = cv2.Rodrigues(rotation)[0].ravel()  # OpenCV's: exact at a half turn too, where the trace formula is not
     return np.array([*rvec, -position[0], -position[1], position[2]])
-
-
-def _rodrigues_of(rotation: np.ndarray) -> np.ndarray:
-    """(3,) Rodrigues vector of a (3, 3) rotation (angles below pi)."""
-    angle = float(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0)))
-    axis = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
-    if angle < 1e-8:
-        return axis / 2
-    return axis * angle / (2 * np.sin(angle))
 
 
 def _project(h: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -149,9 +142,8 @@ def solve_cameras(
         focal_px: the focal length, pixels (None: :data:`DEFAULT_FOCAL` of the longer side).
         huber_px: residuals beyond this many ground units (about reference pixels) count linearly.
         solve_focal: solve the focal length too, from ``focal_px``. Off by default: a nadir survey shows it only
-            through its few degrees of tilt, so the map hardly depends on it (a simulated 102-frame survey: 0.045 px
-            median from the ground with the true focal length, 0.065 px with 0.37 of it), and on real flights it ran
-            off to absorb what the model lacks (copr: 79,000 px, lens distortion and relief, the loops 4.3 -> 20.6 px).
+            through its few degrees of tilt, so the map hardly depends on it, and on real flights a solved focal
+            length ran off to absorb what the model lacks, lens distortion and relief (docs/mosaic.md).
         anchors: map positions of points of the part's frames (GPS fixes, ground-control observations), used as
             :func:`.solve.solve_part` uses them: when they lie on enough frames spread over an area, each pulls
             its point, through a similarity from the ground to the map solved with the cameras, towards its
@@ -248,11 +240,13 @@ def solve_cameras(
             derivative_b[..., j] = -(_project(shifted[0][slot_b], points_b) - _project(shifted[1][slot_b], points_b)) / (2 * step[slot_b, None, None])
             moved_on_ground = _project(shifted[0][anchor_slots], anchor_pixels)[:, 0] - _project(shifted[1][anchor_slots], anchor_pixels)[:, 0]
             derivative_anchor[..., j] = anchor_weight * (moved_on_ground @ linear.T) / (2 * step[anchor_slots, None])
-        f_step = POSITION_STEP * f
-        plus, minus = state.copy(), state.copy()
-        plus[focal_column] += f_step
-        minus[focal_column] -= f_step
-        derivative_f = [(a - b) / (2 * f_step) for a, b in zip(residuals(plus), residuals(minus))]  # (P, K, 2), (A, 2)
+        derivative_f = [np.zeros_like(pair), np.zeros_like(anchor)]  # (P, K, 2), (A, 2): nothing when it is held
+        if solve_focal:
+            f_step = POSITION_STEP * f
+            plus, minus = state.copy(), state.copy()
+            plus[focal_column] += f_step
+            minus[focal_column] -= f_step
+            derivative_f = [(a - b) / (2 * f_step) for a, b in zip(residuals(plus), residuals(minus))]
         x, y = _project(ground_from_frame(cameras, f, centres)[anchor_slots], anchor_pixels)[:, 0].T
         one, zero = np.ones_like(x), np.zeros_like(x)
         derivative_map = anchor_weight[..., None] * np.stack([np.stack([x, y, one, zero], -1), np.stack([-y, x, zero, one], -1)], 1)  # A, 2, 4
@@ -277,34 +271,13 @@ def solve_cameras(
         residual = np.concatenate([pair.ravel(), anchor.ravel()])
         return (jacobian.T @ (sparse.diags(row_weight) @ jacobian)).tocsc(), jacobian.T @ (row_weight * residual)
 
-    state = np.concatenate([params.ravel(), [focal], to_map])
-    damping = 1e-3
-    cost = cost_of(state)
-    system, gradient = normal_equations(state)
-    for _ in range(iterations):
-        diagonal = system.diagonal() + 1e-12
-        try:
-            step = solve_symmetric(system + sparse.diags(damping * diagonal), -gradient)
-        except RuntimeError:  # SuperLU: an exactly singular factor
-            step = None
-        if step is None or not np.isfinite(step).all():
-            damping *= 10
-            continue
+    def moved(state: np.ndarray, step: np.ndarray) -> np.ndarray | None:
         trial = state.copy()
         trial[~fixed] += step
         cameras, f, _ = split(trial)
-        trial_cost = cost_of(trial) if f > 0 and (cameras[:, 5] > 0).all() else np.inf
-        if trial_cost < cost:
-            improvement = (cost - trial_cost) / max(cost, 1e-30)
-            state, cost = trial, trial_cost
-            system, gradient = normal_equations(state)
-            damping = max(damping / 3, 1e-9)
-            if improvement < 1e-10:
-                break
-        else:
-            damping *= 5
-            if damping > 1e8:
-                break
+        return trial if f > 0 and (cameras[:, 5] > 0).all() else None  # above the ground, a positive focal length
+
+    state = levenberg_marquardt(np.concatenate([params.ravel(), [focal], to_map]), cost_of, normal_equations, moved, iterations)
     params, focal, _ = split(state)
     return _solution(frames, reference, params, focal, centres)
 

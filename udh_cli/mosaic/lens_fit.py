@@ -68,6 +68,13 @@ def focal_from_exif(focal_length_35mm: float | None) -> tuple[float, str]:
     return DEFAULT_FOCAL, f"assumed ({DEFAULT_FOCAL} of the longer side; no EXIF 35 mm focal length)"
 
 
+def frames_focal(frames) -> tuple[float, str]:
+    """:func:`focal_from_exif` of the first of ``frames`` (:class:`~udh_cli.mosaic.frames.Frame`) whose EXIF gives a
+    35 mm equivalent focal length: over the longer side, and where it came from."""
+    metadata = next((f.metadata for f in frames if f.metadata is not None and f.metadata.focal_length_35mm), None)
+    return focal_from_exif(metadata.focal_length_35mm if metadata is not None else None)
+
+
 def pair_matches(grey_a: np.ndarray, grey_b: np.ndarray, sift) -> tuple[np.ndarray, np.ndarray] | None:
     """(N, 2) matched pixels in A and in B (RANSAC inliers of a loose homography), or None when too few."""
     keys_a, desc_a = sift.detectAndCompute(grey_a, None)
@@ -142,8 +149,7 @@ def undistort_by_fitted_lens(frames, reporter) -> K1Fit:
     """Fit k1 on a :class:`~udh_cli.mosaic.frames.FrameSet`'s work copies (:func:`fit_k1`) and, when a lens is
     found, undistort those copies in place and set ``frames.lens`` (so that compositing undistorts the
     full-resolution frames as it reads them) and ``frames.lens_fit``. Returns the fit."""
-    metadata = next((f.metadata for f in frames.frames if f.metadata is not None and f.metadata.focal_length_35mm), None)
-    focal, source = focal_from_exif(metadata.focal_length_35mm if metadata is not None else None)
+    focal, source = frames_focal(frames.frames)
     fit = fit_k1([f.work for f in frames.frames], focal, source)
     frames.lens_fit = fit.to_json()
     if fit.k1 == 0.0:

@@ -32,7 +32,7 @@ from udh_cli.mosaic.outputs import (StagedFiles, cameras_path, check_outputs_are
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.lens import read_cameras
-from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, focal_from_exif, undistort_by_fitted_lens
+from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, frames_focal, undistort_by_fitted_lens
 from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
 from udh_cli.mosaic.workers import EstimatorSpec, automatic_workers, open_runner
 from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
@@ -147,6 +147,7 @@ class Part:
     dropped: dict[int, str] = field(default_factory=dict)  # frame -> why it was taken out of the part
     rectified: bool = False  # solved on the ground's plane (rectify.py, cameras.py) rather than in the reference frame's view
     cameras: CameraSolution | None = None  # the camera-model solve's answer (--solve camera)
+    focal_source: str | None = None  # where the camera-model solve's focal length came from
 
 
 def check_output(output: Path) -> None:
@@ -713,14 +714,33 @@ def solve_anchors(frameset: FrameSet, config: MosaicConfig, reporter: Reporter, 
     return found
 
 
-def _focal_px(frameset: FrameSet) -> float:
-    """The camera-model solve's starting focal length, pixels: a --camera file's, else EXIF's 35 mm equivalent,
-    else :data:`.lens_fit.DEFAULT_FOCAL` of the longer side (it is solved from there)."""
-    longest = max(frameset.frames[0].size)
+def _focal_px(frameset: FrameSet, part: Part) -> tuple[float, str]:
+    """The focal length the camera-model solve holds for ``part``, pixels, and where it came from: a --camera
+    file's, else its frames' EXIF 35 mm equivalent, else :data:`.lens_fit.DEFAULT_FOCAL` of the longer side."""
+    longest = max(frameset.frames[part.reference].size)
     if frameset.lens is not None:
-        return float(frameset.lens.focal_x * longest)
-    metadata = next((f.metadata for f in frameset.frames if f.metadata is not None and f.metadata.focal_length_35mm), None)
-    return focal_from_exif(metadata.focal_length_35mm if metadata is not None else None)[0] * longest
+        return float(frameset.lens.focal_x * longest), "the --camera file"
+    focal, source = frames_focal([frameset.frames[i] for i in part.frames])
+    return focal * longest, source
+
+
+def _solve_cameras(frameset: FrameSet, part: Part, points: list, config: MosaicConfig, reporter: Reporter,
+                   anchors: Anchors | None) -> None:
+    """--solve camera on one part after its homography solve: ``part.cameras`` and ``part.solved`` from the
+    camera model; a part it cannot serve (frames of two sizes, no finite cameras) keeps the homography solve,
+    with a warning."""
+    sizes = [f.size for f in frameset.frames]
+    name = frameset.frames[part.reference].name
+    if len({sizes[i] for i in part.frames}) > 1:
+        reporter.warn(f"--solve camera: the part of {name} mixes frame sizes, so not one camera; it keeps the homography solve")
+        return
+    focal, part.focal_source = _focal_px(frameset, part)
+    try:
+        part.cameras = solve_cameras(part.reference, part.solved, sizes, points, focal, config.huber_px, anchors=anchors)
+    except UdhError as error:
+        reporter.warn(f"--solve camera: the part of {name} keeps the homography solve ({error})")
+        return
+    part.solved = part.cameras.ref_from
 
 
 def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], config: MosaicConfig, reporter: Reporter,
@@ -747,12 +767,8 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
                                     f"{residual:.1f} px from the joint solution, which improved without it")
             inside = [p for i, p in enumerate(inside) if i not in dropped]
             points = [p for i, p in enumerate(points) if i not in dropped]
-            if config.solve == "camera" and len({sizes[i] for i in part.frames}) > 1:
-                reporter.warn(f"--solve camera: the part of {frameset.frames[part.reference].name} mixes frame sizes, so not one camera; "
-                              "it keeps the homography solve")
-            elif config.solve == "camera":
-                part.cameras = solve_cameras(part.reference, part.solved, sizes, points, _focal_px(frameset), config.huber_px, anchors=anchors)
-                part.solved = part.cameras.ref_from
+            if config.solve == "camera":
+                _solve_cameras(frameset, part, points, config, reporter, anchors)
             for pair, pts in zip(inside, points):
                 before, after = pair_rms_px(part.chained, pts), pair_rms_px(part.solved, pts)
                 pair.consistency_px = {"before": before, "after": after, "loop": id(pair) not in part.tree}
@@ -760,10 +776,14 @@ def _solve(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], confi
                 if id(pair) not in part.tree:
                     loops_before.append(before)
                     loops_after.append(after)
-            # Anchors already put the plane on the ground (solve.solve_part); without them it is rectified here,
-            # after the consistency figures, which stay in the reference frame's pixels.
-            if part.cameras is not None:  # the cameras' ground, whatever --rectify says: the model knows it
+            # The camera model's ground, whatever --rectify says: the model knows it. Otherwise anchors already put
+            # the plane on the ground (solve.solve_part), and without them --rectify puts it there here. Both after
+            # the consistency figures, which stay in the reference frame's pixels.
+            if part.cameras is not None:
                 plane = keep_reference_view(part.cameras.ground_from_ref, part.solved, sizes, part.reference, config.max_frame_scale)
+                if plane is None:
+                    reporter.warn(f"--solve camera: drawing the part of {frameset.frames[part.reference].name} on the cameras' ground "
+                                  "would fold a frame; it is drawn in its reference frame's view")
             elif config.rectify and anchors is None:
                 plane = rectifying_homography(part.solved, sizes, part.reference, config.max_frame_scale)
             else:
@@ -944,6 +964,7 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, opin
                 # --solve camera: the shared focal length and how far each camera looked from straight down
                 "cameras": None if p.cameras is None else {
                     "focal_px": p.cameras.focal_px,
+                    "focal_source": p.focal_source,
                     "tilt_deg": {"median": float(np.median(list(p.cameras.tilt_deg.values()))), "max": max(p.cameras.tilt_deg.values())},
                 },
                 "frames": p.frames,

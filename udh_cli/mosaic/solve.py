@@ -15,7 +15,7 @@ anchors fix the plane instead, and the answer is expressed relative to the refer
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Callable, Sequence
 
 import cv2
 import numpy as np
@@ -254,33 +254,13 @@ def solve_part(
 
     def optimise(params: np.ndarray) -> np.ndarray:
         """Levenberg-Marquardt from ``params``, with the current ``ground`` similarity."""
-        damping = 1e-3
-        cost = cost_of(params)
-        system, gradient = normal_equations(params)
-        for _ in range(iterations):
-            diagonal = system.diagonal() + 1e-12
-            try:
-                step = solve_symmetric(system + sparse.diags(damping * diagonal), -gradient)
-            except RuntimeError:  # SuperLU: an exactly singular factor
-                step = None
-            if step is None or not np.isfinite(step).all():
-                damping *= 10
-                continue
-            trial = params.copy()
+
+        def moved(current: np.ndarray, step: np.ndarray) -> np.ndarray:
+            trial = current.copy()
             trial[:free] += step.reshape(free, 8)
-            trial_cost = cost_of(trial)
-            if trial_cost < cost:
-                improvement = (cost - trial_cost) / max(cost, 1e-30)
-                params, cost = trial, trial_cost
-                system, gradient = normal_equations(params)
-                damping = max(damping / 3, 1e-9)
-                if improvement < 1e-10:
-                    break
-            else:
-                damping *= 5
-                if damping > 1e8:
-                    break
-        return params
+            return trial
+
+        return levenberg_marquardt(params, cost_of, normal_equations, moved, iterations)
 
     params = optimise(params)
     for _ in range(ANCHOR_ROUNDS - 1 if anchored else 0):
@@ -301,6 +281,43 @@ def solve_part(
             return solve_part(reference, initial, sizes, points, huber_px, iterations)
     out[reference] = np.eye(3)
     return out
+
+
+def levenberg_marquardt(state, cost_of: Callable[[Any], float], normal_equations: Callable[[Any], tuple[sparse.spmatrix, np.ndarray]],
+                        moved: Callable[[Any, np.ndarray], Any], iterations: int):
+    """Levenberg-Marquardt with Marquardt's diagonal scaling, from ``state`` (any value ``moved`` understands).
+
+    ``cost_of(state)``: the robust cost; ``normal_equations(state)``: the Gauss-Newton system (F, F) sparse
+    and gradient (F,) over the free unknowns; ``moved(state, step)``: the state after a step (F,), or None when
+    that state is not allowed. At most ``iterations`` steps; stops once a step improves the cost by less than
+    1e-10 of it, or the damping passes 1e8. Returns the best state found.
+    """
+    damping = 1e-3
+    cost = cost_of(state)
+    system, gradient = normal_equations(state)
+    for _ in range(iterations):
+        diagonal = system.diagonal() + 1e-12
+        try:
+            step = solve_symmetric(system + sparse.diags(damping * diagonal), -gradient)
+        except RuntimeError:  # SuperLU: an exactly singular factor
+            step = None
+        if step is None or not np.isfinite(step).all():
+            damping *= 10
+            continue
+        trial = moved(state, step)
+        trial_cost = np.inf if trial is None else cost_of(trial)
+        if trial_cost < cost:
+            improvement = (cost - trial_cost) / max(cost, 1e-30)
+            state, cost = trial, trial_cost
+            system, gradient = normal_equations(state)
+            damping = max(damping / 3, 1e-9)
+            if improvement < 1e-10:
+                break
+        else:
+            damping *= 5
+            if damping > 1e8:
+                break
+    return state
 
 
 def solve_symmetric(matrix: sparse.spmatrix, rhs: np.ndarray) -> np.ndarray:

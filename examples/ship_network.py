@@ -32,7 +32,7 @@ from udh_cli.train.quantize import quantize_from_folders
 MODELS = Path(__file__).resolve().parents[1] / "models"
 # Logs drawn in models/learning_curves.png: the runs behind the shipped networks.
 CURVES = {"coarse, flight motion": "unsupervised-flight", "coarse, paper motion": "unsupervised",
-          "refinement": "unsupervised-refine-tiles"}
+          "refinement": "unsupervised-refine-tiles", "matcher (global match)": "unsupervised-matcher"}
 WEIGHT_KEYS = ("format", "model", "config", "step", "normalization")  # what --weights-only keeps of a checkpoint
 
 

@@ -215,6 +215,8 @@ def test_the_camera_model_draws_the_map_on_the_ground(accurate_run, tmp_path):
     # tilted by up to 2 degrees; with 336 px the tilts come out smaller, as they trade with it).
     assert part["cameras"]["focal_px"] == pytest.approx(0.7 * 480)
     assert 0.5 < part["cameras"]["tilt_deg"]["max"] < 3.0
+    tilts = [frame["tilt_deg"] for frame in cameras["frames"]]
+    assert max(tilts) == part["cameras"]["tilt_deg"]["max"] and all(frame["tilt_deg"] is None for frame in report["frames"])
     before, after = report["ground_truth_error"]["map_shape"], cameras["ground_truth_error"]["map_shape"]
     assert after["median_px"] < 0.2 < 3.0 < before["median_px"]  # 0.08 and 3.99 px when written
     with pytest.raises(UdhError, match="--solve bundle: choose one of homography, camera"):

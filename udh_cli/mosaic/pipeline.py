@@ -932,6 +932,8 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, opin
                 "gain_bgr": gains.get(frame.index),
                 "metadata": None if frame.metadata is None else frame.metadata.to_json(),
                 "mosaic_from_frame": None if mosaic_from_frame is None else (mosaic_from_frame / mosaic_from_frame[2, 2]).tolist(),
+                # --solve camera: how far the frame's camera looked from straight down (a check on oblique frames)
+                "tilt_deg": part.cameras.tilt_deg.get(frame.index) if placed and part.cameras is not None else None,
             }
         )
     multi = [p for p in parts if p.canvas is not None]
@@ -965,7 +967,8 @@ def _sidecar(frameset: FrameSet, parts, pairs, gains, loops, truth, config, opin
                 "cameras": None if p.cameras is None else {
                     "focal_px": p.cameras.focal_px,
                     "focal_source": p.focal_source,
-                    "tilt_deg": {"median": float(np.median(list(p.cameras.tilt_deg.values()))), "max": max(p.cameras.tilt_deg.values())},
+                    "tilt_deg": {"median": float(np.median([p.cameras.tilt_deg[i] for i in p.frames])),
+                                 "max": max(p.cameras.tilt_deg[i] for i in p.frames)},
                 },
                 "frames": p.frames,
             }

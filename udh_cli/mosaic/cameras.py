@@ -2,23 +2,21 @@
 
 Why: the homography solve (:mod:`.solve`) gives every frame 8 free parameters. Its pairs fix each frame
 relative to its neighbours, but a long survey can still bend by small perspective errors that compound from
-pair to pair (projective drift): on a simulated 1,988-frame survey the pairs agreed to 0.04 px while the map
-was 2.9 px median from the ground after the best homography of the plane and 115 px after the best similarity.
+pair to pair (projective drift), which their loops do not show (the scale benchmark in docs/benchmarks.md).
 A camera looking at a flat ground has 6 degrees of freedom (a rotation and a position), and all the frames of a
 flight share one focal length; that bend is no motion of any camera, so this model cannot make it. It is what a
 structure-from-motion bundle adjustment (OpenSfM in ODM) does over a planar scene, with the pairs' grid
 correspondences in place of tracked points. Where the ground is not flat (relief, buildings, a forest's
 canopy) the model fits the pairs less tightly than free homographies do.
 
-Conventions, those of :mod:`udh_cli.simulate`: the ground has coordinates (x, y) and Z points into it; a
-camera at ``(X, Y, -Z)`` above it with rotation ``R`` (a Rodrigues vector) and intrinsics ``K = [[f, 0, cx],
-[0, f, cy], [0, 0, 1]]`` (principal point at the frame's centre, one focal length ``f`` in pixels shared by all
-frames) sees ground point ``(x, y)`` at ``K R [[1, 0, -X], [0, 1, -Y], [0, 0, Z]] (x, y, 1)``: that product is
-``frame_from_ground``. The ground's units are the reference frame's pixels where it looks straight down: the
-reference camera starts at ``R = I``, ``(X, Y)`` at its centre and ``Z = f``, so the chained solution's plane
-is the starting ground; the reference keeps its ``X``, ``Y``, ``Z`` and the Rodrigues vector's third entry (the
-gauge: a similarity of the ground), while its roll and pitch, which the homography solve could not tell, are
-solved with the others.
+Conventions: those of :mod:`udh_cli.simulate` (its module docstring), which renders the simulated flights
+with the same cameras: ``frame_from_ground = K R [[1, 0, -X], [0, 1, -Y], [0, 0, Z]]``, Z into the ground, a
+Rodrigues vector for ``R``, the principal point at the frame's centre and one focal length ``f`` in pixels for
+all frames. The ground's units are the reference frame's pixels where it looks straight down: the reference
+camera starts at ``R = I``, ``(X, Y)`` at its centre and ``Z = f``, so the homography solve's plane is the
+starting ground. The reference keeps its ``X``, ``Y``, ``Z`` and the Rodrigues vector's third entry (the gauge:
+a similarity of the ground); its roll and pitch, which the homography solve could not tell, are solved with
+the others.
 
 The Jacobian is taken by central differences, each of the 6 camera parameters moved in every frame at once (a
 residual sees at most two frames; 12 batched evaluations of every pair's points), and the Levenberg-Marquardt of

@@ -386,7 +386,7 @@ def _print_mosaic(report: dict) -> None:
     cameras = [part["cameras"] for part in report["parts"] if part.get("cameras")]
     if cameras:  # --solve camera: what the solve assumed and found
         tilts = [c["tilt_deg"]["max"] for c in cameras]
-        table.add_row("cameras", f"focal length {cameras[0]['focal_px']:.0f} px (held; {cameras[0]['focal_source']}), "
+        table.add_row("cameras", f"focal length {cameras[0]['focal_px']:.0f} px, held: {cameras[0]['focal_source']}; "
                                  f"tilt from straight down up to {max(tilts):.1f} degrees")
     table.add_row("sidecar", report["sidecar"])
     table.add_row("time (s)", ", ".join(f"{k} {v:.1f}" for k, v in report["timings_s"].items()))

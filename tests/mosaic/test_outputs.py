@@ -174,3 +174,30 @@ def test_a_live_quick_look_s_fresh_temporary_stays_until_it_is_stale(tmp_path):
     os.utime(old_live, (long_ago, long_ago))
     assert sorted(remove_stale_staged(tmp_path / "m.png")) == sorted([staged, old_live])  # a killed run's, whatever their age
     assert fresh_live.exists()  # the quick look may be writing it right now
+
+
+def test_a_mosaic_written_among_its_frames_is_not_stitched_in_by_the_next_run(tmp_path):
+    folder = tmp_path / "flight"
+    make_flight(folder, SMALL, seed=4)
+    first = run_mosaic(folder, folder / "inside.png", FAST)
+    assert (folder / "inside.png").is_file() and (folder / "inside.preview.jpg").is_file()
+    # A later run under another name: the earlier mosaic and its preview are an earlier run's outputs, not frames.
+    second = run_mosaic(folder, tmp_path / "outside.png", FAST)
+    assert second["summary"]["frames"] == first["summary"]["frames"] == 8
+    skipped = {entry["file"]: entry["reason"] for entry in second["skipped_files"]}
+    assert set(skipped) >= {"inside.png", "inside.preview.jpg"} and "inside.json" in skipped["inside.png"]
+    # An image beside a JSON that is not a udh sidecar is still a frame.
+    (folder / "extra.json").write_text('{"format": "something else"}')
+    (folder / "extra.png").write_bytes((folder / "frame_000.jpg").read_bytes())
+    third = run_mosaic(folder, tmp_path / "third.png", FAST)
+    assert third["summary"]["frames"] == 9
+
+
+def test_warnings_print_file_names_and_commands_with_brackets_as_they_are(capsys):
+    from rich.console import Console
+
+    reporter = Reporter(console=Console(file=None, stderr=True, width=200))
+    reporter.warn("georeferencing needs pyproj: pip install '.[geo]'; skipping notes[draft].txt")
+    reporter.info("see [bold] here")
+    printed = capsys.readouterr().err
+    assert "pip install '.[geo]'" in printed and "notes[draft].txt" in printed and "see [bold] here" in printed

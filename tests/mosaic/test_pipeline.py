@@ -228,7 +228,7 @@ def test_the_command_line_reports_the_cameras_and_refuses_an_unknown_model(accur
     folder = accurate_run[0]
     code, out, _ = run_main(monkeypatch, capfd, "mosaic", str(folder), "-o", str(tmp_path / "m.png"), "-m", "sift", "--solve", "camera", "-q")
     assert code == 0
-    assert "focal length 336 px (held;" in out and "assumed (0.7" in out  # no EXIF: 0.7 of 480 px
+    assert "focal length 336 px, held: assumed" in out  # no EXIF: 0.7 of 480 px
     code, out, err = run_main(monkeypatch, capfd, "mosaic", str(folder), "-o", str(tmp_path / "bad.png"), "-m", "sift", "--solve", "bundle")
     assert code == 2 and "Traceback" not in err and "bundle" in err
     assert not (tmp_path / "bad.png").exists()

@@ -20,6 +20,7 @@ from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES, _native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
 from udh_cli.mosaic.lens import Lens
 from udh_cli.mosaic.metadata import FrameMetadata, read_metadata
+from udh_cli.mosaic.outputs import earlier_outputs
 from udh_cli.mosaic.report import Reporter
 
 ORDERS = ("name", "time")  # the --order choices
@@ -208,8 +209,12 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
     entries = [p for p in entries if p.resolve() not in excluded and p.name not in IGNORED_FILES]
     skipped: list[dict] = []
     candidates = []
+    earlier = earlier_outputs(entries)
     for path in entries:
-        if path.suffix.lower() in IMAGE_SUFFIXES:
+        if path in earlier:
+            skipped.append({"file": path.name, "reason": f"an earlier udh mosaic's output (its sidecar: {earlier[path]})"})
+            reporter.warn(f"skipping {path.name}: an earlier udh mosaic's output ({earlier[path]})")
+        elif path.suffix.lower() in IMAGE_SUFFIXES:
             candidates.append(path)
         else:
             skipped.append({"file": path.name, "reason": f"not an image file (suffix '{path.suffix}')"})

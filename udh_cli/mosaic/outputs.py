@@ -15,9 +15,12 @@ import re
 import secrets
 import time
 from pathlib import Path
+from typing import Iterable
 
 from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES
+
+SIDECAR_FORMAT = "udh-mosaic/1"  # the sidecar's "format", its first key
 
 PREVIEW_SUFFIX = ".preview.jpg"
 CAMERAS_SUFFIX = ".cameras.json"  # the lens `--camera estimate` fitted, in OpenSfM's format
@@ -173,3 +176,26 @@ class StagedFiles:
         for temporary, _ in self.staged:
             temporary.unlink(missing_ok=True)
         self.staged = []
+
+
+def earlier_outputs(files: Iterable[Path]) -> dict[Path, str]:
+    """The images among ``files`` that an earlier ``udh mosaic`` wrote beside its sidecar (``NAME.json`` of
+    :data:`SIDECAR_FORMAT`): ``NAME.png``, ``NAME.preview.jpg``, ``NAME.part2.png``, ``NAME.cog.tif`` and the
+    like, each mapped to its sidecar's file name.
+
+    Why: a mosaic written into its frames' folder under another name than this run's would otherwise be stitched
+    in as a frame by the next run (its own outputs, :func:`.pipeline.own_files`, are left out by name)."""
+    files = list(files)
+    stems = [path.stem for path in files if path.suffix.lower() == ".json" and _is_sidecar(path)]
+    return {path: f"{stem}.json" for path in files for stem in stems
+            if path.suffix.lower() in IMAGE_SUFFIXES and path.name.startswith(f"{stem}.")}
+
+
+def _is_sidecar(path: Path) -> bool:
+    """Whether ``path`` begins as a udh mosaic sidecar does (its first 200 bytes are read)."""
+    try:
+        with open(path, "rb") as file:
+            head = file.read(200)
+    except OSError:
+        return False
+    return re.search(rb'"format"\s*:\s*"' + re.escape(SIDECAR_FORMAT.encode()) + rb'"', head) is not None

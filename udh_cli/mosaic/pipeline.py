@@ -28,7 +28,7 @@ from udh_cli.mosaic.gains import EXPOSURES, exposure_gains, mean_gain
 from udh_cli.mosaic.seams import SEAM_FINDERS, find_seams
 from udh_cli.mosaic.small import draw_small
 from udh_cli.mosaic.graph import NEAR_IN_SEQUENCE, chain_to_reference, connected_parts, overlap_candidates, reference_frame
-from udh_cli.mosaic.outputs import (StagedFiles, cameras_path, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
+from udh_cli.mosaic.outputs import (SIDECAR_FORMAT, StagedFiles, cameras_path, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.lens import read_cameras
@@ -50,7 +50,6 @@ from udh_cli.mosaic.truth import corner_errors_vs_truth, map_shape_errors, summa
 from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
 
 OUTPUT_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
-SIDECAR_FORMAT = "udh-mosaic/1"
 
 
 @dataclass(frozen=True)

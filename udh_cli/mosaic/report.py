@@ -7,6 +7,7 @@ from contextlib import contextmanager
 from typing import Callable, Iterator
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 
@@ -46,8 +47,9 @@ class Reporter:
         """Record a warning and print it (one line)."""
         self.warnings.append(message)
         if not self.quiet:
-            self.console.print(f"[yellow]warning:[/yellow] {message}", highlight=False, soft_wrap=True)
+            # Escaped: a message quotes file names and commands ('.[geo]', 'notes[draft].txt') that rich would read as markup.
+            self.console.print(f"[yellow]warning:[/yellow] {escape(message)}", highlight=False, soft_wrap=True)
 
     def info(self, message: str) -> None:
         if not self.quiet:
-            self.console.print(message, highlight=False, soft_wrap=True)
+            self.console.print(escape(message), highlight=False, soft_wrap=True)

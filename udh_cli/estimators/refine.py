@@ -51,7 +51,7 @@ class PyramidEcc:
     The measurements behind these settings are in ``docs/estimators.md`` ("Why the settings").
     """
 
-    work_side: int = 480  # 640 was half again as slow and no more accurate (docs/estimators.md, "Why the settings")
+    work_side: int = 480  # 640 px is half again as slow and no more accurate (docs/estimators.md, "Why the settings")
     levels: int = 3
     iterations: tuple[int, ...] = (20, 15, 10)  # from the cascade's start, (40, 30, 20) cost 25 % more time for the same failures
     blur: tuple[int, ...] = (3, 3, 1)

@@ -58,7 +58,7 @@ class CameraSolution:
         ref_from: frame -> (3, 3) ``ref_from_frame``, h33 = 1, the reference the identity.
         ground_from_ref: (3, 3) from the reference frame's pixels to the ground plane (units: about one reference
             pixel at nadir), the homography that draws the map on the ground instead of in the reference's view.
-        focal_px: the solved focal length, pixels.
+        focal_px: the focal length used, pixels (held, or solved with ``solve_focal``).
         tilt_deg: frame -> how far its optical axis is from straight down, degrees.
     """
 
@@ -69,7 +69,8 @@ class CameraSolution:
 
 
 def rotations(rvecs: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices of (N, 3) Rodrigues vectors (batched; exact near zero too)."""
+    """(N, 3, 3) rotation matrices of (N, 3) Rodrigues vectors, exact near zero too. Why not OpenCV's Rodrigues:
+    it takes one vector a call, and the Jacobian needs every frame's rotation 12 times an iteration."""
     theta = np.linalg.norm(rvecs, axis=1)
     small = theta < 1e-8
     safe = np.where(small, 1.0, theta)

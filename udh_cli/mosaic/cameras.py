@@ -37,7 +37,7 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.mosaic.georef import fit_similarity
 from udh_cli.mosaic.lens_fit import DEFAULT_FOCAL
-from udh_cli.mosaic.solve import ANCHOR_HUBER_SIGMAS, Anchors, PairPoints, anchors_hold, huber, levenberg_marquardt
+from udh_cli.mosaic.solve import ANCHOR_HUBER_SIGMAS, Anchors, PairPoints, anchor_targets, anchors_hold, huber, levenberg_marquardt
 
 PARAMETERS = 6  # per frame: Rodrigues vector (3), X, Y, Z
 GAUGE = (2, 3, 4, 5)  # the reference's parameters held fixed: its yaw, X, Y and Z
@@ -179,9 +179,7 @@ def solve_cameras(
     anchor_pixels = anchors.pixels[anchored][:, None, :] if anchored else np.zeros((0, 1, 2))  # A, 1, 2
     targets, anchor_weight, to_map = np.zeros((0, 2)), np.zeros((0, 1)), np.zeros(4)
     if anchored:
-        fixes = anchors.positions[anchored]
-        map_scale = max(float(np.abs(fixes - fixes.mean(0)).max()), 1e-6)
-        targets = (fixes - fixes.mean(0)) / map_scale  # map metres centred and scaled to about 1
+        targets, map_scale = anchor_targets(anchors, anchored)
         anchor_weight = (map_scale / anchors.sigma_m[anchored])[:, None]  # A, 1: an anchor sigma_m off weighs as 1 px
         on_ground = _project(ground_from_frame(params, focal, centres)[anchor_slots], anchor_pixels)[:, 0]
         similarity = fit_similarity(on_ground, targets)
@@ -221,7 +219,8 @@ def solve_cameras(
         the similarity, the focal length all) and its gradient; the Jacobian by central differences, each
         frame's parameter moved in all frames at once (a residual sees at most two frames)."""
         cameras, f, (p, q, _, _) = split(state)
-        pair, anchor = residuals(state)
+        ground_from = ground_from_frame(cameras, f, centres)
+        pair, anchor = residuals(state, ground_from)
         pair_weight = huber(np.linalg.norm(pair, axis=-1), huber_px)[1]  # P, K
         anchor_weight_now = huber(np.linalg.norm(anchor, axis=-1), ANCHOR_HUBER_SIGMAS)[1]  # A
         derivative_a = np.empty((pairs, per_pair, 2, PARAMETERS))
@@ -246,7 +245,7 @@ def solve_cameras(
             plus[focal_column] += f_step
             minus[focal_column] -= f_step
             derivative_f = [(a - b) / (2 * f_step) for a, b in zip(residuals(plus), residuals(minus))]
-        x, y = _project(ground_from_frame(cameras, f, centres)[anchor_slots], anchor_pixels)[:, 0].T
+        x, y = _project(ground_from[anchor_slots], anchor_pixels)[:, 0].T
         one, zero = np.ones_like(x), np.zeros_like(x)
         derivative_map = anchor_weight[..., None] * np.stack([np.stack([x, y, one, zero], -1), np.stack([-y, x, zero, one], -1)], 1)  # A, 2, 4
         columns_a = slot_a[:, None] * PARAMETERS + np.arange(PARAMETERS)  # P, 6

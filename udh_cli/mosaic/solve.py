@@ -195,9 +195,7 @@ def solve_part(
     k_anchor = ANCHOR_HUBER_SIGMAS * t_ref[0, 0]  # an anchor's residual is in units of its sigma times t_ref[0, 0]
     if anchored:
         # Map metres centred and scaled like the frames; a fix sigma_m away weighs as a pair 1 px off would.
-        fixes = anchors.positions[anchored]
-        map_scale = max(float(np.abs(fixes - fixes.mean(0)).max()), 1e-6)
-        targets = (fixes - fixes.mean(0)) / map_scale
+        targets, map_scale = anchor_targets(anchors, anchored)
         anchor_weight = (t_ref[0, 0] * map_scale / anchors.sigma_m[anchored])[:, None]  # A, 1
         anchor_frames = [int(anchors.frames[row]) for row in anchored]
         anchor_slots = np.array([slot[i] for i in anchor_frames])
@@ -332,6 +330,14 @@ def solve_symmetric(matrix: sparse.spmatrix, rhs: np.ndarray) -> np.ndarray:
     factor = sparse_linalg.splu(sparse.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                                 options={"SymmetricMode": True})
     return factor.solve(rhs)
+
+
+def anchor_targets(anchors: Anchors, rows: list[int]) -> tuple[np.ndarray, float]:
+    """The positions of anchors ``rows`` centred and divided by their largest offset, (A, 2), and that scale
+    (metres): map coordinates of about 1, as the solves' normalised frames are."""
+    fixes = anchors.positions[rows]
+    map_scale = max(float(np.abs(fixes - fixes.mean(0)).max()), 1e-6)
+    return (fixes - fixes.mean(0)) / map_scale, map_scale
 
 
 def anchors_hold(anchors: Anchors, rows: list[int]) -> bool:

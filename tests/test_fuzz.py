@@ -181,7 +181,6 @@ class Case:
     needs: str | None = None  # "torch": skipped without it; "user": skipped when running as root
     setup: Callable | None = None
     forbid: tuple[str, ...] = ()  # "module:attribute" that must not be called (work that must not start)
-    max_s: float | None = None
     absent: tuple[str, ...] = ()  # extra words stderr must not hold
 
 
@@ -192,7 +191,7 @@ CASES = [
     Case("estimate-empty-file", ["estimate", "{empty}", "{a}"], 1, "the file is empty"),
     Case("estimate-text-as-png", ["estimate", "{a}", "{text}"], 1, "not a readable image"),
     Case("estimate-truncated-png", ["estimate", "{trunc}", "{a}"], 1, "not a readable image"),
-    Case("estimate-decompression-bomb", ["estimate", "{bomb}", "{a}"], 1, "32000x32000 pixels", forbid=("cv2:imdecode",), max_s=1.0),
+    Case("estimate-decompression-bomb", ["estimate", "{bomb}", "{a}"], 1, "32000x32000 pixels", forbid=("cv2:imdecode",)),
     Case("estimate-viz-onto-input", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{a}"], 1, "one of the input images"),
     Case("estimate-viz-missing-folder", ["estimate", "{a}", "{b}", "--viz", "{out}/no/v.png"], 1, "does not exist"),
     Case("estimate-viz-name-too-long", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{out}/" + LONG + ".png"], 1, "too long"),
@@ -271,7 +270,7 @@ CASES = [
     Case("export-config-not-a-dict", ["export-onnx", "{config_list}", "-o", "{out}/m.onnx"], 1, "config is not a dict", "torch"),
     Case("export-patch-size-text", ["export-onnx", "{patch_text}", "-o", "{out}/m.onnx"], 1, "patch_size 'abc'", "torch"),
     Case("export-patch-size-absurd", ["export-onnx", "{patch_huge}", "-o", "{out}/m.onnx"], 1, "patch_size 100000", "torch",
-         forbid=("udh_cli.train.export:create_model",), max_s=5.0),
+         forbid=("udh_cli.train.export:create_model",)),
     Case("export-normalisation-text", ["export-onnx", "{norm_text}", "-o", "{out}/m.onnx"], 1, "normalisation", "torch"),
     Case("export-weights-of-another-size", ["export-onnx", "{wrong_size}", "-o", "{out}/m.onnx"], 1, "do not fit", "torch"),
     Case("export-onto-its-checkpoint", ["export-onnx", "{out}/model.onnx", "-o", "{out}/model.onnx"], 1, "is the checkpoint being exported",
@@ -324,13 +323,11 @@ def test_bad_input_fails_in_one_line_and_leaves_nothing(case: Case, inputs, tmp_
     args = [arg.format_map({**{k: str(v) for k, v in paths.items()}, "out": str(out)}) for arg in case.args]
     watched = [out, inputs["in"]] + ([paths["good_pt"].parent] if "good_pt" in paths else [])
     before = [snapshot(folder) for folder in watched]
-    start = time.perf_counter()
     try:
         code, stdout, stderr = run_main(monkeypatch, capfd, *args)
     finally:
         if (out / "ro").exists():
             (out / "ro").chmod(0o755)
-    elapsed = time.perf_counter() - start
 
     lines = [line for line in stderr.splitlines() if line.strip()]
     assert code == case.code, stderr
@@ -342,8 +339,6 @@ def test_bad_input_fails_in_one_line_and_leaves_nothing(case: Case, inputs, tmp_
     assert [snapshot(folder) for folder in watched] == before  # no output, no temporary, no input replaced or touched
     leftovers = [p.name for folder in watched for p in folder.rglob(".*") if p.name.endswith(".part") or ".staged" in p.name]
     assert leftovers == []
-    if case.max_s is not None:
-        assert elapsed < case.max_s, f"{elapsed:.2f} s"
 
 
 # ------------------------------------------------------------------------------------ damaged pair caches

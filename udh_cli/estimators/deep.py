@@ -270,7 +270,8 @@ class DeepEstimator(Estimator):
         # room for tiles, which on real flights meant a start too far off for the tiles: both are worth the
         # global match and the large-motion search.
         doubtful = [i for i, score in enumerate(scores) if score < self.search_below or self._unconfirmed(tiled[i], pairs[i])]
-        if self.matcher is not None and doubtful:
+        matched_any = self.matcher is not None and bool(doubtful)
+        if matched_any:
             for i in doubtful:
                 found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side, MATCH_HEADINGS, self.match_refine_side,
                                      self.match_escalate_side)
@@ -296,7 +297,8 @@ class DeepEstimator(Estimator):
             doubtful = [i for i in doubtful if (scores[i] < self.search_below or self._unconfirmed(tiled[i], pairs[i]))
                         and not (matched[i] is not None and matched[i].inliers >= CONFIDENT_INLIERS)]
         matching_done = time.perf_counter()
-        if self.search and doubtful:
+        searched_any = bool(self.search and doubtful)
+        if searched_any:
             found, found_scores = self._search([pairs[i] for i in doubtful], small_a[doubtful], small_b[doubtful])
             for i, h, score in zip(doubtful, found, found_scores):
                 retiled = self._tiles(pairs[i], h) if self.tiles else None
@@ -305,9 +307,11 @@ class DeepEstimator(Estimator):
                     small_h[i], scores[i], tiled[i], searched[i], matched[i] = h, score, retiled, True, None
         finished = time.perf_counter()
         per_pair_ms = (finished - start) * 1e3 / len(pairs)
+        # Only the stages that ran are timed: an absent key says "skipped" where a rounded 0.0 could not.
+        ran = {"prepare": True, "network": True, "tiles": self.tiles, "match": matched_any, "search": searched_any}
         stage_ms = {name: round((t1 - t0) * 1e3 / len(pairs), 2) for name, t0, t1 in
                     (("prepare", start, prepared), ("network", prepared, coarse), ("tiles", coarse, tiles_done),
-                     ("match", tiles_done, matching_done), ("search", matching_done, finished))}
+                     ("match", tiles_done, matching_done), ("search", matching_done, finished)) if ran[name]}
         precision = self.loaded_precision()
         out = []
         for pair, h, confidence, was_searched, refined, match in zip(pairs, small_h, scores, searched, tiled, matched):

@@ -44,8 +44,8 @@ def warp_context(offsets: torch.Tensor, context_a: torch.Tensor, origin: torch.T
         context_a = F.avg_pool2d(context_a, scale)
         small_b = (patch_size // scale, patch_size // scale)
         small_context = (context_a.shape[-1], context_a.shape[-2])
-        to_small_context = torch.as_tensor(geometry.resize_matrix(size_context, small_context), dtype=offsets.dtype)
-        from_small_b = torch.as_tensor(np.linalg.inv(geometry.resize_matrix(size_b, small_b)), dtype=offsets.dtype)
+        to_small_context = torch.as_tensor(geometry.resize_matrix(size_context, small_context), dtype=offsets.dtype, device=offsets.device)
+        from_small_b = torch.as_tensor(np.linalg.inv(geometry.resize_matrix(size_b, small_b)), dtype=offsets.dtype, device=offsets.device)
         context_from_b = to_small_context @ context_from_b @ from_small_b
         size_b, size_context = small_b, small_context
     grid = geometry.sampling_grid(context_from_b, size_context, size_b)  # N, h_b, w_b, 2
@@ -132,7 +132,7 @@ def corner_error(offsets: torch.Tensor, true_offsets: torch.Tensor) -> torch.Ten
 
 def cell_centres(height: int, width: int, like: torch.Tensor) -> torch.Tensor:
     """(h * w, 2) centres (x, y) of a descriptor cell grid in input pixels, as :func:`udh_cli.estimators.matching.cell_centres`."""
-    return torch.as_tensor(matching.cell_centres(height, width), dtype=like.dtype)
+    return torch.as_tensor(matching.cell_centres(height, width), dtype=like.dtype, device=like.device)
 
 
 def _match_direction(from_features: torch.Tensor, to_features: torch.Tensor, to_from: torch.Tensor, scale: torch.Tensor,

@@ -455,6 +455,33 @@ def bench_pairs(
     _finish_bench(result, out, plots)
 
 
+@bench_app.command("speed")
+def bench_speed(
+    folder: Annotated[Path, typer.Argument(metavar="FOLDER", help="A folder of a flight's frames, mosaicked as `udh mosaic FOLDER` would.")],
+    method: Annotated[Method, typer.Option("--method", "-m", case_sensitive=False, help="The mosaic's method.")] = Method(DEFAULT_METHOD),
+    workers: Annotated[Optional[int], typer.Option("--workers", min=1, show_default=False, help="Local processes estimating pairs (default: the mosaic's own choice).")] = None,
+    pairs: Annotated[int, typer.Option("--pairs", min=0, help="Also time single pairs: the first N consecutive pairs of FOLDER at full resolution (0: none).")] = 0,
+    methods: Annotated[Optional[str], typer.Option("--methods", help="With --pairs: comma-separated methods, interleaved on the same pairs (default: unsupervised,auto,sift).")] = None,
+    out: Annotated[Path, typer.Option("--out", help="Folder for results.json, results.md and stages.png.")] = Path("bench-speed"),
+    keep_mosaic: Annotated[bool, typer.Option("--keep-mosaic", help="Write the mosaic into --out as well (default: a temporary folder, removed after).", metavar="")] = False,
+    option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
+) -> None:
+    """Time a mosaic stage by stage against a fixed workload timed in the same run (every frame decoded and run
+    through SIFT at 800 px on one thread), so that figures from different machines compare."""
+    from udh_cli.bench import check_output_folder
+    from udh_cli.bench.runner import parse_methods
+    from udh_cli.bench.speed import PAIR_METHODS, run_speed_bench
+    from udh_cli.bench.speed_report import markdown, write_speed_outputs
+
+    check_output_folder(out)
+    pair_methods = parse_methods(methods) if methods else list(PAIR_METHODS)
+    options = parse_method_options(option, list(dict.fromkeys([method.value, *(pair_methods if pairs else [])])))
+    result = run_speed_bench(folder, method.value, workers, options, pairs, pair_methods, mosaic_dir=out if keep_mosaic else None, progress=True)
+    written = write_speed_outputs(result, out)
+    sys.stdout.write(markdown(result))
+    err_console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, soft_wrap=True)
+
+
 def _finish_bench(result, out: Path, plots: bool) -> None:
     from udh_cli.bench import markdown_table, write_outputs
 

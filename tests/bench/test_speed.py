@@ -62,7 +62,7 @@ def test_single_pairs_are_timed_against_sift(speed_run):
     assert set(by_method) == {"identity", "sift"} and all(pair["pairs"] == 2 for pair in results["pairs"])
     assert by_method["sift"]["sift_ratio"] == pytest.approx(1.0)
     assert by_method["identity"]["sift_ratio"] == pytest.approx(by_method["identity"]["median_ms"] / by_method["sift"]["median_ms"])
-    assert by_method["sift"]["answered"] == 2
+    assert by_method["sift"]["answered"] == 2 == sum(by_method["sift"]["answered_by"].values())
 
 
 def test_the_picture_decodes(speed_run):

@@ -14,6 +14,7 @@ import platform
 import statistics
 import tempfile
 import time
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -57,7 +58,9 @@ class PairTiming:
         sift_ratio: ``median_ms`` over SIFT's on the same pairs (``None`` when sift was not timed).
         answered: pairs with an answer (of ``pairs``).
         stage_ms: median milliseconds per stage of the network's path (``Estimate.details["stage_ms"]``),
-            over the pairs that report one; empty for methods that do not.
+            over the pairs where that stage ran; empty for methods that do not report stages.
+        stage_pairs: for each key of ``stage_ms``, on how many pairs the stage ran.
+        answered_by: how many answers each stage or opinion gave (``Estimate.stage``, e.g. network, sift).
     """
 
     method: str
@@ -66,6 +69,8 @@ class PairTiming:
     sift_ratio: float | None
     answered: int
     stage_ms: dict[str, float] = field(default_factory=dict)
+    stage_pairs: dict[str, int] = field(default_factory=dict)
+    answered_by: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -179,25 +184,23 @@ def time_pairs(files: Sequence[Path], count: int, methods: Sequence[str],
     for estimator in estimators.values():  # model loading and first-call allocation stay out of the times
         estimator.estimate(images[0], images[1])
     times: dict[str, list[float]] = {name: [] for name in methods}
-    answered = dict.fromkeys(methods, 0)
-    stages: dict[str, list[dict[str, float]]] = {name: [] for name in methods}
+    answered_by: dict[str, Counter] = {name: Counter() for name in methods}
+    stages: dict[str, dict[str, list[float]]] = {name: {} for name in methods}
     for i in range(count):
         for name in list(methods)[i % len(methods):] + list(methods)[: i % len(methods)]:
             started = time.perf_counter()
             estimate = estimators[name].estimate(images[i], images[i + 1])
             times[name].append((time.perf_counter() - started) * 1e3)
-            answered[name] += estimate.ok
-            if isinstance(estimate.details.get("stage_ms"), dict):
-                stages[name].append(estimate.details["stage_ms"])
+            if estimate.ok:
+                answered_by[name][estimate.stage or name] += 1
+            for stage, ms in (estimate.details.get("stage_ms") or {}).items():
+                stages[name].setdefault(stage, []).append(ms)
     medians = {name: statistics.median(values) for name, values in times.items()}
     sift = medians.get("sift")
-    return [PairTiming(name, count, medians[name], medians[name] / sift if sift else None, answered[name], _median_stages(stages[name]))
+    return [PairTiming(name, count, medians[name], medians[name] / sift if sift else None, sum(answered_by[name].values()),
+                       {stage: statistics.median(ms) for stage, ms in stages[name].items()},
+                       {stage: len(ms) for stage, ms in stages[name].items()}, dict(answered_by[name]))
             for name in methods]
-
-
-def _median_stages(reports: list[dict[str, float]]) -> dict[str, float]:
-    names = list(dict.fromkeys(name for report in reports for name in report))
-    return {name: statistics.median(report[name] for report in reports if name in report) for name in names}
 
 
 def run_speed_bench(

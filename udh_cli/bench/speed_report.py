@@ -18,10 +18,15 @@ from udh_cli.images import atomic_write_bytes
 REFERENCE_COLOUR = (70, 70, 70)  # darker than every stage's colour
 
 
+def _flight_name(result: SpeedResult) -> str:
+    """The folder's last two parts: flights are often kept as NAME/images."""
+    return "/".join(Path(result.folder).resolve().parts[-2:])
+
+
 def markdown(result: SpeedResult) -> str:
     """The stage table (seconds and x reference), the run's facts and, when timed, the single pairs."""
     ref = result.reference
-    lines = [f"# udh bench speed: {Path(result.folder).name}, method {result.method}, workers {result.workers or 'auto'}", "",
+    lines = [f"# udh bench speed: {_flight_name(result)}, method {result.method}, workers {result.workers or 'auto'}", "",
              f"Reference: {ref.frames} frames decoded and run through SIFT at {REFERENCE_SIDE} px on one thread in "
              f"**{ref.seconds:.2f} s** on {result.machine['cpu']} ({result.machine['cpu_count']} cores, "
              f"load {result.machine['load_average_1min']:.2f} at the end).", "",
@@ -35,11 +40,13 @@ def markdown(result: SpeedResult) -> str:
     if result.pairs:
         lines += ["", f"Single pairs: the first {result.pairs[0].pairs} consecutive pairs at full resolution, interleaved, "
                       "median wall time of `estimate`.", "",
-                  "| method | ms/pair | x sift | answered | network path's stages (median ms) |", "|---|---|---|---|---|"]
+                  "| method | ms/pair | x sift | answered (by) | network path's stages: median ms (pairs where it ran) |",
+                  "|---|---|---|---|---|"]
         for pair in result.pairs:
             ratio = "-" if pair.sift_ratio is None else f"{pair.sift_ratio:.3f}"
-            stages = ", ".join(f"{name} {ms:.1f}" for name, ms in pair.stage_ms.items()) or "-"
-            lines.append(f"| {pair.method} | {pair.median_ms:.1f} | {ratio} | {pair.answered}/{pair.pairs} | {stages} |")
+            by = ", ".join(f"{stage} {n}" for stage, n in pair.answered_by.items())
+            stages = ", ".join(f"{name} {ms:.1f} ({pair.stage_pairs[name]})" for name, ms in pair.stage_ms.items()) or "-"
+            lines.append(f"| {pair.method} | {pair.median_ms:.1f} | {ratio} | {pair.answered}/{pair.pairs} ({by}) | {stages} |")
     return "\n".join(lines) + "\n"
 
 
@@ -51,7 +58,7 @@ def stage_bars(result: SpeedResult, size: tuple[int, int] = (760, 300)) -> np.nd
     canvas = np.full((height + 22 * legend_rows + 10, width, 3), 255, np.uint8)
     longest = max(result.wall_s, result.reference.seconds)
     axes = Axes(canvas, (150, 40, width - 180, height - 110), (0.0, longest * 1.05), (0.0, 2.0))
-    _frame(axes, f"{Path(result.folder).name}: {result.method}, {result.ratio:.2f}x the reference")
+    _frame(axes, f"{_flight_name(result)}: {result.method}, {result.ratio:.2f}x the reference")
     _bar(axes, 1.5, [(result.reference.seconds, REFERENCE_COLOUR)], f"reference ({REFERENCE_SIDE} px SIFT)")
     colours = [PALETTE[k % len(PALETTE)] for k in range(len(result.stages))]
     _bar(axes, 0.5, [(stage.seconds, colour) for stage, colour in zip(result.stages, colours)], f"mosaic ({result.method})")

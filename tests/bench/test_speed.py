@@ -85,6 +85,24 @@ def test_the_reference_restores_opencv_threads():
     assert cv2.getNumThreads() == threads
 
 
+@pytest.mark.parametrize("args, message", [(["--pairs", "2", "--methods", "sift,nosuch"], "unknown method"),
+                                           (["--pairs", "2", "-O", "sift.nosuch=1"], "nosuch")])
+def test_bad_pair_methods_fail_before_any_work(tmp_path, monkeypatch, args, message):
+    def forbidden(*_):
+        raise AssertionError("the reference workload ran")
+
+    monkeypatch.setattr("udh_cli.bench.speed.time_reference", forbidden)
+    result = CliRunner().invoke(cli.app, ["bench", "speed", str(SIM_FLIGHT), "--out", str(tmp_path / "results"), *args])
+    assert result.exit_code != 0 and isinstance(result.exception, UdhError) and message in str(result.exception)
+    assert not (tmp_path / "results").exists()
+
+
+def test_a_file_as_out_fails_before_any_work(tmp_path):
+    (tmp_path / "taken").write_text("")
+    result = CliRunner().invoke(cli.app, ["bench", "speed", str(SIM_FLIGHT), "--out", str(tmp_path / "taken")])
+    assert isinstance(result.exception, UdhError) and "not a folder" in str(result.exception)
+
+
 def test_a_folder_without_a_flight_fails_in_one_line_before_any_work(tmp_path):
     with pytest.raises(UdhError, match="at least two frames"):
         frame_files(tmp_path)

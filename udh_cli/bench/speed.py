@@ -10,6 +10,7 @@ pairs in one process, interleaved so that load from other jobs falls on all meth
 
 from __future__ import annotations
 
+import os
 import platform
 import statistics
 import tempfile
@@ -23,6 +24,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
+from udh_cli.estimators import Estimator
 from udh_cli.images import IMAGE_SUFFIXES
 
 REFERENCE_SIDE = 800  # longest side, px, of the reference SIFT: the fixed workload that speed figures are divided by
@@ -171,15 +173,13 @@ def machine() -> dict[str, Any]:
     return {"cpu": cpu or "unknown", **environment()}
 
 
-def time_pairs(files: Sequence[Path], count: int, methods: Sequence[str],
-               options: dict[str, dict[str, Any]] | None = None) -> list[PairTiming]:
+def time_pairs(files: Sequence[Path], count: int, estimators: dict[str, Estimator]) -> list[PairTiming]:
     """Time ``estimate`` on the first ``count`` consecutive pairs of ``files`` (the images as stored) for
-    every method, interleaved pair by pair in a rotating order, after one untimed warm-up pair each."""
-    from udh_cli.estimators import create_estimator
+    every estimator (by method name), interleaved pair by pair in a rotating order, after one untimed warm-up
+    pair each."""
     from udh_cli.images import read_image
 
-    count = min(count, len(files) - 1)
-    estimators = {name: create_estimator(name, **(options or {}).get(name, {})) for name in methods}
+    count, methods = min(count, len(files) - 1), list(estimators)
     images = [read_image(path) for path in files[: count + 1]]
     for estimator in estimators.values():  # model loading and first-call allocation stay out of the times
         estimator.estimate(images[0], images[1])
@@ -221,11 +221,15 @@ def run_speed_bench(
         mosaic_dir: where the mosaic is written (as :data:`MOSAIC_NAME`); ``None``: a temporary folder, removed after.
         progress: show the mosaic's progress bars on stderr.
     """
+    from udh_cli.estimators import create_estimator
     from udh_cli.mosaic import DEFAULT_METHOD, MosaicConfig, Reporter, run_mosaic
 
     files = frame_files(folder)
     method, method_options = method or DEFAULT_METHOD, method_options or {}
     config = MosaicConfig(method=method, method_options=method_options.get(method, {}), workers=workers)
+    # Made first, so that an unknown method or a bad option fails before any work.
+    pair_estimators = {name: create_estimator(name, **method_options.get(name, {})) for name in pair_methods} if pairs > 0 else {}
+    load_at_start = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     reference = time_reference(files)
     with tempfile.TemporaryDirectory(prefix="udh-speed-") as scratch:
         output = Path(mosaic_dir or scratch) / MOSAIC_NAME
@@ -234,8 +238,8 @@ def run_speed_bench(
         report = run_mosaic(folder, output, config, Reporter(quiet=not progress, progress=progress))
         wall = time.perf_counter() - started
     memory = peak_memory_mb()
-    timed_pairs = time_pairs(files, pairs, pair_methods, method_options) if pairs > 0 else []
+    timed_pairs = time_pairs(files, pairs, pair_estimators) if pair_estimators else []
     return SpeedResult(folder=str(folder), method=config.method, workers=workers, reference=reference,
                        stages=stage_timings(report["timings_s"], wall, reference.seconds), wall_s=wall,
                        peak_memory_mb=memory, summary=report["summary"], pairs=timed_pairs,
-                       machine=machine())
+                       machine={**machine(), "load_average_1min_at_start": load_at_start})

@@ -23,13 +23,18 @@ def _flight_name(result: SpeedResult) -> str:
     return "/".join(Path(result.folder).resolve().parts[-2:])
 
 
+def _load(value: float | None) -> str:
+    return "unknown" if value is None else f"{value:.2f}"
+
+
 def markdown(result: SpeedResult) -> str:
     """The stage table (seconds and x reference), the run's facts and, when timed, the single pairs."""
     ref = result.reference
     lines = [f"# udh bench speed: {_flight_name(result)}, method {result.method}, workers {result.workers or 'auto'}", "",
              f"Reference: {ref.frames} frames decoded and run through SIFT at {REFERENCE_SIDE} px on one thread in "
              f"**{ref.seconds:.2f} s** on {result.machine['cpu']} ({result.machine['cpu_count']} cores, "
-             f"load {result.machine['load_average_1min']:.2f} at the end).", "",
+             f"1-minute load {_load(result.machine.get('load_average_1min_at_start'))} at the start, "
+             f"{_load(result.machine.get('load_average_1min'))} at the end).", "",
              "| stage | s | x reference |", "|---|---|---|"]
     lines += [f"| {stage.name} | {stage.seconds:.2f} | {stage.ratio:.3f} |" for stage in result.stages]
     lines.append(f"| **wall** | **{result.wall_s:.2f}** | **{result.ratio:.2f}** |")

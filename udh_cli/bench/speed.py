@@ -187,7 +187,7 @@ def time_pairs(files: Sequence[Path], count: int, estimators: dict[str, Estimato
     answered_by: dict[str, Counter] = {name: Counter() for name in methods}
     stages: dict[str, dict[str, list[float]]] = {name: {} for name in methods}
     for i in range(count):
-        for name in list(methods)[i % len(methods):] + list(methods)[: i % len(methods)]:
+        for name in methods[i % len(methods):] + methods[: i % len(methods)]:
             started = time.perf_counter()
             estimate = estimators[name].estimate(images[i], images[i + 1])
             times[name].append((time.perf_counter() - started) * 1e3)

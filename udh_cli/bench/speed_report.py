@@ -11,11 +11,12 @@ import numpy as np
 
 from udh_cli.bench.plots import GRID, PALETTE, TEXT, Axes, _number, _text
 from udh_cli.bench.report import _png_bytes, check_output_folder
-from udh_cli.bench.speed import REFERENCE_SIDE, SpeedResult
+from udh_cli.bench.speed import REFERENCE_SIDE, UNSTAGED, SpeedResult
 from udh_cli.errors import UdhError
 from udh_cli.images import atomic_write_bytes
 
 REFERENCE_COLOUR = (70, 70, 70)  # darker than every stage's colour
+UNSTAGED_COLOUR = (215, 215, 215)
 
 
 def _flight_name(result: SpeedResult) -> str:
@@ -65,13 +66,22 @@ def stage_bars(result: SpeedResult, size: tuple[int, int] = (760, 300)) -> np.nd
     axes = Axes(canvas, (150, 40, width - 180, height - 110), (0.0, longest * 1.05), (0.0, 2.0))
     _frame(axes, f"{_flight_name(result)}: {result.method}, {result.ratio:.2f}x the reference")
     _bar(axes, 1.5, [(result.reference.seconds, REFERENCE_COLOUR)], f"reference ({REFERENCE_SIDE} px SIFT)")
-    colours = [PALETTE[k % len(PALETTE)] for k in range(len(result.stages))]
+    colours = [_stage_colour(k, stage.name) for k, stage in enumerate(result.stages)]
     _bar(axes, 0.5, [(stage.seconds, colour) for stage, colour in zip(result.stages, colours)], f"mosaic ({result.method})")
     for k, (stage, colour) in enumerate(zip(result.stages, colours)):
         x, y = 20 + (k % 2) * (width // 2), height + 22 * (k // 2)
         cv2.rectangle(canvas, (x, y - 7), (x + 14, y + 7), colour, -1)
         _text(canvas, f"{stage.name}: {stage.seconds:.2f} s, {stage.ratio:.2f}x", (x + 22, y), valign="middle")
     return canvas
+
+
+def _stage_colour(index: int, name: str) -> tuple[int, int, int]:
+    """The palette in order, then again at half strength (runs with many loop-closure rounds); the unstaged rest
+    in light grey."""
+    if name == UNSTAGED:
+        return UNSTAGED_COLOUR
+    colour = PALETTE[index % len(PALETTE)]
+    return colour if index < len(PALETTE) else tuple((c + 255) // 2 for c in colour)
 
 
 def _frame(axes: Axes, title: str) -> None:

@@ -294,3 +294,36 @@ def test_a_bad_option_still_prints_one_json_object(files):
     result = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(files["b16.png"]), "-m", "sift", "-O", "iterations=3", "--json"])
     payload = json.loads(result.stdout)
     assert payload["ok"] is False and payload["exit_code"] == 1 and "iterations" in payload["failure"]
+
+
+# ------------------------------------------------------------------------------------ start-up
+
+# Modules a command that needs none of them must not load: the networks' runtime, torch, SciPy (the solves), the
+# mosaic package and the estimators that do real work.
+HEAVY_MODULES = ("onnxruntime", "torch", "scipy", "udh_cli.mosaic", "udh_cli.onnx_model", "udh_cli.bench", "udh_cli.estimators.features",
+                 "udh_cli.estimators.ecc", "udh_cli.estimators.deep", "udh_cli.estimators.refined", "udh_cli.estimators.tiles",
+                 "udh_cli.estimators.matching")
+
+
+def modules_loaded_by(*args: str) -> set[str]:
+    """The modules loaded by ``udh ARGS`` (no args: by importing udh_cli.cli alone), read in a fresh process."""
+    code = ("import sys\nimport udh_cli.cli as cli\nsys.argv = ['udh', *sys.argv[1:]]\n"
+            "try:\n    cli.main() if len(sys.argv) > 1 else None\nexcept SystemExit:\n    pass\n"
+            "sys.stderr.write('MODULES ' + ' '.join(sys.modules))\n")
+    result = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120)
+    return set(result.stderr.split("MODULES ", 1)[1].split())
+
+
+def heavy(modules: set[str]) -> set[str]:
+    return {m for m in modules if any(m == h or m.startswith(h + ".") for h in HEAVY_MODULES)}
+
+
+@pytest.mark.parametrize("args", [(), ("--help",), ("estimate", "--help"), ("bench", "speed", "--help")])
+def test_start_up_imports_nothing_heavy(args):
+    assert heavy(modules_loaded_by(*args)) == set()
+
+
+def test_the_mosaic_command_loads_when_invoked():
+    loaded = modules_loaded_by("mosaic", "--help")
+    assert "udh_cli.mosaic.pipeline" in loaded and "udh_cli.cli_mosaic" in loaded
+    assert not {"onnxruntime", "torch"} & loaded

@@ -11,7 +11,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "udh_cli"
 
 # Each layer may import from the layers listed before it, never after. Top-level modules not named here
 # (errors, geometry, images, ...) form the base that every layer may use.
-LAYERS = ["estimators", "mosaic", "bench", "train", "api", "cli"]
+LAYERS = ["estimators", "mosaic", "bench", "train", "api", "cli", "cli_mosaic"]
 TORCH_FREE = ["estimators", "mosaic", "bench", "api", "geometry", "images", "onnx_model", "synthetic", "flight_motion"]
 
 

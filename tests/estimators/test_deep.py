@@ -381,3 +381,5 @@ def test_a_confident_match_outranks_what_the_tiles_confirmed_and_is_kept_as_matc
     monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 40, 500, 0))
     estimate = estimator.estimate(a, b)
     assert estimate.stage == "tiles" and geometry.mace(estimate.homography, moved, 320, 240) < 1e-6
+    # ...but the verdict sees that the match, an opinion of 40 cells, puts it 30 px elsewhere.
+    assert not estimate.verified and "match agrees" in estimate.details["verdict_failed"]

@@ -25,8 +25,8 @@ def test_an_answer_all_evidence_agrees_on_is_verified():
 
 
 @pytest.mark.parametrize("change, check", [
-    ({"alignment": 0.05}, "alignment"),
-    ({"round_trip": 0.1}, "round trip"),
+    ({"alignment": 0.0}, "alignment"),
+    ({"round_trip": 0.2}, "round trip"),
     ({"tiles_confirm": False, "match_inliers": None, "match_disagreement": None}, "tiles"),
     ({"match_inliers": 60, "match_disagreement": 0.1}, "match agrees"),
 ])
@@ -47,7 +47,7 @@ def test_a_weak_match_is_no_opinion_and_a_confident_one_lowers_the_alignment_flo
     assert judge(weak, 0.8).verified  # as many cells as frames of different flights reach: says nothing
     matched = Evidence(alignment=0.2, round_trip=0.005, match_inliers=400, match_disagreement=0.0, is_match=True)
     assert judge(matched, 0.5).verified_by == "matches"  # surf and trees lower right answers' alignment
-    assert not judge(Evidence(alignment=0.05, round_trip=0.005, match_inliers=400, is_match=True), 0.5).verified
+    assert not judge(Evidence(alignment=0.0, round_trip=0.005, match_inliers=400, is_match=True), 0.5).verified
 
 
 def test_round_trip_and_disagreement_are_shares_of_the_side():
@@ -66,35 +66,35 @@ def network():
 
 
 def test_a_right_answer_passes_and_a_wrong_one_the_tiles_confirmed_is_caught(network, monkeypatch):
-    """Tile levels that wrongly confirm an answer 30 px off (a monkeypatched tile stage) no longer verify it:
-    the photometric check and the round trip both catch it, measured on the images."""
+    """Tile levels that wrongly confirm an answer 60 px off (a monkeypatched tile stage) no longer verify it: the
+    photometric check, measured on the images, catches it (the round trip, 24 px of 128, is left to gross errors)."""
     truth = geometry.translation(6.0, -4.0)
     a, b = warped_pair(truth, seed=5)
     right = network.estimate(a, b)
     assert right.verified and geometry.mace(right.homography, truth, 320, 240) < 2.0
     assert right.details["round_trip"] <= THRESHOLDS.max_round_trip and right.details["alignment"] >= THRESHOLDS.min_alignment
-    moved = geometry.translation(30.0, 0.0) @ truth
+    moved = geometry.translation(60.0, 0.0) @ truth
     monkeypatch.setattr(deep, "refine_with_tiles", lambda *args, **kwargs: TileResult(moved, 2, 1.0, 0.5, 2))
     wrong = network.estimate(a, b)
     assert geometry.mace(wrong.homography, moved, 320, 240) < 1e-6 and wrong.details["tile_levels"] == 2
-    assert not wrong.verified and {"alignment", "round trip"} <= set(wrong.details["verdict_failed"])
+    assert not wrong.verified and wrong.details["verdict_failed"] == ["alignment"] and wrong.details["alignment"] < 0.1
     assert wrong.confidence < right.confidence
 
 
 def test_a_network_that_always_answers_the_same_shift_fails_the_round_trip(network, monkeypatch):
-    """A network output monkeypatched to 'B is A moved 10 px right' (the right answer, as it happens) is caught
-    by the round trip: run from B to A, from the answer's inverse, it still moves 10 px, where a right answer
+    """A network output monkeypatched to 'B is A moved 20 px right' (the right answer, as it happens) is caught
+    by the round trip: run from B to A, from the answer's inverse, it still moves 20 px, where a right answer
     leaves the network nothing to move."""
-    truth = geometry.translation(10.0 * 320 / 128, 0.0)  # 10 px of the 128-px input
-    a, b = warped_pair(truth, seed=6)
+    truth = geometry.translation(20.0 * 320 / 128, 0.0)  # 20 px of the 128-px input
+    a, b = warped_pair(truth, seed=6, margin=60)
     untiled = create_estimator("unsupervised", device="cpu", search=0, heading_search=0, matcher_model="", tiles=False,
                                iterations=1, refine_rounds=0, flight_model="")
-    offsets = np.tile([[10.0, 0.0]], (4, 1))
+    offsets = np.tile([[20.0, 0.0]], (4, 1))
     monkeypatch.setattr(untiled.network, "predict_offsets", lambda patches, batch_size=64: np.repeat(offsets[None], len(patches), 0))
     found = untiled.estimate(a, b)
     assert geometry.mace(found.homography, truth, 320, 240) < 1e-6  # forward, it happens to be right
     assert not found.verified and found.details["verdict_failed"] == ["round trip"]
-    assert found.details["round_trip"] == pytest.approx(10.0 / 128, abs=1e-4)
+    assert found.details["round_trip"] == pytest.approx(20.0 / 128, abs=1e-4)
 
 
 @pytest.mark.parametrize("kind", ["no overlap", "textureless", "upside down"])

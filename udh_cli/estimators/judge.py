@@ -27,11 +27,14 @@ class Thresholds:
         min_alignment: least photometric score (the lower of intensity and gradient NCC over 4 x 4 tiles at
             256 px, :data:`~udh_cli.estimators.verify.VERIFIER`): the mosaic's own alignment check
             (``Acceptance.min_verified``); wrong seneca answers' gradient NCC stayed below it 95 % of the time.
-        min_alignment_matched: the same floor for an answer hundreds of cells support: right brighton-beach
-            pairs (surf, sand, trees) score 0.19-0.30 there, yet a score near 0 means nothing aligns.
-        max_round_trip: largest corner error of ``b_from_a @ a_from_b`` against the identity, as a share of the
-            network's input side (4 px of 128): the network re-run from B to A must come back to A. A right
-            answer's round trip is the network's own noise on an aligned pair, about a pixel at 128.
+        min_alignment_matched: the same floor for an answer hundreds of cells support: right consecutive
+            brighton-beach pairs that 330-440 cells matched scored 0.026-0.058 (surf, moving water), yet 0 means
+            that nothing aligns (no overlap, or flat tiles only).
+        max_round_trip: largest error of ``b_from_a @ a_from_b`` against the identity where A covers B, as a share
+            of the network's input side (12.8 px of 128): the network re-run from B to A must come back to A. On
+            right consecutive pairs of seneca and brighton-beach at 800 px it came back up to 0.085 of the side
+            (the network at 128 px on half-overlapping frames), on right turned pairs up to 0.02: it catches gross
+            errors (a wrong heading, no overlap, a network stuck on one answer), not a few pixels.
         match_evidence_inliers: fewest cells of a global match for it to count as an opinion at all: pairs of
             frames from different flights reached up to 34 (docs/estimators.md, "The global match").
         max_match_disagreement: largest corner distance between the answer and a global match that counts, as a
@@ -41,8 +44,8 @@ class Thresholds:
     """
 
     min_alignment: float = 0.3
-    min_alignment_matched: float = 0.1
-    max_round_trip: float = 4.0 / 128.0
+    min_alignment_matched: float = 0.02
+    max_round_trip: float = 0.1
     match_evidence_inliers: int = 40
     max_match_disagreement: float = 0.02
     unverified_confidence: float = 0.5
@@ -95,6 +98,8 @@ def judge(evidence: Evidence, confidence: float, thresholds: Thresholds = THRESH
     supported = confident_match and (evidence.is_match or (evidence.match_disagreement or 0.0) <= thresholds.max_match_disagreement)
     floor = thresholds.min_alignment_matched if supported else thresholds.min_alignment
     checks = {"alignment": evidence.alignment >= floor}
+    if supported:
+        checks["matches"] = True  # hundreds of cells agree on it, as RANSAC's inliers verify SIFT's answers
     if evidence.round_trip is not None:
         checks["round trip"] = bool(evidence.round_trip <= thresholds.max_round_trip)
     if evidence.tiles_confirm is not None and not supported:
@@ -111,13 +116,23 @@ def judge(evidence: Evidence, confidence: float, thresholds: Thresholds = THRESH
     return Verdict(True, "alignment", (), confidence)
 
 
-def round_trip_error(b_from_a: np.ndarray, a_from_b: np.ndarray, side: int) -> float:
-    """Largest corner error of ``b_from_a @ a_from_b`` (both (3, 3), pixels of S x S images) against the
-    identity, as a share of ``side``; inf for a degenerate answer."""
+def round_trip_error(b_from_a: np.ndarray, a_from_b: np.ndarray, side: int, grid: int = 5) -> float:
+    """Largest error of ``b_from_a @ a_from_b`` (both (3, 3), pixels of S x S images) against the identity at the
+    points of a ``grid`` x ``grid`` lattice over B that A covers, as a share of ``side``; inf for a degenerate
+    answer or no covered point. Why the covered points, not the frame's corners: where A does not reach, the
+    network saw only the pre-warp's border fill, and its 4-point answer there is an extrapolation (right
+    consecutive pairs of seneca, overlapping by half, came back 7-16 px off at the corners)."""
     composed = b_from_a @ a_from_b
     if not np.isfinite(composed).all() or abs(composed[2, 2]) < 1e-12:
         return float("inf")
-    error = float(geometry.corner_errors(composed / composed[2, 2], np.eye(3), side, side).max())
+    steps = np.linspace(0.0, side - 1.0, grid)
+    points_b = np.array([[x, y] for y in steps for x in steps])
+    in_a = geometry.transform_points(a_from_b, points_b)
+    covered = np.isfinite(in_a).all(1) & (in_a >= -0.5).all(1) & (in_a <= side - 0.5).all(1)
+    if not covered.any():
+        return float("inf")
+    moved = geometry.transform_points(composed / composed[2, 2], points_b[covered])
+    error = float(np.linalg.norm(moved - points_b[covered], axis=1).max())
     return error / side if np.isfinite(error) else float("inf")
 
 
@@ -131,8 +146,11 @@ def disagreement(b_from_a: np.ndarray, other: np.ndarray, size_a: tuple[int, int
 def judge_answers(estimator, pairs, small_a, small_b, fulls, scores, tiled, matched, seen_match) -> list:
     """The :func:`judge` of every answer of a :class:`~udh_cli.estimators.deep.DeepEstimator` (None where there is
     none), with the evidence it measured as a dict for the details: the photometric score at 256 px; the round
-    trip, the coarse network's first round on the swapped S x S pair from the answer's inverse, one call for all
-    pairs, where the network sees at least :data:`MIN_NETWORK_OVERLAP` of B; the tile levels; a global match.
+    trip, the cascade's last round (the refinement network where there is one) on the swapped S x S pair from the
+    answer's inverse, one call for all pairs, where the network sees at least :data:`MIN_NETWORK_OVERLAP` of B;
+    the tile levels; a global match. Why the last round: the refinement network is trained on small residuals;
+    on right answers of turned real pairs its round trip stayed under 2.6 px of 128, the coarse network's reached
+    14 px (docs/estimators.md, "The verdict").
 
     Args:
         pairs: the prepared pairs; small_a, small_b: (N, S, S) their network inputs.

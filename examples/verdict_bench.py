@@ -43,6 +43,7 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=30, help="pairs per flight")
     parser.add_argument("--side", type=int, default=800)
     parser.add_argument("--min-inliers", type=int, default=50)
+    parser.add_argument("--list", action="store_true", help="print every wrong pair")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     estimator = create_estimator("unsupervised", device="cpu", threads=1)
@@ -66,6 +67,10 @@ def main() -> None:
             wrong = not found.ok or float(geometry.mace(found.homography, truth, *size_a)) > 10.0
             now, before = bool(found.verified), before_rule(found)
             counts += [1, wrong, wrong and now, wrong and before, not wrong and not now, not wrong and not before]
+            if wrong and args.list:
+                error = float(geometry.mace(found.homography, truth, *size_a)) if found.ok else float("inf")
+                print(f"  wrong: {row['img1']} {row['img2']} {error:.1f} px, reference inliers {row['ransac_inliers']}, "
+                      f"stage {found.stage}, verified {found.verified}, failed {found.details.get('verdict_failed')}")
         totals += counts
         print(f"{folder.name:15} {int(counts[0]):5d} {int(counts[1]):5d}   {int(counts[2]):8d} / {int(counts[3]):<8d}"
               f"                  {int(counts[4]):8d} / {int(counts[5]):<8d}")

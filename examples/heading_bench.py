@@ -66,6 +66,8 @@ def main() -> None:
     parser.add_argument("-O", dest="options", action="append", default=[])
     parser.add_argument("--json", type=Path, help="write every pair's result here")
     args = parser.parse_args()
+    from verdict_bench import before_rule  # the rule before the judge, recomputed from the same answers
+
     cv2.setNumThreads(1)
     options = dict(parse_key_value(item) for item in args.options)
     estimator = create_estimator(args.method, device="cpu", threads=1, **options)
@@ -82,23 +84,28 @@ def main() -> None:
             elapsed_ms = (time.perf_counter() - started) * 1e3
             error = float(geometry.mace(found.homography, truth, WIDTH, HEIGHT)) if found.ok else float("inf")
             rows.append({"frame": path.name, "degrees": jittered, "error_px": error, "verified": found.verified,
+                         "verified_before": before_rule(found),
                          "ms": elapsed_ms, "stage": found.stage})
     buckets = defaultdict(list)
     for row in rows:
         bucket = 0 if row["degrees"] == 0 else int(((row["degrees"] + 22.5) % 360) // 45) * 45
         buckets[bucket if row["degrees"] else "0 exactly"].append(row)
     print(f"{args.method} {options}: {len(rows)} pairs from {len(rows) // len(angles)} frames")
-    print("bucket   pairs  failures  verified-but-wrong  unverified-but-right  median px  median ms  stages")
+    print("bucket   pairs  failures  verified-but-wrong (judge / before)  unverified-but-right  median px  median ms  stages")
     for bucket, group in sorted(buckets.items(), key=lambda kv: (isinstance(kv[0], int), kv[0] if isinstance(kv[0], int) else 0)):
         errors = np.array([r["error_px"] for r in group])
         wrong = errors > 10
         verified = np.array([bool(r["verified"]) for r in group])
-        print(f"{str(bucket):>9} {len(group):6d} {wrong.mean():8.1%} {(wrong & verified).mean():12.1%} "
+        before = np.array([r["verified_before"] for r in group])
+        print(f"{str(bucket):>9} {len(group):6d} {wrong.mean():8.1%} {(wrong & verified).mean():12.1%} / {(wrong & before).mean():6.1%} "
               f"{(~wrong & ~verified).mean():18.1%} {np.median(errors):10.2f} {np.median([r['ms'] for r in group]):10.1f}  "
               f"{dict(Counter(r['stage'] for r in group))}")
     unturned = [r["ms"] for r in rows if r["degrees"] == 0]
     everything = np.array([r["error_px"] for r in rows])
-    print(f"all: failures {np.mean(everything > 10):.1%}; unturned pairs: median {np.median(unturned):.1f} ms a pair")
+    wrong_verified = np.mean([r["error_px"] > 10 and bool(r["verified"]) for r in rows])
+    wrong_before = np.mean([r["error_px"] > 10 and r["verified_before"] for r in rows])
+    print(f"all: failures {np.mean(everything > 10):.1%}, verified-but-wrong {wrong_verified:.1%} (before {wrong_before:.1%}); "
+          f"unturned pairs: median {np.median(unturned):.1f} ms a pair")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 

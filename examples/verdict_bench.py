@@ -44,9 +44,11 @@ def main() -> None:
     parser.add_argument("--side", type=int, default=800)
     parser.add_argument("--min-inliers", type=int, default=50)
     parser.add_argument("--list", action="store_true", help="print every wrong pair")
+    parser.add_argument("--heading-search", type=int, default=None, help="unsupervised's heading_search (default: its own)")
     args = parser.parse_args()
     cv2.setNumThreads(1)
-    estimator = create_estimator("unsupervised", device="cpu", threads=1)
+    options = {} if args.heading_search is None else {"heading_search": args.heading_search}
+    estimator = create_estimator("unsupervised", device="cpu", threads=1, **options)
     print("flight          pairs  wrong   verified-but-wrong (judge / before)   unverified-but-right (judge / before)")
     totals = np.zeros(6)
     for folder in sorted(p for p in FLIGHTS.iterdir() if (p / "consecutive_pairs_sift_reference.csv").is_file()):

@@ -102,7 +102,7 @@ class DeepEstimator(Estimator):
         batch_size: pairs per onnxruntime call in :meth:`estimate_many`.
         threads: onnxruntime intra-op threads (None: onnxruntime's default).
 
-    Confidence is :meth:`score`: the lower of the intensity and gradient NCC of the aligned S x S images.
+    Confidence is :meth:`score` (intensity and gradient NCC at S x S), halved when :mod:`~udh_cli.estimators.judge` doubts it.
     """
 
     name: ClassVar[str] = "deep"

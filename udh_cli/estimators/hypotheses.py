@@ -152,10 +152,10 @@ def best_hypotheses(estimator, hypotheses: Hypotheses, small_a: np.ndarray, smal
         for k in range(p * kept, (p + 1) * kept):
             h = hypotheses.whole(chosen[k], finished[k])
             candidates.append((estimator.score(small_a[p], small_b[p], h), -chosen[k], h))
-        score, index, h = max(candidates, key=lambda c: (c[0], c[1]))
+        score, negative_index, h = max(candidates, key=lambda c: (c[0], c[1]))  # ties: the earlier view
         best_h.append(h)
         best_scores.append(score)
-        best_labels.append(float(hypotheses.labels[-index]))
+        best_labels.append(float(hypotheses.labels[-negative_index]))
     return np.stack(best_h), best_scores, best_labels
 
 

@@ -113,3 +113,14 @@ def test_pairs_without_a_right_answer_get_no_verified_answer(kind):
     found = create_estimator("unsupervised", device="cpu").estimate(a, b)
     assert not found.verified, found.details
     assert found.confidence < 0.5
+
+
+def test_an_unjudged_network_leaves_the_verdict_to_its_caller(network):
+    """auto's start runs unjudged: its Cascade judges the answer after ECC, and the verdict's work is not done twice."""
+    a, b = warped_pair(geometry.translation(6.0, -4.0), seed=5)
+    unjudged = create_estimator("unsupervised", device="cpu", search=0, matcher_model="", judged=False).estimate(a, b)
+    assert unjudged.ok and unjudged.verified is None and "verdict" not in unjudged.details["stage_ms"]
+    assert "verdict_failed" not in unjudged.details and unjudged.confidence > 0.5
+    from udh_cli.estimators.refined import AutoOptions
+
+    assert AutoOptions().build().start.judged is False

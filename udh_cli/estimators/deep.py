@@ -78,11 +78,12 @@ class DeepEstimator(Estimator):
         headings: 1 runs the network on B as given; 2 also on B turned half a turn, keeping the better-scoring
             answer. Why: a survey's strips alternate direction, and the flight network is trained for turns of
             up to 30 degrees; half a turn keeps the frame's shape (a quarter turn of a 4:3 frame would not).
-        heading_search: for a doubted pair, B's small copy turned by this many angles over the whole circle
-            (:mod:`udh_cli.estimators.hypotheses`), all screened by the first round in one onnxruntime call, the
-            best finishing the cascade, kept when it scores or confirms better (0: off). Why: a pair turned by
-            any other angle is beyond the networks' reach; this reaches it before the global match, at a few
-            network passes instead of describing both frames (docs/estimators.md, "Any heading").
+        heading_search: for a doubted pair, B's small copy turned by this many angles over the circle, screened in
+            one onnxruntime call, the best finishing the cascade (:mod:`~udh_cli.estimators.hypotheses`; 0: off). Why:
+            other turns are beyond the networks' reach; this reaches them before the global match, at a few network
+            passes instead of describing both frames (docs/estimators.md, "Any heading").
+        judged: give every answer the verdict of :mod:`~udh_cli.estimators.judge` (``verified`` True or False);
+            False leaves ``verified`` None, for a caller that judges the answer itself (auto's ECC and policy).
         matcher_model: a ``matcher`` network (``udh train --mode match``): for a doubted pair, its global match
             (every 4-px cell of A against every cell of B at ``match_side`` px, mutual nearest neighbours, a
             robust fit; :mod:`udh_cli.estimators.matching`) is tried before the search, and kept when the tile
@@ -119,6 +120,7 @@ class DeepEstimator(Estimator):
     flight_model: str | None = None
     headings: int = 1
     heading_search: int = 0
+    judged: bool = True
     tiles: bool | None = None
     matcher_model: str | None = None
     match_side: int = MATCH_SIDE
@@ -279,18 +281,16 @@ class DeepEstimator(Estimator):
         searched, matched, turned, seen_match = [False] * len(pairs), [None] * len(pairs), [None] * len(pairs), [None] * len(pairs)
 
         def offer(i: int, h: np.ndarray, score: float) -> bool:
-            """Keep a new answer of pair ``i`` when tile levels confirm it more, or as much with a better score."""
+            # Kept when tile levels confirm it more, or as much with a better score.
             retiled = self._tiles(pairs[i], h) if self.tiles else None
             confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
-            if (confirmed, score) > (was_confirmed, scores[i]):
+            if kept := (confirmed, score) > (was_confirmed, scores[i]):
                 small_h[i], scores[i], tiled[i], matched[i] = h, score, retiled, None
-                return True
-            return False
+            return kept
 
         def still_doubted(i: int) -> bool:
-            # Doubted: a low score, or (with tiles) an answer the tile levels did not confirm although the pair had
-            # room for tiles, which on real flights meant a start too far off for the tiles. A match many cells
-            # support is not.
+            # A low score, or (with tiles) an answer the tile levels did not confirm although B had room for tiles
+            # (on real flights: a start too far off for the tiles); not a match many cells support.
             return (scores[i] < self.search_below or self._unconfirmed(tiled[i], pairs[i])) \
                 and not (matched[i] is not None and matched[i].inliers >= CONFIDENT_INLIERS)
 
@@ -338,19 +338,19 @@ class DeepEstimator(Estimator):
         finished = time.perf_counter()
         fulls = [self._full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
         fulls = [full if full is None or refined is None else refined.b_from_a for full, refined in zip(fulls, tiled)]
-        verdicts = judge_answers(self, pairs, small_a, small_b, fulls, scores, tiled, matched, seen_match)
+        verdicts = judge_answers(self, pairs, small_a, small_b, fulls, scores, tiled, matched, seen_match) if self.judged else [None] * len(pairs)
         judged = time.perf_counter()
         per_pair_ms = (judged - start) * 1e3 / len(pairs)
         # Only the stages that ran are timed: an absent key says "skipped" where a rounded 0.0 could not.
         ran = {"prepare": True, "network": True, "tiles": self.tiles, "headings": turned_any, "match": matched_any,
-               "search": searched_any, "verdict": True}
+               "search": searched_any, "verdict": self.judged}
         stage_ms = {name: round((t1 - t0) * 1e3 / len(pairs), 2) for name, t0, t1 in
                     (("prepare", start, prepared), ("network", prepared, coarse), ("tiles", coarse, tiles_done),
                      ("headings", tiles_done, headings_done), ("match", headings_done, matching_done),
                      ("search", matching_done, finished), ("verdict", finished, judged)) if ran[name]}
         precision = self.loaded_precision()
         out = []
-        for pair, full, was_searched, angle, refined, match, verdict in zip(pairs, fulls, searched, turned, tiled, matched, verdicts):
+        for pair, full, score, was_searched, angle, refined, match, verdict in zip(pairs, fulls, scores, searched, turned, tiled, matched, verdicts):
             failure = None if full is not None else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
                        "precision": precision, "provider": self.network.provider, "stage_ms": stage_ms}
@@ -363,7 +363,7 @@ class DeepEstimator(Estimator):
                                tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
             stage = ("tiles" if details.get("tile_levels") else "search" if was_searched else "heading" if angle is not None
                      else "match" if match is not None else "network")
-            confidence, verified, verified_by = 0.0, False, None
+            confidence, verified, verified_by = (score, None, None) if not self.judged else (0.0, False, None)
             if verdict is not None:
                 details.update(verdict_failed=list(verdict[1].failed), **verdict[0])
                 confidence, verified, verified_by = verdict[1].confidence, verdict[1].verified, verdict[1].verified_by

@@ -15,10 +15,10 @@ from udh_cli.models_catalog import SHIPPED_MODELS, models_dir
 WIDTH, HEIGHT = 400, 300
 
 
-def turned_pair(degrees: float, seed: int = 21) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A: the central 400 x 300 window of a test-made 800 x 600 scene; B: that window turned by ``degrees``
-    counter-clockwise about its centre and shifted, so that B sees only the scene at any angle. And b_from_a."""
-    scene = textured_image(800, 600, seed=seed)
+def turned_pair(degrees: float, seed: int = 21, scene: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A: the central 400 x 300 window of an 800 x 600 scene (test-made unless given); B: that window turned by
+    ``degrees`` counter-clockwise about its centre and shifted, so that B sees only the scene at any angle. And b_from_a."""
+    scene = textured_image(800, 600, seed=seed) if scene is None else cv2.resize(scene, (800, 600), interpolation=cv2.INTER_AREA)
     x0, y0 = 200, 150
     turn = np.vstack([cv2.getRotationMatrix2D(((WIDTH - 1) / 2, (HEIGHT - 1) / 2), degrees, 1.0), [0, 0, 1]])
     b_from_a = geometry.translation(9.0, -6.0) @ turn
@@ -67,6 +67,19 @@ def test_a_pair_turned_by_any_angle_is_answered_within_a_few_pixels(shipped, deg
         before = without.estimate(a, b)
         assert not before.ok or float(geometry.mace(before.homography, truth, WIDTH, HEIGHT)) > 10.0
         assert not before.verified
+
+
+@pytest.mark.parametrize("degrees", [115.0, 290.0])
+def test_a_turned_frame_of_the_example_flight_is_answered_within_a_few_pixels(shipped, degrees):
+    from pathlib import Path
+
+    from udh_cli.images import read_image
+
+    frame = read_image(Path(__file__).resolve().parents[2] / "examples" / "sim_flight" / "frame_003.jpg")
+    a, b, truth = turned_pair(degrees, scene=frame)
+    found = shipped[0].estimate(a, b)
+    error = float(geometry.mace(found.homography, truth, WIDTH, HEIGHT))
+    assert found.ok and error < 3.0 and found.verified, (error, found.details)
 
 
 def test_an_unturned_confident_pair_skips_the_heading_search(shipped):

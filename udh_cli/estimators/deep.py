@@ -14,6 +14,8 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.flight_motion import PREWARP_BORDER
 from udh_cli.estimators.base import Estimate, Estimator
+from udh_cli.estimators.hypotheses import HEADING_COUNT, best_hypotheses, cascade_headings, heading_angles, heading_hypotheses, shift_hypotheses
+from udh_cli.estimators.judge import judge_answers
 from udh_cli.estimators.tiles import TileRefinement, refine_with_tiles
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.onnx_model import OnnxHomographyModel, OnnxMatcher
@@ -24,6 +26,7 @@ from udh_cli.estimators.verify import Verifier
 DEFAULT_ITERATIONS = 2  # coarse rounds
 DEFAULT_REFINE_ROUNDS = 2  # measured on the held-out rho-32 bench (models/README.md)
 SEARCH_FINALISTS = 3  # large-motion search: hypotheses of a pair that get the whole cascade after screening
+HEADING_FINALISTS = 2  # heading search: turns of a pair that get the whole cascade after screening
 PIPELINE_SEARCH = 2  # the search of the whole learned pipeline (unsupervised with its tile stage): 24 shifts
 # B's turns the global match tries (matching.HEADINGS): half turns for a survey's alternating strips, then quarter
 # turns for a strip's end, each only while no turn has found enough agreeing cells.
@@ -75,6 +78,12 @@ class DeepEstimator(Estimator):
         headings: 1 runs the network on B as given; 2 also on B turned half a turn, keeping the better-scoring
             answer. Why: a survey's strips alternate direction, and the flight network is trained for turns of
             up to 30 degrees; half a turn keeps the frame's shape (a quarter turn of a 4:3 frame would not).
+        heading_search: for a doubted pair, B's small copy turned by this many angles over the circle, screened in
+            one onnxruntime call, the best finishing the cascade (:mod:`~udh_cli.estimators.hypotheses`; 0: off). Why:
+            other turns are beyond the networks' reach; this reaches them before the global match, at a few network
+            passes instead of describing both frames (docs/estimators.md, "Any heading").
+        judged: give every answer the verdict of :mod:`~udh_cli.estimators.judge` (``verified`` True or False);
+            False leaves ``verified`` None, for a caller that judges the answer itself (auto's ECC and policy).
         matcher_model: a ``matcher`` network (``udh train --mode match``): for a doubted pair, its global match
             (every 4-px cell of A against every cell of B at ``match_side`` px, mutual nearest neighbours, a
             robust fit; :mod:`udh_cli.estimators.matching`) is tried before the search, and kept when the tile
@@ -94,7 +103,7 @@ class DeepEstimator(Estimator):
         batch_size: pairs per onnxruntime call in :meth:`estimate_many`.
         threads: onnxruntime intra-op threads (None: onnxruntime's default).
 
-    Confidence is :meth:`score`: the lower of the intensity and gradient NCC of the aligned S x S images.
+    Confidence is :meth:`score` (intensity and gradient NCC at S x S), halved when :mod:`~udh_cli.estimators.judge` doubts it.
     """
 
     name: ClassVar[str] = "deep"
@@ -110,6 +119,8 @@ class DeepEstimator(Estimator):
     precision: str | None = None
     flight_model: str | None = None
     headings: int = 1
+    heading_search: int = 0
+    judged: bool = True
     tiles: bool | None = None
     matcher_model: str | None = None
     match_side: int = MATCH_SIDE
@@ -138,6 +149,8 @@ class DeepEstimator(Estimator):
             raise UdhError(f"method '{self.name}': refine_rounds ({self.refine_rounds}) must be 0 or more")
         if self.headings not in (1, 2):
             raise UdhError(f"method '{self.name}': headings ({self.headings}) must be 1 (as given) or 2 (also half a turn)")
+        if not (self.heading_search == 0 or 3 <= self.heading_search <= 72):
+            raise UdhError(f"method '{self.name}': heading_search ({self.heading_search}) must be 0 (off) or 3 to 72 angles")
         check_precision(self.precision)
 
         path = self.model if self.model is not None else shipped_onnx(self.name, self.precision)
@@ -261,15 +274,35 @@ class DeepEstimator(Estimator):
         s = self.network.input_size
         small_a, small_b = (np.stack(side) for side in zip(*(pair.square(s) for pair in pairs)))
         prepared = time.perf_counter()
-        small_h, scores = self._predict_headings(small_a, small_b)
+        small_h, scores = cascade_headings(self, small_a, small_b)
         coarse = time.perf_counter()
         tiled = [self._tiles(pairs[i], small_h[i]) for i in range(len(pairs))] if self.tiles else [None] * len(pairs)
         tiles_done = time.perf_counter()
-        searched, matched = [False] * len(pairs), [None] * len(pairs)
-        # Doubted: a low score, or (with tiles) an answer the tile levels did not confirm although the pair had
-        # room for tiles, which on real flights meant a start too far off for the tiles: both are worth the
-        # global match and the large-motion search.
-        doubtful = [i for i, score in enumerate(scores) if score < self.search_below or self._unconfirmed(tiled[i], pairs[i])]
+        searched, matched, turned, seen_match = [False] * len(pairs), [None] * len(pairs), [None] * len(pairs), [None] * len(pairs)
+
+        def offer(i: int, h: np.ndarray, score: float) -> bool:
+            # Kept when tile levels confirm it more, or as much with a better score.
+            retiled = self._tiles(pairs[i], h) if self.tiles else None
+            confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
+            if kept := (confirmed, score) > (was_confirmed, scores[i]):
+                small_h[i], scores[i], tiled[i], matched[i] = h, score, retiled, None
+            return kept
+
+        def still_doubted(i: int) -> bool:
+            # A low score, or (with tiles) an answer the tile levels did not confirm although B had room for tiles
+            # (on real flights: a start too far off for the tiles); not a match many cells support.
+            return (scores[i] < self.search_below or self._unconfirmed(tiled[i], pairs[i])) \
+                and not (matched[i] is not None and matched[i].inliers >= CONFIDENT_INLIERS)
+
+        doubtful = [i for i in range(len(pairs)) if still_doubted(i)]
+        turned_any = bool(self.heading_search and doubtful)
+        if turned_any:  # the cheapest rescue first: a few network passes, before describing both frames
+            found, found_scores, angles = self._turned(small_a[doubtful], small_b[doubtful])
+            for i, h, score, angle in zip(doubtful, found, found_scores, angles):
+                if offer(i, h, score):
+                    turned[i] = angle
+            doubtful = [i for i in doubtful if still_doubted(i)]
+        headings_done = time.perf_counter()
         matched_any = self.matcher is not None and bool(doubtful)
         if matched_any:
             for i in doubtful:
@@ -280,6 +313,7 @@ class DeepEstimator(Estimator):
                 h = geometry.rescale_homography(found.b_from_a, pairs[i].a.size, (s, s), pairs[i].b.size, (s, s))
                 if not geometry.is_valid_homography(h, s, s):  # a folded fit is no answer, however many cells agree
                     continue
+                seen_match[i] = found  # a second opinion for the verdict, kept or not
                 score = self.score(small_a[i], small_b[i], h)
                 confident = found.inliers >= CONFIDENT_INLIERS
                 # A match hundreds of cells agree on is kept as the guided matching left it, not tiled: the tile
@@ -292,55 +326,50 @@ class DeepEstimator(Estimator):
                 # Then tile levels (they confirm precise answers), then the score.
                 confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
                 if (confident, confirmed, score) > (False, was_confirmed, scores[i]):
-                    small_h[i], scores[i], tiled[i], matched[i] = h, score, retiled, found
-            # A match many cells support needs no search; the search's answers are judged by score and tiles only.
-            doubtful = [i for i in doubtful if (scores[i] < self.search_below or self._unconfirmed(tiled[i], pairs[i]))
-                        and not (matched[i] is not None and matched[i].inliers >= CONFIDENT_INLIERS)]
+                    small_h[i], scores[i], tiled[i], matched[i], turned[i] = h, score, retiled, found, None
+            doubtful = [i for i in doubtful if still_doubted(i)]
         matching_done = time.perf_counter()
         searched_any = bool(self.search and doubtful)
-        if searched_any:
+        if searched_any:  # its answers are judged by score and tiles only
             found, found_scores = self._search([pairs[i] for i in doubtful], small_a[doubtful], small_b[doubtful])
             for i, h, score in zip(doubtful, found, found_scores):
-                retiled = self._tiles(pairs[i], h) if self.tiles else None
-                confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
-                if (confirmed, score) > (was_confirmed, scores[i]):
-                    small_h[i], scores[i], tiled[i], searched[i], matched[i] = h, score, retiled, True, None
+                if offer(i, h, score):
+                    searched[i], turned[i] = True, None
         finished = time.perf_counter()
-        per_pair_ms = (finished - start) * 1e3 / len(pairs)
+        fulls = [self._full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
+        fulls = [full if full is None or refined is None else refined.b_from_a for full, refined in zip(fulls, tiled)]
+        verdicts = judge_answers(self, pairs, small_a, small_b, fulls, scores, tiled, matched, seen_match) if self.judged else [None] * len(pairs)
+        judged = time.perf_counter()
+        per_pair_ms = (judged - start) * 1e3 / len(pairs)
         # Only the stages that ran are timed: an absent key says "skipped" where a rounded 0.0 could not.
-        ran = {"prepare": True, "network": True, "tiles": self.tiles, "match": matched_any, "search": searched_any}
+        ran = {"prepare": True, "network": True, "tiles": self.tiles, "headings": turned_any, "match": matched_any,
+               "search": searched_any, "verdict": self.judged}
         stage_ms = {name: round((t1 - t0) * 1e3 / len(pairs), 2) for name, t0, t1 in
                     (("prepare", start, prepared), ("network", prepared, coarse), ("tiles", coarse, tiles_done),
-                     ("match", tiles_done, matching_done), ("search", matching_done, finished)) if ran[name]}
+                     ("headings", tiles_done, headings_done), ("match", headings_done, matching_done),
+                     ("search", matching_done, finished), ("verdict", finished, judged)) if ran[name]}
         precision = self.loaded_precision()
         out = []
-        for pair, h, confidence, was_searched, refined, match in zip(pairs, small_h, scores, searched, tiled, matched):
-            full = self._full_resolution(h, pair)
+        for pair, full, score, was_searched, angle, refined, match, verdict in zip(pairs, fulls, scores, searched, turned, tiled, matched, verdicts):
             failure = None if full is not None else "the network's 4-point output gives a degenerate homography"
             details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
                        "precision": precision, "provider": self.network.provider, "stage_ms": stage_ms}
+            if angle is not None:
+                details["heading"] = angle
             if match is not None:
                 details.update(matched=True, match_inliers=match.inliers, match_heading=match.heading, match_side=match.side)
             if full is not None and refined is not None:  # never for a confident match: it is not tiled
-                full = refined.b_from_a
                 details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
                                tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
-            stage = "tiles" if details.get("tile_levels") else "search" if was_searched else "match" if match is not None else "network"
-            # An answer the tile levels did not confirm, although the pair had room for tiles, is not verified
-            # whatever its score: the search's best translation can score above the floor while tens of
-            # pixels off (an untrained network on the example flight: 0.24 at 36 px), and a network-only
-            # mosaic rejects it (pairs.Acceptance).
-            verified, verified_by = (False if self._unconfirmed(refined, pair) else None), None
-            if match is not None and match.inliers >= CONFIDENT_INLIERS:
-                # Hundreds of cells agree on it: verified by its matches, as RANSAC verifies SIFT's, whether or
-                # not the tiles confirmed it (brighton-beach's trees defeat them even at the true answer). Its
-                # confidence is then its support too, not only the 128-px score, which a pair overlapping by less
-                # than NETWORK_CHECK's 30 % cannot have (copr's frames across a gap in the files overlap by 17 %)
-                # and seneca's infrared fields rarely reach.
-                verified, verified_by = True, "matches"
-                confidence = max(confidence, match.inliers / (match.inliers + CONFIDENT_INLIERS))
-            out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage,
-                                     verified=verified, verified_by=verified_by, inliers=match.inliers if match else None))
+            stage = ("tiles" if details.get("tile_levels") else "search" if was_searched else "heading" if angle is not None
+                     else "match" if match is not None else "network")
+            confidence, verified, verified_by = (score, None, None) if not self.judged else (0.0, False, None)
+            if verdict is not None:
+                details.update(verdict_failed=list(verdict[1].failed), **verdict[0])
+                confidence, verified, verified_by = verdict[1].confidence, verdict[1].verified, verdict[1].verified_by
+            out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage, verified=verified,
+                                     verified_by=verified_by, verification_score=verdict[0]["alignment"] if verdict else None,
+                                     inliers=match.inliers if match else None))
         return out
 
     def _unconfirmed(self, refined, pair: PreparedPair) -> bool:
@@ -363,90 +392,20 @@ class DeepEstimator(Estimator):
             return None
         return refine_with_tiles(self.tile_network, pair.a.grey, pair.b.grey, full, coarse_network=self.tile_coarse_network)
 
-    def _predict_headings(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
-        """The cascade of every coarse network (:attr:`first_stages`), from B as given and (``headings`` 2)
-        from B turned half a turn: the best-scoring answer of each pair, (N, 3, 3) ``b_from_a`` of the S x S
-        images, and its score. With one network and one heading this is the plain cascade."""
-        n, s = len(small_a), self.network.input_size
-        half_turn = np.array([[-1.0, 0.0, s - 1.0], [0.0, -1.0, s - 1.0], [0.0, 0.0, 1.0]])  # its own inverse
-        views = [(small_b, np.eye(3))]
-        if self.headings == 2:
-            views.append((np.ascontiguousarray(small_b[:, ::-1, ::-1]), half_turn))
-        later = self.rounds()[self.iterations:]  # the refinement rounds, shared by every candidate
-        stacked_b = np.concatenate([view for view, _ in views])
-        stacked_a = np.concatenate([small_a] * len(views))
-        candidates = []  # per coarse network and view: (N, 3, 3) answers in the unturned B
-        for coarse in self.first_stages:
-            answers = self.predict_small(stacked_a, stacked_b, [coarse] * self.iterations + later)
-            candidates += [undo @ answers[k * n : (k + 1) * n] for k, (_, undo) in enumerate(views)]
-        if len(candidates) == 1:
-            found = candidates[0]
-            return found, [self.score(sa, sb, h) for sa, sb, h in zip(small_a, small_b, found)]
-        found, scores = [], []
-        for i in range(n):
-            ranked = [(self.score(small_a[i], small_b[i], c[i]), -k, c[i]) for k, c in enumerate(candidates)]
-            score, _, h = max(ranked, key=lambda c: (c[0], c[1]))
-            found.append(h / h[2, 2] if np.isfinite(h).all() and abs(h[2, 2]) > 1e-12 else h)
-            scores.append(score)
-        return np.stack(found), scores
-
     def _search(self, pairs: Sequence[PreparedPair], small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
         """Large-motion search: for every pair, run the network from each translation hypothesis of a
-        (2 * search + 1)^2 grid of shifts up to half the frame, on the two overlapping windows cropped
-        from the full images and resized to S x S, and keep the best-scoring answer.
+        (2 * search + 1)^2 grid of shifts up to half the frame (:func:`~udh_cli.estimators.hypotheses.shift_hypotheses`)
+        and keep the best-scoring answer: ``(N, 3, 3)`` ``b_from_a`` of the whole S x S images and their scores."""
+        hypotheses = shift_hypotheses(pairs, self.network.input_size, self.search)
+        found, scores, _ = best_hypotheses(self, hypotheses, small_a, small_b, SEARCH_FINALISTS)
+        return found, scores
 
-        Returns ``(N, 3, 3)`` ``b_from_a`` of the whole S x S images and their scores.
-        """
-        s = self.network.input_size
-        grid = np.linspace(-0.5, 0.5, 2 * self.search + 1)
-        shifts = [(fx, fy) for fy in grid for fx in grid if (fx, fy) != (0.0, 0.0)]
-        crops_a, crops_b, maps = [], [], []
-        for pair in pairs:
-            a, b = pair.a.grey, pair.b.grey
-            whole_a = geometry.resize_matrix(pair.a.size, (s, s))
-            whole_b = geometry.resize_matrix(pair.b.size, (s, s))
-            for fx, fy in shifts:
-                # B shows A's content moved by -shift: A's window starts where B's ends, and the other way.
-                window_a = _window(a.shape, max(0.0, fx), max(0.0, fy), 1 + min(0.0, fx), 1 + min(0.0, fy))
-                window_b = _window(b.shape, max(0.0, -fx), max(0.0, -fy), 1 - max(0.0, fx), 1 - max(0.0, fy))
-                (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = window_a, window_b
-                crops_a.append(cv2.resize(a[ay0:ay1, ax0:ax1], (s, s), interpolation=cv2.INTER_AREA))
-                crops_b.append(cv2.resize(b[by0:by1, bx0:bx1], (s, s), interpolation=cv2.INTER_AREA))
-                crop_from_a = geometry.resize_matrix((ax1 - ax0, ay1 - ay0), (s, s)) @ geometry.translation(-ax0, -ay0)
-                crop_from_b = geometry.resize_matrix((bx1 - bx0, by1 - by0), (s, s)) @ geometry.translation(-bx0, -by0)
-                # whole-S b_from_a = whole_b . crop_from_b^-1 . H_crop . crop_from_a . whole_a^-1
-                maps.append((whole_b @ np.linalg.inv(crop_from_b), crop_from_a @ np.linalg.inv(whole_a)))
-        crops_a, crops_b = np.stack(crops_a), np.stack(crops_b)
-
-        def whole(index: int, crop_h: np.ndarray) -> np.ndarray:
-            after, before = maps[index]
-            h = after @ crop_h @ before
-            return h / h[2, 2] if np.isfinite(h).all() and abs(h[2, 2]) > 1e-12 else np.full((3, 3), np.nan)
-
-        # Screen every hypothesis with the first round only, then run the rest of the cascade on the
-        # best-scoring few: a third of the passes of running the cascade on all 24 (search 2). On copr's
-        # consecutive pairs the answers were the same at a quarter of the time; seneca's run went from
-        # 170 to 104 s (README, mosaic section).
-        rounds = self.rounds()
-        screened = self.predict_small(crops_a, crops_b, rounds[:1])
-        finalists = []
-        for p in range(len(pairs)):
-            indices = range(p * len(shifts), (p + 1) * len(shifts))
-            ranked = sorted(indices, key=lambda i: (-self.score(small_a[p], small_b[p], whole(i, screened[i])), i))
-            finalists += ranked[:SEARCH_FINALISTS]
-        finished = self.predict_small(crops_a[finalists], crops_b[finalists], rounds[1:], start=screened[finalists])
-        best_h, best_scores = [], []
-        kept = min(SEARCH_FINALISTS, len(shifts))  # finalists come in runs of `kept` per pair, in pair order
-        for p in range(len(pairs)):
-            run = range(p * kept, (p + 1) * kept)
-            candidates = []
-            for k in run:
-                h = whole(finalists[k], finished[k])
-                candidates.append((self.score(small_a[p], small_b[p], h), -finalists[k], h))
-            score, _, h = max(candidates, key=lambda c: (c[0], c[1]))
-            best_h.append(h)
-            best_scores.append(score)
-        return np.stack(best_h), best_scores
+    def _turned(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float], list[float]]:
+        """Heading search: B turned by :attr:`heading_search` angles over the whole circle (those the cascade
+        tried left out), screened in one call: ``(N, 3, 3)`` ``b_from_a`` of the whole S x S images, their scores
+        and the turn, degrees, each came from."""
+        angles = heading_angles(self.heading_search, (0.0, 180.0) if self.headings == 2 else (0.0,))
+        return best_hypotheses(self, heading_hypotheses(small_a, small_b, angles), small_a, small_b, HEADING_FINALISTS)
 
 
 def has_refinement_stage(name: str, model: str | None, refine_model: str | None) -> bool:
@@ -455,14 +414,6 @@ def has_refinement_stage(name: str, model: str | None, refine_model: str | None)
     from udh_cli.models_catalog import has_shipped
 
     return refine_model is not None or (model is None and has_shipped(f"{name}-refine", precision=None))
-
-
-def _window(shape: tuple[int, ...], fx0: float, fy0: float, fx1: float, fy1: float) -> tuple[int, int, int, int]:
-    """Pixel window ``(x0, y0, x1, y1)`` of an image of ``shape`` from fractions of its width and height."""
-    height, width = shape[:2]
-    x0, x1 = int(round(fx0 * width)), max(int(round(fx0 * width)) + 1, int(round(fx1 * width)))
-    y0, y1 = int(round(fy0 * height)), max(int(round(fy0 * height)) + 1, int(round(fy1 * height)))
-    return x0, y0, x1, y1
 
 
 def _safe_dlt(offsets: np.ndarray, size: int) -> np.ndarray:
@@ -488,6 +439,7 @@ class UnsupervisedEstimator(DeepEstimator):
 
     name: ClassVar[str] = "unsupervised"
     headings: int = 2
+    heading_search: int = HEADING_COUNT
     search: int | None = None  # PIPELINE_SEARCH with the tile stage (the shipped networks), else off
 
 

@@ -294,7 +294,7 @@ class UnsupervisedEccOptions:
         network = create_estimator(self.initial, model=self.model, device=self.device, threads=self.threads,
                                    iterations=self.iterations, refine_model=self.refine_model,
                                    refine_rounds=refine_rounds, search=self.search, precision=self.precision,
-                                   tiles=self.tiles)
+                                   tiles=self.tiles, judged=False)  # the cascade judges after ECC (Policy)
         opinions = []
         if self.fallback:
             options = FALLBACK_OPTIONS.get(self.fallback, {}) if self.fallback_options is None else self.fallback_options

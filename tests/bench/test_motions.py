@@ -106,3 +106,7 @@ def test_overlap_and_fit():
     assert fits(np.eye(3), (100, 80), (100, 80)) and not fits(geometry.translation(90.0, 0.0), (100, 80), (100, 80))
     horizon = np.array([[1.0, 0, 0], [0, 1, 0], [-0.02, 0, 1]])  # w = 0 at x = 50: inside A
     assert not fits(horizon, (100, 80), (100, 80))
+    # Valid and overlapping, but a corner of A flung 10 frames away (near the horizon): not scored.
+    near_horizon = np.array([[1.0, 0, 0], [0, 1, 0], [-0.7 / 99, 0, 1]])  # w = 0.3 at A's right edge: x 99 -> 330
+    assert geometry.is_valid_homography(near_horizon, 100, 80) and overlap(near_horizon, (100, 80), (100, 80)) > 0.25
+    assert not fits(near_horizon, (100, 80), (100, 80))

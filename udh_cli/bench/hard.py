@@ -92,7 +92,8 @@ def build_sets(pairs: list[ReferencePair], count: int, seed: int, kinds: tuple[s
         rng = np.random.default_rng([seed, k])
         if kind in (FLIGHT_GROUP, PAIRS_GROUP):
             order = _in_turn(pairs, [i for i, p in enumerate(pairs) if p.group == kind], rng)
-            picked = [(i, None) for i in order if geometry.is_valid_homography(loaded[i][2], *_size(loaded[i][0]))][:count]
+            valid = (i for i in order if geometry.is_valid_homography(loaded[i][2], *_size(loaded[i][0])))
+            picked = [(i, None) for i in itertools.islice(valid, count)]  # read only the pairs kept
         else:
             order = _in_turn(pairs, list(range(len(pairs))), rng)
             picked = []

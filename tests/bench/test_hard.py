@@ -169,3 +169,17 @@ def test_the_command_writes_its_files_and_bad_sources_fail_in_one_line(source, t
     nothing = CliRunner().invoke(cli.app, ["bench", "hard", str(empty), "-m", "identity", "--out", str(tmp_path / "o2")])
     assert isinstance(nothing.exception, UdhError) and "no pairs" in str(nothing.exception)
     assert not (tmp_path / "o2").exists()
+
+
+def test_the_shared_flights_references_fit_their_images_as_read(shared_data):
+    """boruszyn-kite is stored unrotated with EXIF orientation 8 and its references are in the stored pixels: turned
+    with the images, SIFT on the pair as read agrees with the reference."""
+    from udh_cli.estimators import create_estimator
+
+    pairs, _ = find_pairs([shared_data / "flights" / "boruszyn-kite"])
+    pair = next(p for p in pairs if p.label == "img_4854.jpg->img_4858.jpg")
+    assert pair.orientation == (8, 8)
+    image_a, image_b, truth = pair.load()
+    assert max(image_a.shape) == 800 and image_a.shape[0] > image_a.shape[1]  # portrait, as a viewer shows it
+    estimate = create_estimator("sift").estimate(image_a, image_b)
+    assert geometry.mace(estimate.homography, truth, image_a.shape[1], image_a.shape[0]) < 3.0

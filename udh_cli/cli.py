@@ -411,6 +411,33 @@ def bench_speed(
     err_console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, soft_wrap=True)
 
 
+@bench_app.command("hard")
+def bench_hard(
+    sources: Annotated[list[Path], typer.Argument(metavar="SOURCE...", help="Pairs with a reference H: a pairs CSV (img1,img2,H or H_sift_ransac_1to2), a flight folder with consecutive_pairs_sift_reference.csv, an Oxford folder (graf1 + H1to3p.xml), or folders of them.")],
+    methods: Annotated[str, typer.Option("--methods", "-m", help="Comma-separated registry names.")] = "unsupervised,auto,sift",
+    n: Annotated[int, typer.Option("--n", help="Pairs per kind of motion.")] = 20,
+    seed: Annotated[int, typer.Option("--seed", help="Seed: the same seed gives the same pairs and motions.")] = 0,
+    prefix: Annotated[Optional[str], typer.Option("--prefix", help="Oxford folders: the image series, e.g. graf, when several match.")] = None,
+    min_inliers: Annotated[int, typer.Option("--min-inliers", help="Leave out reference pairs whose CSV gives fewer RANSAC inliers.")] = 50,
+    out: Annotated[Path, typer.Option("--out", help="Folder for results.md, results.json and reliability.png.")] = Path("bench-hard"),
+    option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw reliability.png.", metavar="")] = True,
+) -> None:
+    """Real pairs with known motion (as captured, turned, scaled, tilted): failures, verified-but-wrong and a reliability diagram."""
+    from udh_cli.bench import check_output_folder
+    from udh_cli.bench.hard import run_hard_bench
+    from udh_cli.bench.hard_report import markdown_table, write_hard_outputs
+    from udh_cli.bench.runner import parse_methods
+    from udh_cli.bench.suite import bench_options
+
+    check_output_folder(out)
+    result = run_hard_bench(sources, methods=parse_methods(methods), count=n, seed=seed, prefix=prefix,
+                            min_inliers=min_inliers, options=bench_options(option, methods))
+    written = write_hard_outputs(result, out, plots=plots)
+    sys.stdout.write(markdown_table(result))
+    err_console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, soft_wrap=True)
+
+
 def _finish_bench(result, out: Path, plots: bool) -> None:
     from udh_cli.bench import markdown_table, write_outputs
 

@@ -48,6 +48,8 @@ class MethodRun:
         failures: (N,) the reason for each missing answer, ``""`` where there is an answer.
         wall_ms_per_pair: wall-clock time of all this job's ``estimate_many`` calls over N, milliseconds.
         sift_ratio: median time over SIFT's median time on the same set and input (``None`` without SIFT).
+        confidence: (N,) each answer's ``Estimate.confidence`` (0 for no answer).
+        verdicts: (N,) int8, each answer's ``Estimate.verified``: 1 True, 0 False, -1 None (the method does not judge).
     """
 
     set_name: str
@@ -62,6 +64,8 @@ class MethodRun:
     wall_ms_per_pair: float
     summary: metrics.Summary
     sift_ratio: float | None = None
+    confidence: np.ndarray | None = None
+    verdicts: np.ndarray | None = None
 
     @property
     def label(self) -> str:
@@ -185,6 +189,8 @@ def _score(job: Job, pair_set: PairSet, estimates: list[Estimate], wall_s: float
         set_name=pair_set.name, rho=pair_set.rho, method=job.method, input=job.input, mace=mace, rmse=rmse,
         answered=answered, elapsed_ms=elapsed, failures=[(e.failure or "no answer") if not e.ok else "" for e in estimates],
         wall_ms_per_pair=1e3 * wall_s / len(pair_set), summary=metrics.summarize(mace, rmse, answered, elapsed),
+        confidence=np.array([e.confidence for e in estimates], dtype=np.float64),
+        verdicts=np.array([-1 if e.verified is None else int(e.verified) for e in estimates], dtype=np.int8),
     )
 
 

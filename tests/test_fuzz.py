@@ -167,6 +167,31 @@ def a_file(out: Path, paths: dict) -> None:
     (out / "file.txt").write_text("a file\n")
 
 
+def users_bench_results(out: Path, paths: dict) -> None:
+    (out / "b").mkdir()
+    (out / "b" / "results.md").write_text("# my notes on the results\n")
+    (out / "b" / "results.json").write_text('{"mine": true}\n')
+
+
+def users_npz(out: Path, paths: dict) -> None:
+    np.savez(out / "p.npz", mine=np.arange(3))
+
+
+def data_folder_with_users_config(out: Path, paths: dict) -> None:
+    for image in paths["pool"].iterdir():
+        shutil.copy(image, out / image.name)
+    (out / "config.json").write_text('{"my": "settings"}\n')
+
+
+def model_with_users_int8(out: Path, paths: dict) -> None:
+    shutil.copy(paths["good_onnx"], out / "model.onnx")
+    (out / "model-int8.onnx").write_bytes(b"the int8 model I tuned by hand")
+
+
+def users_ground_preview(out: Path, paths: dict) -> None:
+    (out / "s_ground.jpg").write_bytes(b"my photo of the ground")
+
+
 # ----------------------------------------------------------------------------------------------- cases
 
 
@@ -245,6 +270,14 @@ CASES = [
     Case("bench-unknown-method", ["bench", "synthetic", "--images", "{pool}", "-m", "surf", "--out", "{out}/b"], 1, "unknown method"),
     Case("bench-bad-option", ["bench", "synthetic", "--images", "{pool}", "--option", "junk", "--out", "{out}/b"], 1, "KEY=VALUE"),
     Case("bench-out-is-a-file", ["bench", "synthetic", "--images", "{pool}", "--out", "{a}"], 1, "is a file"),
+    Case("bench-save-pairs-onto-an-input-image", ["bench", "synthetic", "--images", "{pool}", "--save-pairs", "{frame}", "--out", "{out}/b"],
+         1, "unknown file type '.jpg'", forbid=("udh_cli.bench.suite:held_out_sources",)),
+    Case("bench-save-pairs-onto-a-users-npz", ["bench", "synthetic", "--images", "{pool}", "--save-pairs", "{out}/p.npz", "--out", "{out}/b"],
+         1, "udh did not write it", setup=users_npz, forbid=("udh_cli.bench.suite:held_out_sources",)),
+    Case("bench-out-holds-users-results", ["bench", "synthetic", "--images", "{pool}", "--out", "{out}/b"], 1, "add --overwrite",
+         setup=users_bench_results, forbid=("udh_cli.bench.suite:held_out_sources",)),
+    Case("bench-pairs-out-holds-users-results", ["bench", "pairs", "{bad_csv}", "--out", "{out}/b"], 1, "udh did not write it",
+         setup=users_bench_results),
     Case("bench-pairs-missing-csv", ["bench", "pairs", "{in}/missing.csv", "--out", "{out}/b"], 1, "no such file"),
     Case("bench-pairs-foreign-csv", ["bench", "pairs", "{bad_csv}", "--out", "{out}/b"], 1, "missing column"),
     # ------------------------------------------------------------------ train
@@ -258,6 +291,8 @@ CASES = [
     Case("train-into-an-existing-run", ["train", "-d", "{pool}", "-o", "{out}/run"], 1, "holds a run", "torch", existing_run),
     Case("train-overwrite-with-a-bad-lr-keeps-the-run", ["train", "-d", "{pool}", "-o", "{out}/run", "--overwrite", "--lr", "-1"], 1, "--lr",
          "torch", existing_run),
+    Case("train-out-is-the-data-with-users-config", ["train", "-d", "{out}", "-o", "{out}"], 1, "config.json: exists and udh did not write it",
+         "torch", data_folder_with_users_config),
     Case("train-resume-without-a-run", ["train", "-d", "{pool}", "-o", "{out}/run", "--resume"], 1, "no checkpoint", "torch"),
     Case("train-init-corrupt-checkpoint", ["train", "-d", "{pool}", "-o", "{out}/run", "--init", "{corrupt_pt}"], 1,
          "not a readable udh checkpoint", "torch"),
@@ -284,8 +319,13 @@ CASES = [
     Case("quantize-missing-model", ["quantize", "{in}/missing.onnx", "-d", "{pool}", "-o", "{out}/q.onnx"], 1, "no such model file", "torch"),
     Case("quantize-text-as-model", ["quantize", "{text_onnx}", "-d", "{pool}", "-o", "{out}/q.onnx"], 1, "not a loadable ONNX model", "torch"),
     Case("quantize-onto-its-source", ["quantize", "{good_onnx}", "-d", "{pool}", "-o", "{good_onnx}"], 1, "would replace", "torch"),
+    Case("quantize-default-output-is-users-int8", ["quantize", "{out}/model.onnx", "-d", "{pool}"], 1, "add --overwrite", "torch",
+         model_with_users_int8),
     Case("quantize-missing-data", ["quantize", "{good_onnx}", "-d", "{in}/missing", "-o", "{out}/q.onnx"], 1, "no such folder", "torch"),
     Case("quantize-zero-pairs", ["quantize", "{good_onnx}", "-d", "{pool}", "--pairs", "0", "-o", "{out}/q.onnx"], 1, "--pairs", "torch"),
+    # ------------------------------------------------------------------ simulate
+    Case("simulate-ground-preview-over-users-file", ["simulate", "{out}/s", "--ground-preview", "--width", "64", "--height", "64"], 1,
+         "s_ground.jpg: exists and udh did not write it", setup=users_ground_preview, forbid=("udh_cli.simulate:simulate_flight",)),
     # ------------------------------------------------------------------ usage
     Case("usage-unknown-command", ["frobnicate"], 2, "No such command"),
     Case("usage-unknown-option", ["estimate", "{a}", "{b}", "--frobnicate"], 2, "--frobnicate"),

@@ -239,12 +239,13 @@ def quantize(
     pairs: Annotated[int, typer.Option(help="Calibration pairs per motion level (4 levels up to the model's training rho).")] = 64,
     images: Annotated[int, typer.Option(help="At most this many images are drawn from --data.")] = 200,
     seed: Annotated[int, typer.Option(help="Seed of the image draw and the synthetic pairs.")] = 0,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing output file that udh did not write (the shipped int8 model among them).", metavar="")] = False,
 ) -> None:
     """Quantize a network to int8 for faster CPU inference, calibrated on synthetic pairs of your images."""
     from udh_cli.train.quantize import quantize_from_folders
 
     with console.status("calibrating..."):
-        result = quantize_from_folders(model, output, data, images, pairs, seed)
+        result = quantize_from_folders(model, output, data, images, pairs, seed, overwrite)
     console.print(f"wrote {result['path']}: int8 of {model.name}; offsets differ from float32 by "
                   f"{result['median_drift_px']:.3f} px median, {result['max_drift_px']:.2f} px at most ({result['check_pairs']} check pairs)")
 
@@ -271,6 +272,7 @@ def simulate(
     gps: Annotated[Optional[str], typer.Option("--gps", metavar="LAT,LON", help="Write EXIF GPS into the frames, the ground's top-left corner at LAT,LON (WGS84 degrees).")] = None,
     gps_noise: Annotated[float, typer.Option(min=0.0, max=100.0, help="With --gps: each fix's error, metres (standard deviation).")] = _GPS.noise_m,
     metres_per_pixel: Annotated[float, typer.Option(min=0.001, max=10.0, help="With --gps: ground size of one ground-image pixel, metres.")] = _GPS.metres_per_pixel,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="With --ground-preview: replace an existing FOLDER_ground.jpg that udh did not write.", metavar="")] = False,
 ) -> None:
     """Write a simulated drone flight with exact ground truth (frames + ground_truth.json), for trying udh anywhere."""
     from udh_cli.simulate import GpsConfig, write_flight
@@ -287,7 +289,7 @@ def simulate(
         if not (-80.0 <= latitude <= 84.0 and -180.0 <= longitude <= 180.0):
             raise UdhError(f"--gps {gps}: latitude must be within -80..84 (UTM) and longitude within -180..180")
         gps_config = GpsConfig(latitude, longitude, metres_per_pixel=metres_per_pixel, noise_m=gps_noise)
-    path = write_flight(folder, config, seed, ground_preview=ground_preview, gps=gps_config)
+    path = write_flight(folder, config, seed, ground_preview=ground_preview, gps=gps_config, overwrite=overwrite)
     err_console.print(f"wrote {strips * frames_per_strip} frames and {path}", highlight=False, soft_wrap=True)
 
 
@@ -401,6 +403,7 @@ bench_app = typer.Typer(
 app.add_typer(bench_app, name="bench")
 
 _METHODS_HELP = "Comma-separated registry names (default: every registered method)."
+OVERWRITE_HELP = "Replace existing output files that udh did not write (without it, only files an earlier udh run wrote, unchanged, are replaced)."
 
 
 @bench_app.command("synthetic")
@@ -419,19 +422,20 @@ def bench_synthetic(
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.", metavar="")] = True,
     motion: Annotated[str, typer.Option("--motion", help="paper (128x128 patches, corners moved by --rho) or flight (whole 320x240 frames with real flight motion: turns, scale, low overlap).")] = "paper",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP, metavar="")] = False,
 ) -> None:
     """Benchmark on synthetic pairs from held-out images, drawn with the training generator."""
     from udh_cli.bench import check_output_folder, run_synthetic_bench
     from udh_cli.bench.runner import parse_methods
     from udh_cli.bench.suite import bench_options, parse_rhos
 
-    check_output_folder(out)
+    check_output_folder(out, overwrite)
     result = run_synthetic_bench(
         images=images, rhos=parse_rhos(rho), count=n, seed=seed, illumination=illumination, occluders=occluders,
         methods=parse_methods(methods) if methods else None, mode=mode, options=bench_options(option, methods),
-        save_pairs=save_pairs, load_pairs=load_pairs, motion=motion,
+        save_pairs=save_pairs, load_pairs=load_pairs, motion=motion, overwrite=overwrite,
     )
-    _finish_bench(result, out, plots)
+    _finish_bench(result, out, plots, overwrite)
 
 
 @bench_app.command("pairs")
@@ -443,22 +447,23 @@ def bench_pairs(
     out: Annotated[Path, typer.Option("--out", help="Folder for the result files and plots.")] = Path("bench-results"),
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.", metavar="")] = True,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP, metavar="")] = False,
 ) -> None:
     """Benchmark on real image pairs with known homographies."""
     from udh_cli.bench import check_output_folder, run_pairs_bench
     from udh_cli.bench.runner import parse_methods
     from udh_cli.bench.suite import bench_options
 
-    check_output_folder(out)
+    check_output_folder(out, overwrite)
     result = run_pairs_bench(source, methods=parse_methods(methods) if methods else None, h_column=h_column,
                              prefix=prefix, options=bench_options(option, methods))
-    _finish_bench(result, out, plots)
+    _finish_bench(result, out, plots, overwrite)
 
 
-def _finish_bench(result, out: Path, plots: bool) -> None:
+def _finish_bench(result, out: Path, plots: bool, overwrite: bool) -> None:
     from udh_cli.bench import markdown_table, write_outputs
 
-    written = write_outputs(result, out, plots=plots)
+    written = write_outputs(result, out, plots=plots, overwrite=overwrite)
     sys.stdout.write(markdown_table(result))
     err_console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, soft_wrap=True)
 

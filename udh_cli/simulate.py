@@ -26,6 +26,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
+from udh_cli.files import check_replaceable, write_output
 from udh_cli.images import atomic_write_bytes
 
 GROUND_TRUTH_FILE = "ground_truth.json"
@@ -312,18 +313,22 @@ def _jpeg_with_gps(image: np.ndarray, quality: int, latitude: float, longitude: 
 
 
 def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed: int = 0, ground_preview: bool = False,
-                 gps: GpsConfig | None = None) -> Path:
+                 gps: GpsConfig | None = None, overwrite: bool = False) -> Path:
     """Simulate a flight and write ``frame_NNN.jpg`` (more digits past 1,000 frames) plus ``ground_truth.json``
     into ``folder``.
 
     The ground truth holds every frame's ``ground_from_frame`` and every consecutive pair's ``b_from_a``
     (pixels of frame a to pixels of frame b); with ``gps``, the frames carry EXIF GPS of their centres
-    (with the configured noise) and the truth records each frame's exact ``gps``. Returns the path of the
-    ground-truth file.
+    (with the configured noise) and the truth records each frame's exact ``gps``. With ``ground_preview``, the
+    whole ground goes to ``FOLDER_ground.jpg`` beside the folder, replacing a file there only when udh wrote it,
+    or with ``overwrite``. Returns the path of the ground-truth file.
     """
     folder = Path(folder)
     if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
         raise UdhError(f"{folder}: exists and is not an empty folder; the simulator writes only into a new or empty one")
+    preview = folder.parent / f"{folder.name}_ground.jpg"
+    if ground_preview:
+        check_replaceable(preview, overwrite)
     folder.mkdir(parents=True, exist_ok=True)
     frames, ground = simulate_flight(config, seed)
     records = []
@@ -351,7 +356,7 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
         pairs.append({"a": records[len(pairs)]["file"], "b": records[len(pairs) + 1]["file"], "b_from_a": (b_from_a / b_from_a[2, 2]).tolist()})
     if ground_preview:
         ok, data = cv2.imencode(".jpg", ground, [cv2.IMWRITE_JPEG_QUALITY, 85])
-        atomic_write_bytes(folder.parent / f"{folder.name}_ground.jpg", data.tobytes())
+        write_output(preview, data.tobytes(), overwrite)
     truth = {
         "format": GROUND_TRUTH_FORMAT,
         "conventions": "pixel centres at integer (x, y); b_from_a maps pixels of a to pixels of b (x_b ~ H x_a); ground_from_frame maps frame pixels to ground-image pixels",

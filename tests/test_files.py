@@ -56,7 +56,7 @@ def test_side_files_are_read_when_regular_and_small(tmp_path):
     path = tmp_path / "gcp.txt"
     path.write_bytes(b"\xef\xbb\xbfEPSG:32611\n1 2 3\n")
     assert read_side_text(path, "--gcp") == "EPSG:32611\n1 2 3\n"  # the byte-order mark is not part of the text
-    with pytest.raises(UdhError, match="--gcp .*: 1 MiB, more than the 0 MiB"):
+    with pytest.raises(UdhError, match="--gcp .*: 1.0 MiB, more than the 1000 bytes"):
         path.write_bytes(b"x" * 2**20)
         read_side_file(path, "--gcp", limit=1000)
     with pytest.raises(UdhError, match="--camera .*: no such file"):
@@ -93,3 +93,13 @@ def test_a_second_bench_into_the_same_folder_replaces_its_own_results(tmp_path, 
     code, _, err = run_main(monkeypatch, capfd, *args, "--overwrite")
     assert code == 0, err
     assert written_by_udh(out / "results.md") and written_by_udh(tmp_path / "p.npz")
+
+
+def test_a_gcp_file_with_a_byte_order_mark_reads_its_crs(tmp_path):
+    pytest.importorskip("pyproj")
+    from udh_cli.mosaic.gcp import read_gcp_file
+
+    path = tmp_path / "gcp_list.txt"
+    path.write_bytes("EPSG:32611\n500000 4100000 10 5 5 a.jpg g1\n500100 4100000 10 9 5 b.jpg g2\n".encode("utf-8-sig"))
+    gcps = read_gcp_file(path)
+    assert gcps.epsg == 32611 and [o.x for o in gcps.observations] == [500000.0, 500100.0]

@@ -192,6 +192,28 @@ def users_ground_preview(out: Path, paths: dict) -> None:
     (out / "s_ground.jpg").write_bytes(b"my photo of the ground")
 
 
+def gcp_file(text: str) -> Callable:
+    def setup(out: Path, paths: dict) -> None:
+        (out / "gcp.txt").write_text(text)
+
+    return setup
+
+
+def camera_fifo(out: Path, paths: dict) -> None:
+    os.mkfifo(out / "cameras.json")  # no writer: opening it to read would wait for ever
+
+
+def camera_deep(out: Path, paths: dict) -> None:
+    (out / "cameras.json").write_text('{"cam": ' + "[" * 100_000 + "]" * 100_000 + "}")
+
+
+def truth_singular(out: Path, paths: dict) -> None:
+    from udh_cli.simulate import GROUND_TRUTH_FORMAT
+
+    (out / "truth.json").write_text(json.dumps({"format": GROUND_TRUTH_FORMAT, "frame_size": [160, 120], "consecutive_pairs": [],
+                                                "frames": [{"file": "frame_000.jpg", "ground_from_frame": [[1, 0, 0], [0, 0, 0], [0, 0, 1]]}]}))
+
+
 # ----------------------------------------------------------------------------------------------- cases
 
 
@@ -203,7 +225,7 @@ class Case:
     args: list[str]
     code: int
     message: str
-    needs: str | None = None  # "torch": skipped without it; "user": skipped when running as root
+    needs: str | None = None  # "torch" or "pyproj": skipped without it; "user": skipped when running as root
     setup: Callable | None = None
     forbid: tuple[str, ...] = ()  # "module:attribute" that must not be called (work that must not start)
     absent: tuple[str, ...] = ()  # extra words stderr must not hold
@@ -229,6 +251,7 @@ CASES = [
     Case("estimate-not-a-number", ["estimate", "{a}", "{b}", "--best-features", "many"], 2, "--best-features"),
     Case("estimate-unknown-precision", ["estimate", "{a}", "{b}", "-m", "unsupervised", "--precision", "int9"], 1, "unknown precision"),
     Case("estimate-gt-missing", ["estimate", "{a}", "{b}", "--gt", "{in}/missing.txt"], 1, "no such homography file"),
+    Case("estimate-gt-dev-zero", ["estimate", "{a}", "{b}", "--gt", "/dev/zero"], 1, "--gt /dev/zero: not a regular file"),
     Case("estimate-gt-deeply-nested-json", ["estimate", "{a}", "{b}", "--gt", "{deep}"], 1, "not a 3x3 homography"),
     Case("estimate-gt-through-the-horizon", ["estimate", "{a}", "{b}", "-m", "sift", "--gt", "{horizon}"], 1, "through the horizon",
          forbid=("udh_cli.api:require_ok",)),
@@ -259,6 +282,28 @@ CASES = [
     Case("mosaic-method-option-deeply-nested", ["mosaic", "{frames}", "-o", "{out}/m.png", "-O", "x=" + "[" * 5000 + "]" * 5000], 1,
          "no method here takes 'x'"),
     Case("mosaic-negative-threads", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "unsupervised", "-O", "threads=-1"], 1, "threads -1"),
+    Case("mosaic-camera-fifo-without-writer", ["mosaic", "{frames}", "-o", "{out}/m.png", "--camera", "{out}/cameras.json"], 1,
+         "not a regular file", setup=camera_fifo, forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-camera-dev-zero", ["mosaic", "{frames}", "-o", "{out}/m.png", "--camera", "/dev/zero"], 1, "--camera /dev/zero: not a regular file",
+         forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-camera-deeply-nested", ["mosaic", "{frames}", "-o", "{out}/m.png", "--camera", "{out}/cameras.json"], 1, "nests too deeply",
+         setup=camera_deep, forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gcp-dev-zero", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gcp", "/dev/zero"], 1, "--gcp /dev/zero: not a regular file",
+         needs="pyproj", forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gcp-header-only", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gcp", "{out}/gcp.txt"], 1, "no ground-control points",
+         needs="pyproj", setup=gcp_file("EPSG:32611\n"), forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gcp-wgs84-over-utm", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gcp", "{out}/gcp.txt"], 1,
+         "not longitude and latitude degrees", needs="pyproj", setup=gcp_file("WGS84\n500000 4100000 10 5 5 frame_000.jpg g1\n"),
+         forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gcp-easting-1e300", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gcp", "{out}/gcp.txt"], 1, "no place on Earth",
+         needs="pyproj", setup=gcp_file("EPSG:32611\n1e300 4100000 10 5 5 frame_000.jpg g1\n"), forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gcp-all-at-one-spot", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gcp", "{out}/gcp.txt"], 1, "lie at one spot",
+         needs="pyproj", setup=gcp_file("EPSG:32611\n" + "".join(f"500000 4100000 10 {10 * i} 5 frame_00{i}.jpg g{i}\n" for i in range(4))),
+         forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gt-dev-urandom", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gt", "/dev/urandom"], 1, "/dev/urandom: not a regular file",
+         forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gt-singular-matrix", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gt", "{out}/truth.json"], 1, "invertible",
+         setup=truth_singular, forbid=("udh_cli.mosaic.pipeline:open_frames",)),
     Case("mosaic-gt-deeply-nested-json", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gt", "{deep}"], 1, "nests too deeply"),
     # ------------------------------------------------------------------ bench
     Case("bench-csv-renamed-npz", ["bench", "synthetic", "--load-pairs", "{csv_npz}", "--out", "{out}/b"], 1, "not an .npz archive",
@@ -351,6 +396,8 @@ def test_bad_input_fails_in_one_line_and_leaves_nothing(case: Case, inputs, tmp_
     if case.needs == "torch":
         pytest.importorskip("torch")
         paths.update(request.getfixturevalue("models"))
+    if case.needs == "pyproj":
+        pytest.importorskip("pyproj")
     if case.needs == "user" and IS_ROOT:
         pytest.skip("root can write into read-only folders")
     out = tmp_path / "out"

@@ -86,7 +86,7 @@ def estimate_report(
         UdhError: for bad input, and when the method finds no homography.
     """
     estimator = create_estimator(method, **options)
-    truth = read_homography(gt) if gt is not None else None
+    truth = read_homography(gt, "--gt") if gt is not None else None
     if viz is not None:
         check_output_path(viz, IMAGE_SUFFIXES)
         if any(Path(viz).resolve() == Path(p).resolve() for p in (path_a, path_b)):

@@ -28,26 +28,27 @@ MAX_MANIFEST_BYTES = 16 * 2**20  # thousands of entries; a larger one is not our
 SIDE_FILE_LIMIT = 64 * 2**20  # JSON and text side files: far above any real one, far below memory trouble
 
 
-def read_side_file(path: str | os.PathLike, option: str, limit: int = SIDE_FILE_LIMIT) -> bytes:
-    """The bytes of the side file ``path`` given to ``option`` (e.g. ``--camera``), read only when it is a regular
-    file of at most ``limit`` bytes. Raises :class:`UdhError` naming the option otherwise."""
+def read_side_file(path: str | os.PathLike, option: str = "", limit: int = SIDE_FILE_LIMIT) -> bytes:
+    """The bytes of the side file ``path`` given to ``option`` (e.g. ``--camera``; "" for a file named elsewhere),
+    read only when it is a regular file of at most ``limit`` bytes. Raises :class:`UdhError` naming both otherwise."""
     path = Path(path)
+    where = f"{option} {path}" if option else str(path)
     try:
         # O_NONBLOCK: opening a FIFO must not wait for a writer; a regular file ignores the flag.
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     except FileNotFoundError:
-        raise UdhError(f"{option} {path}: no such file; check the path") from None
+        raise UdhError(f"{where}: no such file; check the path") from None
     except OSError as exc:
-        raise UdhError(f"{option} {path}: cannot read it ({exc.strerror or exc}); check the path and its permissions") from None
+        raise UdhError(f"{where}: cannot read it ({exc.strerror or exc}); check the path and its permissions") from None
     try:
         info = os.fstat(fd)
         if stat.S_ISDIR(info.st_mode):
-            raise UdhError(f"{option} {path}: is a folder; give the file itself")
+            raise UdhError(f"{where}: is a folder; give the file itself")
         if not stat.S_ISREG(info.st_mode):
-            raise UdhError(f"{option} {path}: not a regular file (a pipe, device or socket); save it to a file and give that")
+            raise UdhError(f"{where}: not a regular file (a pipe, device or socket); save it to a file and give that")
         if info.st_size > limit:
-            raise UdhError(f"{option} {path}: {info.st_size / 2**20:.0f} MiB, more than the {limit / 2**20:.0f} MiB such a file can "
-                           f"be; check that it is the right file")
+            raise UdhError(f"{where}: {_amount(info.st_size)}, more than the {_amount(limit)} such a file can be; "
+                           f"check that it is the right file")
         chunks, total = [], 0
         while True:  # the size may grow while we read: stop at the limit all the same
             chunk = os.read(fd, min(1 << 20, limit + 1 - total))
@@ -56,21 +57,30 @@ def read_side_file(path: str | os.PathLike, option: str, limit: int = SIDE_FILE_
             chunks.append(chunk)
             total += len(chunk)
             if total > limit:
-                raise UdhError(f"{option} {path}: grew past {limit / 2**20:.0f} MiB while being read; check that it is the right file")
+                raise UdhError(f"{where}: grew past {_amount(limit)} while being read; check that it is the right file")
         return b"".join(chunks)
     except OSError as exc:
-        raise UdhError(f"{option} {path}: cannot read it ({exc.strerror or exc}); check the file") from None
+        raise UdhError(f"{where}: cannot read it ({exc.strerror or exc}); check the file") from None
     finally:
         os.close(fd)
 
 
-def read_side_text(path: str | os.PathLike, option: str, limit: int = SIDE_FILE_LIMIT) -> str:
+def _amount(size: int) -> str:
+    """A byte count as people read it: ``"512 bytes"``, ``"3.2 MiB"``."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if size >= scale:
+            return f"{size / scale:.1f} {unit}"
+    return f"{size} bytes"
+
+
+def read_side_text(path: str | os.PathLike, option: str = "", limit: int = SIDE_FILE_LIMIT) -> str:
     """:func:`read_side_file` as text: UTF-8, a leading byte-order mark dropped, undecodable bytes refused."""
     data = read_side_file(path, option, limit)
+    where = f"{option} {path}" if option else str(path)
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise UdhError(f"{option} {path}: not UTF-8 text (byte {exc.start}); give the text file itself") from None
+        raise UdhError(f"{where}: not UTF-8 text (byte {exc.start}); give the text file itself") from None
 
 
 def file_digest(path: Path) -> tuple[int, str]:

@@ -26,7 +26,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.files import check_replaceable, write_output
+from udh_cli.files import check_replaceable, read_side_text, write_output
 from udh_cli.images import atomic_write_bytes
 
 GROUND_TRUTH_FILE = "ground_truth.json"
@@ -379,7 +379,7 @@ def load_ground_truth(path: str | Path) -> dict:
     """
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(read_side_text(path))
     except (OSError, ValueError) as exc:
         raise UdhError(f"{path}: cannot read the ground truth ({exc})") from None
     except RecursionError:  # absurdly nested JSON
@@ -393,15 +393,18 @@ def load_ground_truth(path: str | Path) -> dict:
             "consecutive_pairs": [(str(p["a"]), str(p["b"]), _homography(p["b_from_a"])) for p in data["consecutive_pairs"]],
         }
     except (KeyError, TypeError, ValueError):
-        raise UdhError(f"{path}: the ground truth is damaged (missing keys, or homographies that are not finite 3x3 matrices)") from None
+        raise UdhError(f"{path}: the ground truth is damaged (missing keys, or homographies that are not finite, invertible "
+                       f"3x3 matrices)") from None
     if len(truth["frame_size"]) != 2:
         raise UdhError(f"{path}: the ground truth's frame_size is not [width, height]")
     return truth
 
 
 def _homography(values) -> np.ndarray:
-    """A stored 3x3 homography; ValueError unless it is a finite 3x3 matrix."""
+    """A stored 3x3 homography; ValueError unless it is a finite, invertible 3x3 matrix."""
     matrix = np.asarray(values, np.float64)
     if matrix.shape != (3, 3) or not np.isfinite(matrix).all():
         raise ValueError("not a finite 3x3 matrix")
+    if abs(np.linalg.det(matrix)) <= 1e-12 * max(1.0, float(np.abs(matrix).max())) ** 3:  # errors need its inverse
+        raise ValueError("a singular matrix")
     return matrix

@@ -66,6 +66,12 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     paths["trunc"].write_bytes(paths["a"].read_bytes()[:2000])
     paths["bomb"] = folder / "bomb.png"
     png_declaring(paths["bomb"], 32000, 32000)
+    ok, small_jpeg = cv2.imencode(".jpg", image_a[:16, :16])
+    forged = bytearray(small_jpeg.tobytes())
+    start = forged.find(b"\xff\xc0") + 5  # the frame header's height and width
+    forged[start:start + 4] = struct.pack(">HH", 15000, 15000)
+    paths["jpeg_bomb"] = folder / "bomb.jpg"
+    paths["jpeg_bomb"].write_bytes(bytes(forged))
     paths["deep"] = folder / "deep.json"
     paths["deep"].write_text("[" * 100_000 + "]" * 100_000)
     paths["horizon"] = folder / "horizon.txt"
@@ -134,6 +140,30 @@ def models(inputs, tmp_path_factory) -> dict[str, Path]:
             break
     paths["nan_onnx"] = folder / "nan.onnx"
     onnx.save(proto, str(paths["nan_onnx"]))
+
+    from onnx import TensorProto, helper
+
+    good = onnx.load(str(paths["good_onnx"]))
+    metadata = {entry.key: entry.value for entry in good.metadata_props}
+    huge = copy.deepcopy(good)
+    for dim in huge.graph.input[0].type.tensor_type.shape.dim[2:]:
+        dim.dim_value = 8192
+    for entry in huge.metadata_props:
+        if entry.key == "input_size":
+            entry.value = "8192"
+    paths["huge_onnx"] = folder / "huge.onnx"
+    onnx.save(huge, str(paths["huge_onnx"]))
+    # Loads, and fails when run: 2 x 32 x 32 values cannot be reshaped to (7, 4, 2).
+    graph = helper.make_graph([helper.make_node("Reshape", ["patches", "shape"], ["offsets"])], "fails",
+                              [helper.make_tensor_value_info("patches", TensorProto.FLOAT, ["N", 2, 32, 32])],
+                              [helper.make_tensor_value_info("offsets", TensorProto.FLOAT, ["N", 4, 2])],
+                              [numpy_helper.from_array(np.array([7, 4, 2], np.int64), "shape")])
+    failing = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    failing.ir_version = good.ir_version
+    for key, value in metadata.items():
+        failing.metadata_props.add(key=key, value=value)
+    paths["failing_onnx"] = folder / "failing.onnx"
+    onnx.save(failing, str(paths["failing_onnx"]))
     return paths
 
 
@@ -229,6 +259,7 @@ class Case:
     setup: Callable | None = None
     forbid: tuple[str, ...] = ()  # "module:attribute" that must not be called (work that must not start)
     absent: tuple[str, ...] = ()  # extra words stderr must not hold
+    env: dict[str, str] | None = None  # environment variables for the case (e.g. a small UDH_MEMORY_BUDGET)
 
 
 CASES = [
@@ -239,6 +270,14 @@ CASES = [
     Case("estimate-text-as-png", ["estimate", "{a}", "{text}"], 1, "not a readable image"),
     Case("estimate-truncated-png", ["estimate", "{trunc}", "{a}"], 1, "not a readable image"),
     Case("estimate-decompression-bomb", ["estimate", "{bomb}", "{a}"], 1, "32000x32000 pixels", forbid=("cv2:imdecode",)),
+    Case("estimate-jpeg-declaring-15000-squared", ["estimate", "{jpeg_bomb}", "{a}", "--full-resolution"], 1, "truncated or damaged",
+         forbid=("cv2:imdecode",)),
+    Case("estimate-full-resolution-over-the-memory-budget", ["estimate", "{a}", "{b}", "-m", "sift", "--full-resolution"], 1,
+         "leave out --full-resolution", env={"UDH_MEMORY_BUDGET": "1e6"}, forbid=("udh_cli.api:require_ok",)),
+    Case("estimate-onnx-declaring-input-8192", ["estimate", "{a}", "{b}", "-m", "supervised", "--model", "{huge_onnx}"], 1,
+         "udh networks take 16 to 512 px", "torch"),
+    Case("estimate-onnx-failing-inside-onnxruntime", ["estimate", "{a}", "{b}", "-m", "supervised", "--model", "{failing_onnx}"], 1,
+         "failed inside onnxruntime", "torch"),
     Case("estimate-viz-onto-input", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{a}"], 1, "one of the input images"),
     Case("estimate-viz-missing-folder", ["estimate", "{a}", "{b}", "--viz", "{out}/no/v.png"], 1, "does not exist"),
     Case("estimate-viz-name-too-long", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{out}/" + LONG + ".png"], 1, "too long"),
@@ -323,6 +362,8 @@ CASES = [
          setup=users_bench_results, forbid=("udh_cli.bench.suite:held_out_sources",)),
     Case("bench-pairs-out-holds-users-results", ["bench", "pairs", "{bad_csv}", "--out", "{out}/b"], 1, "udh did not write it",
          setup=users_bench_results),
+    Case("bench-n-beyond-the-memory-budget", ["bench", "synthetic", "--images", "{pool}", "--n", "100000000", "--out", "{out}/b"], 1,
+         "lower --n", env={"UDH_MEMORY_BUDGET": "8e9"}, forbid=("udh_cli.bench.suite:held_out_sources",)),
     Case("bench-pairs-missing-csv", ["bench", "pairs", "{in}/missing.csv", "--out", "{out}/b"], 1, "no such file"),
     Case("bench-pairs-foreign-csv", ["bench", "pairs", "{bad_csv}", "--out", "{out}/b"], 1, "missing column"),
     # ------------------------------------------------------------------ train
@@ -371,6 +412,8 @@ CASES = [
     # ------------------------------------------------------------------ simulate
     Case("simulate-ground-preview-over-users-file", ["simulate", "{out}/s", "--ground-preview", "--width", "64", "--height", "64"], 1,
          "s_ground.jpg: exists and udh did not write it", setup=users_ground_preview, forbid=("udh_cli.simulate:simulate_flight",)),
+    Case("simulate-frames-beyond-the-memory-budget", ["simulate", "{out}/s", "--width", "8000", "--height", "6000"], 1,
+         "lower --width and --height", env={"UDH_MEMORY_BUDGET": "8e9"}, forbid=("udh_cli.simulate:simulate_flight",)),
     # ------------------------------------------------------------------ usage
     Case("usage-unknown-command", ["frobnicate"], 2, "No such command"),
     Case("usage-unknown-option", ["estimate", "{a}", "{b}", "--frobnicate"], 2, "--frobnicate"),
@@ -404,6 +447,8 @@ def test_bad_input_fails_in_one_line_and_leaves_nothing(case: Case, inputs, tmp_
     out.mkdir()
     if case.setup is not None:
         case.setup(out, paths)
+    for name, value in (case.env or {}).items():
+        monkeypatch.setenv(name, value)
     for target in case.forbid:
         module, attribute = target.split(":")
         monkeypatch.setattr(importlib.import_module(module), attribute, _forbidden(target))

@@ -15,6 +15,9 @@ from udh_cli.images import IMAGE_SUFFIXES, check_output_path, read_image, write_
 # Longest side (pixels) at which `udh estimate` works unless asked for full resolution: the precision of a
 # 1600 px frame, and SIFT, ECC and the networks in bounded time and memory on a 48 MP photo.
 ESTIMATE_WORK_SIZE = 1600
+# Memory the full cascade can take per pixel of the two images at full resolution (its copies, pyramids and
+# SIFT's scale space at once); docs/estimators.md gives the measurement.
+FULL_RESOLUTION_BYTES_PER_PIXEL = 100
 # Below this confidence an answer that carries no verification of its own counts as unverified. It is the
 # mosaic's acceptance floor (Acceptance.min_confidence): what udh would not build a map on.
 MIN_CONFIDENCE = 0.2
@@ -94,6 +97,13 @@ def estimate_report(
     if work_size is not None and work_size < 32:
         raise UdhError(f"--work-size {work_size}: give at least 32 pixels")
     image_a, image_b = read_image(path_a), read_image(path_b)
+    if work_size is None:
+        from udh_cli.budget import check_memory
+
+        sizes = [f"{image.shape[1]}x{image.shape[0]}" for image in (image_a, image_b)]
+        check_memory(FULL_RESOLUTION_BYTES_PER_PIXEL * (image_a.shape[0] * image_a.shape[1] + image_b.shape[0] * image_b.shape[1]),
+                     f"--full-resolution on {sizes[0]} and {sizes[1]} images", "leave out --full-resolution (the answer is in "
+                     f"full-resolution pixels all the same; --work-size sets the working size)")
     if truth is not None:
         _check_truth_fits(truth, gt, image_a.shape[1], image_a.shape[0])
     work_a, work_b = _work_copy(image_a, work_size), _work_copy(image_b, work_size)

@@ -22,6 +22,9 @@ MIN_IMAGE_SIDE = 8  # pixels; below this no estimator can say anything useful
 _PILLOW_LOCK = threading.Lock()
 MAX_PIXELS_ENV = "UDH_MAX_PIXELS"
 DEFAULT_MAX_PIXELS = 250_000_000  # 250 MP: a 16,000 x 15,000 frame; far above any drone camera, far below a bomb
+# Huffman-coded JPEG spends at least about 2 bits on each 8x8 block (256 pixels a byte); far more pixels a byte
+# is a truncated file or a forged header, whose decoder would invent the missing pixels.
+MAX_JPEG_PIXELS_PER_BYTE = 4096
 
 
 def max_pixels() -> int:
@@ -110,6 +113,9 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     if size is not None and size[0] * size[1] > limit:
         raise UdhError(f"{path}: the image declares {size[0]}x{size[1]} pixels, over the {limit / 1e6:.0f} MP limit; "
                        f"downscale it, or raise {MAX_PIXELS_ENV} if it is real")
+    if size is not None and data[:2] == b"\xff\xd8" and size[0] * size[1] > len(data) * MAX_JPEG_PIXELS_PER_BYTE:
+        raise UdhError(f"{path}: the JPEG declares {size[0]}x{size[1]} pixels in only {len(data)} bytes: it is truncated or "
+                       f"damaged; copy the whole file again")
     # ANYDEPTH keeps 16-bit data; ANYCOLOR keeps grey as grey. Without IGNORE_ORIENTATION, EXIF is applied.
     try:
         with _native_messages_silenced():

@@ -249,6 +249,23 @@ def render_frame(ground: np.ndarray, pose: dict, config: FlightConfig, rng: np.r
     return SimFrame(np.clip(image + 0.5, 0, 255).astype(np.uint8), ground_from_frame, pose)
 
 
+GROUND_BYTES_PER_PIXEL = 64  # make_ground's float32 layers, coordinates and labels at once
+RENDER_BYTES_PER_PIXEL = 48  # render_frame's float32 copies of one frame
+
+
+def check_flight_memory(config: FlightConfig) -> None:
+    """Raise :class:`UdhError`, naming the options to lower, when :func:`simulate_flight` would not fit in memory
+    (:func:`udh_cli.budget.check_memory`): the ground, every frame kept, and one frame's rendering copies."""
+    from udh_cli.budget import check_memory
+
+    _, (ground_w, ground_h) = plan_path(config, np.random.default_rng(0))
+    width, height = config.frame_size
+    frames = config.strips * config.frames_per_strip
+    needed = ground_w * ground_h * GROUND_BYTES_PER_PIXEL + width * height * (3 * frames + RENDER_BYTES_PER_PIXEL)
+    check_memory(needed, f"a {width}x{height} flight of {frames} frames (ground {ground_w}x{ground_h})",
+                 "lower --width and --height, --strips or --frames-per-strip, or raise the overlaps")
+
+
 def simulate_flight(config: FlightConfig = FlightConfig(), seed: int = 0) -> tuple[list[SimFrame], np.ndarray]:
     """The frames of a simulated flight, in flight order, and the ground image they were taken of."""
     rng = np.random.default_rng(seed)
@@ -329,6 +346,7 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
     preview = folder.parent / f"{folder.name}_ground.jpg"
     if ground_preview:
         check_replaceable(preview, overwrite)
+    check_flight_memory(config)
     folder.mkdir(parents=True, exist_ok=True)
     frames, ground = simulate_flight(config, seed)
     records = []

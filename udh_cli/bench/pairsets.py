@@ -151,6 +151,16 @@ def held_out_sources(
     return sources, f"{where}, {len(sources)} images"
 
 
+PAIR_BYTES = 2 * 4 * (128 * 128 + 320 * 240)  # a pair's two patches and two frames, as float32 at most
+
+
+def check_pairs_memory(count: int, sets: int) -> None:
+    """Raise :class:`UdhError` naming ``--n`` when ``sets`` sets of ``count`` pairs would not fit in memory."""
+    from udh_cli.budget import check_memory
+
+    check_memory(count * sets * PAIR_BYTES, f"--n {count} pairs in {sets} set(s)", "lower --n")
+
+
 def synthetic_set(
     sources: list[np.ndarray], rho: float, count: int, seed: int, illumination: bool = True,
     with_full: bool = False, patch_size: int = 128, occluders: bool = False,

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from udh_cli.bench import runner
-from udh_cli.bench.pairsets import held_out_sources, load_sets, save_sets, synthetic_set
+from udh_cli.bench.pairsets import check_pairs_memory, held_out_sources, load_sets, save_sets, synthetic_set
 from udh_cli.bench.real_pairs import load_real_pairs
 from udh_cli.bench.report import BenchResult
 from udh_cli.errors import UdhError
@@ -105,6 +105,8 @@ def run_synthetic_bench(
     """
     if motion not in ("paper", "flight"):
         raise UdhError(f"--motion {motion}: choose paper or flight")
+    if load_pairs is None and count >= 1:
+        check_pairs_memory(count, 1 if motion == "flight" else len(rhos))
     if motion == "flight":
         if save_pairs is not None or load_pairs is not None:
             raise UdhError("--save-pairs and --load-pairs hold the paper-motion pairs; the flight-motion set is drawn "

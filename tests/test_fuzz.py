@@ -278,6 +278,7 @@ CASES = [
          "udh networks take 16 to 512 px", "torch"),
     Case("estimate-onnx-failing-inside-onnxruntime", ["estimate", "{a}", "{b}", "-m", "supervised", "--model", "{failing_onnx}"], 1,
          "failed inside onnxruntime", "torch"),
+    Case("estimate-path-over-4096-bytes", ["estimate", "{in}/" + "x/" * 2100 + "a.png", "{a}"], 1, "File name too long"),
     Case("estimate-viz-onto-input", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{a}"], 1, "one of the input images"),
     Case("estimate-viz-missing-folder", ["estimate", "{a}", "{b}", "--viz", "{out}/no/v.png"], 1, "does not exist"),
     Case("estimate-viz-name-too-long", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{out}/" + LONG + ".png"], 1, "too long"),
@@ -298,6 +299,7 @@ CASES = [
     Case("mosaic-missing-folder", ["mosaic", "{in}/missing", "-o", "{out}/m.png"], 1, "no such folder or video"),
     Case("mosaic-folder-without-images", ["mosaic", "{no_images}", "-o", "{out}/m.png"], 1, "no image files found"),
     Case("mosaic-one-image", ["mosaic", "{one}", "-o", "{out}/m.png", "--quiet"], 1, "only one readable image"),
+    Case("mosaic-path-over-4096-bytes", ["mosaic", "{in}/" + "x/" * 2100 + "f", "-o", "{out}/m.png"], 1, "the path is too long"),
     Case("mosaic-single-image-as-source", ["mosaic", "{a}", "-o", "{out}/m.png"], 1, "is a single image"),
     Case("mosaic-text-as-video", ["mosaic", "{video}", "-o", "{out}/m.png"], 1, "cannot open this as a video"),
     Case("mosaic-output-onto-a-frame", ["mosaic", "{frames}", "-o", "{frame}", "-m", "sift"], 1, "would replace an input file",
@@ -471,6 +473,40 @@ def test_bad_input_fails_in_one_line_and_leaves_nothing(case: Case, inputs, tmp_
     assert [snapshot(folder) for folder in watched] == before  # no output, no temporary, no input replaced or touched
     leftovers = [p.name for folder in watched for p in folder.rglob(".*") if p.name.endswith(".part") or ".staged" in p.name]
     assert leftovers == []
+
+
+# ------------------------------------------------------------------------------------ frames skipped, and why
+
+
+def with_corrupt_exif(jpeg: bytes) -> bytes:
+    """``jpeg`` with an EXIF block whose tags point past its end (Pillow warns "Corrupt EXIF data")."""
+    tiff = (b"II*\x00" + struct.pack("<IH", 8, 2) + struct.pack("<HHII", 0x010F, 2, 400, 5000) + struct.pack("<HHII", 0x8769, 4, 1, 26)
+            + struct.pack("<IH", 0, 50))
+    app1 = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + jpeg[2:]
+
+
+def test_frames_skipped_say_why_and_library_noise_stays_off_stderr(inputs, tmp_path, monkeypatch, capfd):
+    """A NaN float frame is "NaN", an unreadable one "Permission denied" (not "corrupt"), and a frame whose EXIF is
+    damaged is used without Pillow's warning on stderr."""
+    frames = tmp_path / "frames"
+    shutil.copytree(inputs["frames"], frames)
+    (frames / "ground_truth.json").unlink(missing_ok=True)
+    nan = np.full((120, 160), 0.5, np.float32)
+    nan[5, 5] = np.nan
+    cv2.imwrite(str(frames / "zz_nan.tiff"), nan)
+    last = sorted(frames.glob("frame_*.jpg"))[-1]
+    last.write_bytes(with_corrupt_exif(last.read_bytes()))
+    if not IS_ROOT:
+        shutil.copy(frames / "frame_000.jpg", frames / "zz_locked.jpg")
+        (frames / "zz_locked.jpg").chmod(0)
+    code, _, err = run_main(monkeypatch, capfd, "mosaic", str(frames), "-o", str(tmp_path / "m.png"), "-m", "sift", "--quiet")
+    assert code == 0, err
+    assert "skipping zz_nan.tiff: cannot be decoded (the image holds NaN or infinite values)" in err
+    assert IS_ROOT or "skipping zz_locked.jpg: cannot be decoded (cannot read it (Permission denied)" in err
+    assert "corrupt or not an image" not in err and "Corrupt EXIF" not in err and "UserWarning" not in err
+    report = json.loads((tmp_path / "m.json").read_text())
+    assert last.name in [frame["file"] for frame in report["frames"]]
 
 
 # ------------------------------------------------------------------------------------ damaged pair caches

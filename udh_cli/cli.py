@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import signal
 import sys
@@ -508,6 +509,13 @@ def _run() -> None:
         _fail(str(exc), 1)
     except (KeyboardInterrupt, typer.Abort):
         _fail("interrupted", INTERRUPTED)
+    except OSError as exc:
+        if _state["debug"] or exc.errno != errno.ENAMETOOLONG:
+            raise
+        from udh_cli.images import shown_path
+
+        # Any path argument can be too long; the library checks the ones it opens, this catches the rest.
+        _fail(f"{shown_path(exc.filename)}: the path is too long for this file system; give a shorter one", 1)
     except Exception as exc:  # noqa: BLE001 - the last line of defence: no traceback without --debug
         if _is_usage_error(exc):
             if type(exc).__name__ != "NoArgsIsHelpError":  # that one has printed the help already

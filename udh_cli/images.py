@@ -8,6 +8,7 @@ import os
 import sys
 import tempfile
 import threading
+import warnings
 from pathlib import Path
 
 import cv2
@@ -55,8 +56,10 @@ def image_size_from_header(data: bytes | np.ndarray) -> tuple[int, int] | None:
         # Pillow's own bomb check raises before it says the size; udh applies its own limit to the size.
         saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
         try:
-            with Image.open(io.BytesIO(bytes(data))) as header:
-                return header.size
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # Pillow's "Corrupt EXIF data" while it reads the DPI: not the size
+                with Image.open(io.BytesIO(bytes(data))) as header:
+                    return header.size
         except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
             return None
         finally:
@@ -85,6 +88,12 @@ def _read_bytes(path: Path) -> bytes:
         os.close(fd)
 
 
+def shown_path(path: str | os.PathLike, limit: int = 160) -> str:
+    """``path`` for a one-line message: whole when short, else its start and end around an ellipsis."""
+    text = str(path)
+    return text if len(text) <= limit else f"{text[: limit // 2 - 2]}...{text[-(limit // 2 - 2):]} ({len(os.fsencode(text))} bytes)"
+
+
 def read_image(path: str | os.PathLike) -> np.ndarray:
     """Read an image file as it is stored: (H, W) or (H, W, 3) BGR, 8- or 16-bit (or float for EXR/TIFF).
 
@@ -95,9 +104,13 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     import stat
 
     path = Path(path)
-    if not path.exists():
+    try:
+        exists, is_dir = path.exists(), path.is_dir()
+    except OSError as exc:  # e.g. a name longer than the file system takes (ENAMETOOLONG)
+        raise UdhError(f"{shown_path(path)}: cannot use this path ({exc.strerror or exc}); give a shorter or correct one") from None
+    if not exists:
         raise UdhError(f"{path}: no such file; check the path")
-    if path.is_dir():
+    if is_dir:
         raise UdhError(f"{path}: is a folder, not an image file")
     try:
         mode = path.stat().st_mode

@@ -72,6 +72,12 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     forged[start:start + 4] = struct.pack(">HH", 15000, 15000)
     paths["jpeg_bomb"] = folder / "bomb.jpg"
     paths["jpeg_bomb"].write_bytes(bytes(forged))
+    ok, whole = cv2.imencode(".jpg", image_a)
+    flipped = bytearray(whole.tobytes())
+    middle = len(flipped) // 2
+    flipped[middle:middle + 64] = bytes(v ^ 0xFF for v in flipped[middle:middle + 64])  # bits flipped in the coded data
+    paths["flipped"] = folder / "flipped.jpg"
+    paths["flipped"].write_bytes(bytes(flipped))
     paths["deep"] = folder / "deep.json"
     paths["deep"].write_text("[" * 100_000 + "]" * 100_000)
     paths["horizon"] = folder / "horizon.txt"
@@ -278,6 +284,8 @@ CASES = [
          "udh networks take 16 to 512 px", "torch"),
     Case("estimate-onnx-failing-inside-onnxruntime", ["estimate", "{a}", "{b}", "-m", "supervised", "--model", "{failing_onnx}"], 1,
          "failed inside onnxruntime", "torch"),
+    Case("estimate-bit-flipped-jpeg", ["estimate", "{flipped}", "{a}", "-m", "sift"], 1, "the file is damaged (the decoder says: Corrupt JPEG data",
+         forbid=("udh_cli.api:require_ok",)),
     Case("estimate-path-over-4096-bytes", ["estimate", "{in}/" + "x/" * 2100 + "a.png", "{a}"], 1, "File name too long"),
     Case("estimate-viz-onto-input", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{a}"], 1, "one of the input images"),
     Case("estimate-viz-missing-folder", ["estimate", "{a}", "{b}", "--viz", "{out}/no/v.png"], 1, "does not exist"),
@@ -487,8 +495,8 @@ def with_corrupt_exif(jpeg: bytes) -> bytes:
 
 
 def test_frames_skipped_say_why_and_library_noise_stays_off_stderr(inputs, tmp_path, monkeypatch, capfd):
-    """A NaN float frame is "NaN", an unreadable one "Permission denied" (not "corrupt"), and a frame whose EXIF is
-    damaged is used without Pillow's warning on stderr."""
+    """A NaN float frame is "NaN", an unreadable one "Permission denied" (not "corrupt"), a bit-flipped JPEG is damaged
+    (not composited with the decoder's grey), and a frame whose EXIF is damaged is used without Pillow's warning."""
     frames = tmp_path / "frames"
     shutil.copytree(inputs["frames"], frames)
     (frames / "ground_truth.json").unlink(missing_ok=True)
@@ -497,12 +505,14 @@ def test_frames_skipped_say_why_and_library_noise_stays_off_stderr(inputs, tmp_p
     cv2.imwrite(str(frames / "zz_nan.tiff"), nan)
     last = sorted(frames.glob("frame_*.jpg"))[-1]
     last.write_bytes(with_corrupt_exif(last.read_bytes()))
+    shutil.copy(inputs["flipped"], frames / "zz_flipped.jpg")
     if not IS_ROOT:
         shutil.copy(frames / "frame_000.jpg", frames / "zz_locked.jpg")
         (frames / "zz_locked.jpg").chmod(0)
     code, _, err = run_main(monkeypatch, capfd, "mosaic", str(frames), "-o", str(tmp_path / "m.png"), "-m", "sift", "--quiet")
     assert code == 0, err
     assert "skipping zz_nan.tiff: cannot be decoded (the image holds NaN or infinite values)" in err
+    assert "skipping zz_flipped.jpg: cannot be decoded (the file is damaged (the decoder says: Corrupt JPEG data" in err
     assert IS_ROOT or "skipping zz_locked.jpg: cannot be decoded (cannot read it (Permission denied)" in err
     assert "corrupt or not an image" not in err and "Corrupt EXIF" not in err and "UserWarning" not in err
     report = json.loads((tmp_path / "m.json").read_text())

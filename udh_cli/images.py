@@ -130,13 +130,17 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         raise UdhError(f"{path}: the JPEG declares {size[0]}x{size[1]} pixels in only {len(data)} bytes: it is truncated or "
                        f"damaged; copy the whole file again")
     # ANYDEPTH keeps 16-bit data; ANYCOLOR keeps grey as grey. Without IGNORE_ORIENTATION, EXIF is applied.
+    messages: list[str] = []
     try:
-        with _native_messages_silenced():
+        with _native_messages_silenced(messages):
             image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     except cv2.error:  # e.g. beyond OpenCV's pixel limit, or a codec that rejects the stream outright
         image = None
     if image is None:
         raise UdhError(f"{path}: not a readable image; give a JPEG, PNG or TIFF file")
+    damage = next((line.strip() for line in messages if line.lstrip().startswith(DAMAGE_MESSAGES)), None)
+    if damage is not None:  # the decoder went on, filling what it could not read: the pixels are not the photo's
+        raise UdhError(f"{path}: the file is damaged (the decoder says: {damage[:120]}); copy it again from the camera")
     if image.shape[0] * image.shape[1] > limit:  # a format whose header Pillow could not read
         raise UdhError(f"{path}: {image.shape[1]}x{image.shape[0]} pixels, over the {limit / 1e6:.0f} MP limit; "
                        f"downscale it, or raise {MAX_PIXELS_ENV} if it is real")
@@ -147,22 +151,24 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
 
 
 _STDERR_LOCK = threading.Lock()
+# What libjpeg prints when it met damage and went on with invented pixels (grey blocks, a shifted half).
+DAMAGE_MESSAGES = ("Corrupt JPEG data", "Premature end of JPEG file", "Invalid JPEG file structure")
 
 
 @contextlib.contextmanager
-def _native_messages_silenced():
+def _native_messages_silenced(captured: list[str] | None = None):
     """Mute what the C codecs print on stderr while decoding a broken file ("libpng error: ...",
-    "Corrupt JPEG data", OpenCV's WARN log): the user gets one clear line from udh instead."""
+    "Corrupt JPEG data", OpenCV's WARN log): the user gets one clear line from udh instead. The lines printed
+    are appended to ``captured`` when it is given."""
     with _STDERR_LOCK:
         level = cv2.utils.logging.getLogLevel()
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-        saved = None
+        saved = sink = None
         try:
             sys.stderr.flush()
             saved = os.dup(2)
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, 2)
-            os.close(devnull)
+            sink = tempfile.TemporaryFile() if captured is not None else open(os.devnull, "wb")  # noqa: SIM115
+            os.dup2(sink.fileno(), 2)
         except (OSError, ValueError, AttributeError):  # no fd 2 or no sys.stderr: only the log is muted
             pass
         try:
@@ -171,6 +177,11 @@ def _native_messages_silenced():
             if saved is not None:
                 os.dup2(saved, 2)
                 os.close(saved)
+            if sink is not None:
+                if captured is not None:
+                    sink.seek(0)
+                    captured.extend(sink.read(1 << 16).decode(errors="replace").splitlines())
+                sink.close()
             cv2.utils.logging.setLogLevel(level)
 
 

@@ -224,6 +224,14 @@ def model_with_users_int8(out: Path, paths: dict) -> None:
     (out / "model-int8.onnx").write_bytes(b"the int8 model I tuned by hand")
 
 
+def users_picture(out: Path, paths: dict) -> None:
+    (out / "v.png").write_bytes(b"my holiday picture")
+
+
+def users_onnx(out: Path, paths: dict) -> None:
+    (out / "m.onnx").write_bytes(b"the model I trained last week")
+
+
 def users_ground_preview(out: Path, paths: dict) -> None:
     (out / "s_ground.jpg").write_bytes(b"my photo of the ground")
 
@@ -288,6 +296,8 @@ CASES = [
          forbid=("udh_cli.api:require_ok",)),
     Case("estimate-path-over-4096-bytes", ["estimate", "{in}/" + "x/" * 2100 + "a.png", "{a}"], 1, "File name too long"),
     Case("estimate-viz-onto-input", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{a}"], 1, "one of the input images"),
+    Case("estimate-viz-over-a-users-picture", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{out}/v.png"], 1, "add --overwrite",
+         setup=users_picture, forbid=("udh_cli.api:read_image",)),
     Case("estimate-viz-missing-folder", ["estimate", "{a}", "{b}", "--viz", "{out}/no/v.png"], 1, "does not exist"),
     Case("estimate-viz-name-too-long", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{out}/" + LONG + ".png"], 1, "too long"),
     Case("estimate-viz-unwritable-folder", ["estimate", "{a}", "{b}", "--viz", "{out}/ro/v.png"], 1, "not writable", "user", read_only_folder),
@@ -406,6 +416,8 @@ CASES = [
     Case("export-weights-of-another-size", ["export-onnx", "{wrong_size}", "-o", "{out}/m.onnx"], 1, "do not fit", "torch"),
     Case("export-onto-its-checkpoint", ["export-onnx", "{out}/model.onnx", "-o", "{out}/model.onnx"], 1, "is the checkpoint being exported",
          "torch", checkpoint_named_onnx),
+    Case("export-over-a-users-model", ["export-onnx", "{good_pt}", "-o", "{out}/m.onnx"], 1, "udh did not write it", "torch", users_onnx,
+         forbid=("udh_cli.train.export:create_model",)),
     Case("export-output-not-onnx", ["export-onnx", "{good_pt}", "-o", "{out}/m.txt"], 1, ".onnx name", "torch"),
     Case("export-check-images-missing", ["export-onnx", "{good_pt}", "-o", "{out}/m.onnx", "--check-images", "{in}/missing"], 1,
          "no such folder", "torch"),

@@ -90,6 +90,7 @@ def estimate(
     matcher_model: Annotated[Optional[str], typer.Option(help="Learned methods: the matcher whose global match a doubted answer gets (default: the shipped one with the tile stage; 'none' for none).")] = None,
     work_size: Annotated[int, typer.Option(help="Estimate with the images' longer side shrunk to this many pixels; the answer is in full-resolution pixels.")] = ESTIMATE_WORK_SIZE,
     full_resolution: Annotated[bool, typer.Option("--full-resolution", help="Estimate at the images' full resolution (slow and memory-hungry on large photos).", metavar="")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --viz file that udh did not write.", metavar="")] = False,
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
 ) -> None:
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold]).
@@ -105,7 +106,8 @@ def estimate(
     try:
         options = {**parse_method_options(option, [method.value]).get(method.value, {}),
                    **{key: value for key, value in given.items() if value is not None}}
-        report = estimate_report(image_a, image_b, method.value, gt=gt, viz=viz, work_size=None if full_resolution else work_size, **options)
+        report = estimate_report(image_a, image_b, method.value, gt=gt, viz=viz, work_size=None if full_resolution else work_size,
+                                 overwrite=overwrite, **options)
     except UdhError as exc:
         if json_output:  # scripts read stdout: one object, whatever happened
             sys.stdout.write(json.dumps({"method": method.value, "ok": False, "verified": False, "failure": str(exc), "exit_code": 1}) + "\n")
@@ -208,6 +210,7 @@ def export_onnx(
     checkpoint: Annotated[Path, typer.Argument(metavar="CHECKPOINT", help="A checkpoint written by `udh train` (checkpoint.pt or best.pt).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="The .onnx file to write.")] = Path("model.onnx"),
     check_images: Annotated[Optional[Path], typer.Option(help="Folder of images whose synthetic pairs join the parity check.")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing output file that udh did not write.", metavar="")] = False,
 ) -> None:
     """Export a checkpoint's network to ONNX with its metadata, and check parity against torch."""
     _require_torch()
@@ -222,7 +225,7 @@ def export_onnx(
         sources = load_sources(list_images(check_images)[:20], min_count=1)
         pairs = make_pairs(sources, 16, PairConfig(), np.random.default_rng(0), with_context=False)
         real = np.stack([pairs.patch_a, pairs.patch_b], 1)
-    result = run_export(checkpoint, output, real)
+    result = run_export(checkpoint, output, real, overwrite)
     meta = result["metadata"]
     if meta["mode"] == "match":  # descriptors of images of any size, not offsets of a fixed input
         console.print(f"wrote {result['path']}: {meta['arch']} ({meta['mode']}), {meta['steps']} steps, images of any size "

@@ -66,8 +66,14 @@ def image_size_from_header(data: bytes | np.ndarray) -> tuple[int, int] | None:
             Image.MAX_IMAGE_PIXELS = saved
 
 
-def _read_bytes(path: Path) -> bytes:
-    """The file's bytes; pipes (``<(cat a.png)``) are read as they come, and a FIFO without a writer is empty.
+def max_file_bytes() -> int:
+    """The largest image file udh reads: :func:`max_pixels` of uncompressed 16-bit RGBA, plus room for metadata."""
+    return max_pixels() * 8 + (64 << 20)
+
+
+def _read_bytes(path: Path, limit: int) -> bytes:
+    """The file's bytes, at most ``limit`` (:class:`UdhError` past it, before reading a regular file); pipes
+    (``<(cat a.png)``) are read as they come, and a FIFO without a writer is empty.
 
     A FIFO opened without O_NONBLOCK waits for a writer for ever; opened with it, it reads at once what a
     writer has sent (a process substitution) or nothing (no writer), and the blocking reads that follow end
@@ -78,12 +84,19 @@ def _read_bytes(path: Path) -> bytes:
     try:
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
-        chunks = []
+        if os.fstat(fd).st_size > limit:
+            raise UdhError(f"{path}: {os.fstat(fd).st_size >> 20} MiB, larger than any image udh reads ({limit >> 20} MiB); "
+                           f"check the file, or raise {MAX_PIXELS_ENV} if it is a real image")
+        chunks, total = [], 0
         while True:
             chunk = os.read(fd, 1 << 20)
             if not chunk:
                 return b"".join(chunks)
             chunks.append(chunk)
+            total += len(chunk)
+            if total > limit:  # a pipe that does not end (cat /dev/zero |)
+                raise UdhError(f"{path}: more than {limit >> 20} MiB came through it, more than any image udh reads; "
+                               f"check what writes to it")
     finally:
         os.close(fd)
 
@@ -116,7 +129,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         mode = path.stat().st_mode
         if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)):
             raise UdhError(f"{path}: not a regular file (a device or socket); give a JPEG, PNG or TIFF file")
-        data = _read_bytes(path)
+        data = _read_bytes(path, max_file_bytes())
     except OSError as exc:
         raise UdhError(f"{path}: cannot read it ({exc.strerror or exc}); check its permissions") from None
     if len(data) == 0:
@@ -342,8 +355,8 @@ def _new_file_mode(path: Path) -> int:
         return 0o666 & ~umask
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Encode ``image`` by the suffix of ``path`` (PNG, JPEG, TIFF...) and write it atomically."""
+def encode_image(path: str | os.PathLike, image: np.ndarray) -> bytes:
+    """``image`` encoded by the suffix of ``path`` (PNG, JPEG, TIFF...), whose folder is checked for writing."""
     path = check_output_path(path, IMAGE_SUFFIXES)
     suffix = path.suffix.lower()
     try:
@@ -352,4 +365,9 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
         ok = False
     if not ok:
         raise UdhError(f"{path}: OpenCV could not encode a {image.shape} {image.dtype} image as {suffix}")
-    return atomic_write_bytes(path, encoded.tobytes())
+    return encoded.tobytes()
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Encode ``image`` by the suffix of ``path`` (PNG, JPEG, TIFF...) and write it atomically."""
+    return atomic_write_bytes(path, encode_image(path, image))

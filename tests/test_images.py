@@ -293,3 +293,14 @@ def test_image_files_are_bounded_by_size_before_they_are_read(tmp_path, monkeypa
         os.close(keeper)  # the last reader gone: the writer's next write fails and it ends
     writer.join(timeout=10)
     assert not writer.is_alive()
+
+
+def test_an_encoder_failure_is_one_line_with_the_codecs_words_off_stderr(tmp_path, monkeypatch, capfd):
+    def failing_encoder(suffix, image, *args):  # what OpenCV's TIFF encoder does on a full disk
+        os.write(2, b"TIFFAppendToStrip: Write error at scanline 12.\n")
+        return False, None
+
+    monkeypatch.setattr(images.cv2, "imencode", failing_encoder)
+    with pytest.raises(UdhError, match=r"could not encode .* \(TIFFAppendToStrip: Write error at scanline 12\.\); check the free space"):
+        write_image(tmp_path / "m.tif", np.zeros((16, 16, 3), np.uint8))
+    assert capfd.readouterr().err == "" and list(tmp_path.iterdir()) == []

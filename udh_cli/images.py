@@ -180,7 +180,10 @@ def _native_messages_silenced(captured: list[str] | None = None):
         try:
             sys.stderr.flush()
             saved = os.dup(2)
-            sink = tempfile.TemporaryFile() if captured is not None else open(os.devnull, "wb")  # noqa: SIM115
+            try:
+                sink = tempfile.TemporaryFile() if captured is not None else open(os.devnull, "wb")  # noqa: SIM115
+            except OSError:  # no room for the capture (a full disk): mute at least
+                sink = open(os.devnull, "wb")  # noqa: SIM115
             os.dup2(sink.fileno(), 2)
         except (OSError, ValueError, AttributeError):  # no fd 2 or no sys.stderr: only the log is muted
             pass
@@ -191,7 +194,7 @@ def _native_messages_silenced(captured: list[str] | None = None):
                 os.dup2(saved, 2)
                 os.close(saved)
             if sink is not None:
-                if captured is not None:
+                if captured is not None and sink.seekable():
                     sink.seek(0)
                     captured.extend(sink.read(1 << 16).decode(errors="replace").splitlines())
                 sink.close()
@@ -359,12 +362,17 @@ def encode_image(path: str | os.PathLike, image: np.ndarray) -> bytes:
     """``image`` encoded by the suffix of ``path`` (PNG, JPEG, TIFF...), whose folder is checked for writing."""
     path = check_output_path(path, IMAGE_SUFFIXES)
     suffix = path.suffix.lower()
+    messages: list[str] = []
     try:
-        ok, encoded = cv2.imencode(suffix, image)
+        # OpenCV's TIFF encoder goes through a temporary file, and libtiff prints its write errors (a full disk).
+        with _native_messages_silenced(messages):
+            ok, encoded = cv2.imencode(suffix, image)
     except cv2.error:
         ok = False
     if not ok:
-        raise UdhError(f"{path}: OpenCV could not encode a {image.shape} {image.dtype} image as {suffix}")
+        said = next((line.strip() for line in messages if line.strip()), "")
+        raise UdhError(f"{path}: OpenCV could not encode a {image.shape} {image.dtype} image as {suffix}"
+                       + (f" ({said[:120]}); check the free space of the temporary folder" if said else ""))
     return encoded.tobytes()
 
 

@@ -8,7 +8,8 @@ import os
 import pytest
 
 from udh_cli.errors import UdhError
-from udh_cli.files import MANIFEST_NAME, check_replaceable, read_side_file, read_side_text, write_output, written_by_udh
+from udh_cli.files import (MANIFEST_NAME, check_replaceable, read_side_file, read_side_text, write_file_set, write_output,
+                           written_by_udh)
 
 from conftest import run_main
 
@@ -103,3 +104,22 @@ def test_a_gcp_file_with_a_byte_order_mark_reads_its_crs(tmp_path):
     path.write_bytes("EPSG:32611\n500000 4100000 10 5 5 a.jpg g1\n500100 4100000 10 9 5 b.jpg g2\n".encode("utf-8-sig"))
     gcps = read_gcp_file(path)
     assert gcps.epsg == 32611 and [o.x for o in gcps.observations] == [500000.0, 500100.0]
+
+
+def test_a_set_is_written_all_or_none(tmp_path, monkeypatch):
+    from udh_cli import files
+
+    write_file_set(tmp_path, {"results.md": b"first\n", "results.json": b"{}\n"})
+    real_fsync, calls = os.fsync, []
+
+    def full_disk_on_the_second(fd):
+        calls.append(fd)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        real_fsync(fd)
+
+    monkeypatch.setattr(files.os, "fsync", full_disk_on_the_second)
+    with pytest.raises(UdhError, match="No space left on device.*nothing was replaced"):
+        write_file_set(tmp_path, {"results.md": b"second\n", "results.json": b'{"second": 1}\n'})
+    assert (tmp_path / "results.md").read_bytes() == b"first\n" and (tmp_path / "results.json").read_bytes() == b"{}\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [MANIFEST_NAME, "results.json", "results.md"]  # no temporary left

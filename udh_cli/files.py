@@ -16,11 +16,12 @@ import hashlib
 import json
 import os
 import stat
+import tempfile
 from pathlib import Path
 from typing import Iterator
 
 from udh_cli.errors import UdhError
-from udh_cli.images import atomic_write_bytes
+from udh_cli.images import atomic_write_bytes, new_file_mode
 
 MANIFEST_NAME = ".udh-written.json"
 MANIFEST_FORMAT = "udh-written/1"
@@ -166,6 +167,34 @@ def record_written(*paths: str | os.PathLike) -> None:
         entries = {name: entry for name, entry in entries.items() if (folder / name).is_file()}  # forget removed files
         atomic_write_bytes(folder / MANIFEST_NAME, (json.dumps({"format": MANIFEST_FORMAT, "files": entries}, indent=1, sort_keys=True)
                                                     + "\n").encode())
+
+
+def write_file_set(folder: str | os.PathLike, files: dict[str, bytes], overwrite: bool = False) -> list[Path]:
+    """Write a set of files into ``folder`` all or none: each is staged beside its name first, and only when
+    every one is staged are they renamed into place (a full disk leaves the earlier set, not half of each).
+    Each must pass :func:`check_replaceable`; they are recorded as udh's. Returns their paths, in order."""
+    folder = Path(folder)
+    staged: dict[Path, Path] = {}
+    with _folder_locked(folder):
+        targets = [check_replaceable(folder / name, overwrite) for name in files]
+        try:
+            for target, data in zip(targets, files.values()):
+                fd, temporary = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=folder)
+                staged[target] = Path(temporary)
+                with os.fdopen(fd, "wb") as handle:
+                    handle.write(data)
+                    handle.flush()
+                    os.fsync(handle.fileno())
+                os.chmod(temporary, new_file_mode(target))
+        except OSError as exc:
+            for temporary in staged.values():
+                temporary.unlink(missing_ok=True)
+            raise UdhError(f"{folder}: writing the results failed ({exc.strerror or exc}); nothing was replaced: check the "
+                           f"free space and permissions") from None
+        for target, temporary in staged.items():
+            os.replace(temporary, target)
+        record_written(*targets)
+    return targets
 
 
 def write_output(path: str | os.PathLike, data: bytes, overwrite: bool = False, option: str = "--overwrite") -> Path:

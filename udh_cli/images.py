@@ -298,7 +298,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """
     path = check_output_path(path)
     folder = path.parent
-    mode = _new_file_mode(path)
+    mode = new_file_mode(path)
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
     except OSError as exc:
@@ -348,7 +348,7 @@ def check_output_path(path: str | os.PathLike, suffixes: tuple[str, ...] | None 
     return path
 
 
-def _new_file_mode(path: Path) -> int:
+def new_file_mode(path: Path) -> int:
     """Permissions for a file written at ``path``: those of the file it replaces, else 0o666 minus umask."""
     try:
         return path.stat().st_mode & 0o7777

@@ -16,7 +16,7 @@ from typing import Any
 from udh_cli.bench import metrics
 from udh_cli.bench.runner import WARMUP_PAIRS, MethodRun
 from udh_cli.errors import UdhError
-from udh_cli.files import check_replaceable, write_output
+from udh_cli.files import check_replaceable, write_file_set
 
 RULES = (
     "Errors in pixels at the four corners of image A (for synthetic pairs, the 128x128 patch), measured in B. "
@@ -127,32 +127,28 @@ def check_output_folder(out_dir: str | Path, overwrite: bool = False) -> Path:
 def write_outputs(result: BenchResult, out_dir: str | Path, plots: bool = True, overwrite: bool = False) -> list[Path]:
     """Write ``results.md``, ``results.csv``, ``results.json``, ``per_pair.csv`` and (with ``plots``)
     ``percentiles.png`` and ``speed_accuracy.png`` into ``out_dir`` (created if needed); returns the paths.
-    Existing files are replaced only when udh wrote them, or with ``overwrite``."""
+    Existing files are replaced only when udh wrote them, or with ``overwrite``; the set is written all or none."""
     out_dir = check_output_folder(out_dir, overwrite)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UdhError(f"{out_dir}: cannot create the results folder ({exc.strerror}); choose another --out") from None
     rows = table_rows(result)
-
-    def write(name: str, data: bytes) -> Path:
-        return write_output(out_dir / name, data, overwrite)
-
-    written = [
-        write("results.md", markdown_table(result).encode()),
-        write("results.csv", _csv_bytes(rows)),
-        write("results.json", json.dumps({
+    files = {
+        "results.md": markdown_table(result).encode(),
+        "results.csv": _csv_bytes(rows),
+        "results.json": json.dumps({
             "kind": result.kind, "config": result.config, "rules": list(RULES), "notes": result.notes,
             "environment": environment(), "results": [_json_safe(r) for r in rows],
-        }, indent=2).encode()),
-        write("per_pair.csv", _csv_bytes(_per_pair_rows(result))),
-    ]
+        }, indent=2).encode(),
+        "per_pair.csv": _csv_bytes(_per_pair_rows(result)),
+    }
     if plots:
         from udh_cli.bench.plots import percentile_plot, speed_accuracy_plot
 
-        written.append(write("percentiles.png", _png_bytes(percentile_plot(result.runs))))
-        written.append(write("speed_accuracy.png", _png_bytes(speed_accuracy_plot(result.runs))))
-    return written
+        files["percentiles.png"] = _png_bytes(percentile_plot(result.runs))
+        files["speed_accuracy.png"] = _png_bytes(speed_accuracy_plot(result.runs))
+    return write_file_set(out_dir, files, overwrite)  # all or none: a full disk leaves no half-replaced set
 
 
 def _png_bytes(image) -> bytes:

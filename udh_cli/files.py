@@ -15,6 +15,7 @@ import contextlib
 import hashlib
 import json
 import os
+import shutil
 import stat
 import tempfile
 from pathlib import Path
@@ -195,6 +196,29 @@ def write_file_set(folder: str | os.PathLike, files: dict[str, bytes], overwrite
             os.replace(temporary, target)
         record_written(*targets)
     return targets
+
+
+@contextlib.contextmanager
+def staged_folder(folder: str | os.PathLike) -> Iterator[Path]:
+    """A new folder written all or none: yields a hidden staging folder beside ``folder`` to write into, renamed
+    to ``folder`` (which must be new or empty) when the block ends, and removed with its contents when it fails."""
+    folder = Path(folder)
+    try:
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".staged", dir=folder.parent))
+    except OSError as exc:
+        raise UdhError(f"{folder}: cannot create a folder beside it ({exc.strerror or exc}); choose another place") from None
+    try:
+        yield staging
+        umask = os.umask(0o022)
+        os.umask(umask)
+        os.chmod(staging, 0o777 & ~umask)  # mkdtemp's folder is owner-only
+        os.replace(staging, folder)
+    except BaseException as exc:
+        shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(exc, OSError):  # e.g. something was written into the folder meanwhile
+            raise UdhError(f"{folder}: cannot put the finished folder in place ({exc.strerror or exc}); nothing was written") from None
+        raise
 
 
 def write_output(path: str | os.PathLike, data: bytes, overwrite: bool = False, option: str = "--overwrite") -> Path:

@@ -26,7 +26,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.files import check_replaceable, read_side_text, write_output
+from udh_cli.files import check_replaceable, read_side_text, staged_folder, write_output
 from udh_cli.images import atomic_write_bytes
 
 GROUND_TRUTH_FILE = "ground_truth.json"
@@ -347,7 +347,14 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
     if ground_preview:
         check_replaceable(preview, overwrite)
     check_flight_memory(config)
-    folder.mkdir(parents=True, exist_ok=True)
+    with staged_folder(folder) as staging:  # all or none: a full disk leaves no half flight to block the rerun
+        _write_flight_into(staging, config, seed, gps, preview if ground_preview else None, overwrite)
+    return folder / GROUND_TRUTH_FILE
+
+
+def _write_flight_into(folder: Path, config: FlightConfig, seed: int, gps: GpsConfig | None, preview: Path | None,
+                       overwrite: bool) -> None:
+    """:func:`write_flight`'s work, into ``folder`` (its staging folder); ``preview``: where the ground goes, if anywhere."""
     frames, ground = simulate_flight(config, seed)
     records = []
     noise = np.random.default_rng([seed, 17])
@@ -372,7 +379,7 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
     for a, b in zip(frames[:-1], frames[1:]):
         b_from_a = geometry.invert(b.ground_from_frame) @ a.ground_from_frame
         pairs.append({"a": records[len(pairs)]["file"], "b": records[len(pairs) + 1]["file"], "b_from_a": (b_from_a / b_from_a[2, 2]).tolist()})
-    if ground_preview:
+    if preview is not None:
         ok, data = cv2.imencode(".jpg", ground, [cv2.IMWRITE_JPEG_QUALITY, 85])
         write_output(preview, data.tobytes(), overwrite)
     truth = {
@@ -386,7 +393,7 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
         "frames": records,
         "consecutive_pairs": pairs,
     }
-    return atomic_write_bytes(folder / GROUND_TRUTH_FILE, (json.dumps(truth, indent=1) + "\n").encode())
+    atomic_write_bytes(folder / GROUND_TRUTH_FILE, (json.dumps(truth, indent=1) + "\n").encode())
 
 
 def load_ground_truth(path: str | Path) -> dict:

@@ -184,6 +184,11 @@ def foreign_pair_cache(out: Path, paths: dict) -> None:
     (out / "m.pairs.json").write_text("[1, 2, 3]\n")
 
 
+def huge_pair_cache(out: Path, paths: dict) -> None:
+    with open(out / "m.pairs.json", "wb") as handle:
+        handle.truncate(257 * 2**20)  # sparse: the size is what matters
+
+
 def existing_run(out: Path, paths: dict) -> None:
     (out / "run").mkdir()
     (out / "run" / "checkpoint.pt").write_bytes(b"an earlier run's weights")
@@ -326,6 +331,8 @@ CASES = [
          setup=foreign_json, forbid=("udh_cli.mosaic.pipeline:open_frames",)),
     Case("mosaic-foreign-pair-cache", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "sift", "--resume"], 1, "udh did not write",
          setup=foreign_pair_cache),
+    Case("mosaic-pair-cache-past-256-mb", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "sift", "--resume"], 1,
+         "larger than any sidecar or pair cache udh writes", setup=huge_pair_cache, forbid=("udh_cli.mosaic.pipeline:open_frames",)),
     Case("mosaic-output-name-too-long", ["mosaic", "{frames}", "-o", "{out}/" + LONG + ".png", "-m", "sift"], 1, "too long",
          forbid=("udh_cli.mosaic.pipeline:open_frames", "udh_cli.mosaic.pipeline:estimate_pairs")),
     Case("mosaic-output-unknown-type", ["mosaic", "{frames}", "-o", "{out}/m.gif"], 1, "unknown image type"),

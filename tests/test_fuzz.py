@@ -409,9 +409,11 @@ CASES = [
     Case("train-resume-without-a-run", ["train", "-d", "{pool}", "-o", "{out}/run", "--resume"], 1, "no checkpoint", "torch"),
     Case("train-init-corrupt-checkpoint", ["train", "-d", "{pool}", "-o", "{out}/run", "--init", "{corrupt_pt}"], 1,
          "not a readable udh checkpoint", "torch"),
+    Case("train-init-dev-zero", ["train", "-d", "{pool}", "-o", "{out}/run", "--init", "/dev/zero"], 1, "/dev/zero: not a regular file", "torch"),
     Case("train-init-config-without-arch", ["train", "-d", "{pool}", "-o", "{out}/run", "--init", "{no_arch}"], 1, "lacks 'arch'", "torch"),
     # ------------------------------------------------------------------ export-onnx
     Case("export-missing-checkpoint", ["export-onnx", "{in}/missing.pt", "-o", "{out}/m.onnx"], 1, "no such checkpoint", "torch"),
+    Case("export-checkpoint-dev-zero", ["export-onnx", "/dev/zero", "-o", "{out}/m.onnx"], 1, "/dev/zero: not a regular file", "torch"),
     Case("export-corrupt-checkpoint", ["export-onnx", "{corrupt_pt}", "-o", "{out}/m.onnx"], 1, "not a readable udh checkpoint", "torch"),
     Case("export-image-as-checkpoint", ["export-onnx", "{a}", "-o", "{out}/m.onnx"], 1, "not a readable udh checkpoint", "torch"),
     Case("export-config-without-arch", ["export-onnx", "{no_arch}", "-o", "{out}/m.onnx"], 1, "lacks 'arch'", "torch"),

@@ -70,7 +70,7 @@ def init_arch(init: str | None, mode: str = "unsupervised") -> str:
 def resolve_init(init: str) -> Path:
     """A checkpoint path, or the name of a shipped model ("unsupervised", "supervised")."""
     path = Path(init)
-    if path.is_file():
+    if path.exists() and not path.is_dir():  # a FIFO or device too: load_checkpoint refuses it by name
         return path
     from udh_cli.models_catalog import shipped_checkpoint
 

@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 from udh_cli.estimators import estimator_names
 from udh_cli import cli, geometry
+from udh_cli.files import MANIFEST_NAME
 from udh_cli.homography_files import format_homography
 
 from conftest import run_main, warped_pair
@@ -120,7 +121,7 @@ def test_table_output_and_viz(files, tmp_path):
         assert text in result.stdout
     drawn = cv2.imread(str(picture))
     assert drawn is not None and drawn.shape[1] == WIDTH + 12 + WIDTH and drawn.shape[0] > HEIGHT
-    assert [p.name for p in tmp_path.iterdir()] == ["result.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [MANIFEST_NAME, "result.png"]  # the picture, and that udh wrote it
 
 
 # ----------------------------------------------------------------------------------- bad input

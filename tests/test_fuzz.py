@@ -66,6 +66,18 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     paths["trunc"].write_bytes(paths["a"].read_bytes()[:2000])
     paths["bomb"] = folder / "bomb.png"
     png_declaring(paths["bomb"], 32000, 32000)
+    ok, small_jpeg = cv2.imencode(".jpg", image_a[:16, :16])
+    forged = bytearray(small_jpeg.tobytes())
+    start = forged.find(b"\xff\xc0") + 5  # the frame header's height and width
+    forged[start:start + 4] = struct.pack(">HH", 15000, 15000)
+    paths["jpeg_bomb"] = folder / "bomb.jpg"
+    paths["jpeg_bomb"].write_bytes(bytes(forged))
+    ok, whole = cv2.imencode(".jpg", image_a)
+    flipped = bytearray(whole.tobytes())
+    middle = len(flipped) // 2
+    flipped[middle:middle + 64] = bytes(v ^ 0xFF for v in flipped[middle:middle + 64])  # bits flipped in the coded data
+    paths["flipped"] = folder / "flipped.jpg"
+    paths["flipped"].write_bytes(bytes(flipped))
     paths["deep"] = folder / "deep.json"
     paths["deep"].write_text("[" * 100_000 + "]" * 100_000)
     paths["horizon"] = folder / "horizon.txt"
@@ -134,6 +146,30 @@ def models(inputs, tmp_path_factory) -> dict[str, Path]:
             break
     paths["nan_onnx"] = folder / "nan.onnx"
     onnx.save(proto, str(paths["nan_onnx"]))
+
+    from onnx import TensorProto, helper
+
+    good = onnx.load(str(paths["good_onnx"]))
+    metadata = {entry.key: entry.value for entry in good.metadata_props}
+    huge = copy.deepcopy(good)
+    for dim in huge.graph.input[0].type.tensor_type.shape.dim[2:]:
+        dim.dim_value = 8192
+    for entry in huge.metadata_props:
+        if entry.key == "input_size":
+            entry.value = "8192"
+    paths["huge_onnx"] = folder / "huge.onnx"
+    onnx.save(huge, str(paths["huge_onnx"]))
+    # Loads, and fails when run: 2 x 32 x 32 values cannot be reshaped to (7, 4, 2).
+    graph = helper.make_graph([helper.make_node("Reshape", ["patches", "shape"], ["offsets"])], "fails",
+                              [helper.make_tensor_value_info("patches", TensorProto.FLOAT, ["N", 2, 32, 32])],
+                              [helper.make_tensor_value_info("offsets", TensorProto.FLOAT, ["N", 4, 2])],
+                              [numpy_helper.from_array(np.array([7, 4, 2], np.int64), "shape")])
+    failing = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    failing.ir_version = good.ir_version
+    for key, value in metadata.items():
+        failing.metadata_props.add(key=key, value=value)
+    paths["failing_onnx"] = folder / "failing.onnx"
+    onnx.save(failing, str(paths["failing_onnx"]))
     return paths
 
 
@@ -146,6 +182,11 @@ def foreign_json(out: Path, paths: dict) -> None:
 
 def foreign_pair_cache(out: Path, paths: dict) -> None:
     (out / "m.pairs.json").write_text("[1, 2, 3]\n")
+
+
+def huge_pair_cache(out: Path, paths: dict) -> None:
+    with open(out / "m.pairs.json", "wb") as handle:
+        handle.truncate(257 * 2**20)  # sparse: the size is what matters
 
 
 def existing_run(out: Path, paths: dict) -> None:
@@ -167,6 +208,61 @@ def a_file(out: Path, paths: dict) -> None:
     (out / "file.txt").write_text("a file\n")
 
 
+def users_bench_results(out: Path, paths: dict) -> None:
+    (out / "b").mkdir()
+    (out / "b" / "results.md").write_text("# my notes on the results\n")
+    (out / "b" / "results.json").write_text('{"mine": true}\n')
+
+
+def users_npz(out: Path, paths: dict) -> None:
+    np.savez(out / "p.npz", mine=np.arange(3))
+
+
+def data_folder_with_users_config(out: Path, paths: dict) -> None:
+    for image in paths["pool"].iterdir():
+        shutil.copy(image, out / image.name)
+    (out / "config.json").write_text('{"my": "settings"}\n')
+
+
+def model_with_users_int8(out: Path, paths: dict) -> None:
+    shutil.copy(paths["good_onnx"], out / "model.onnx")
+    (out / "model-int8.onnx").write_bytes(b"the int8 model I tuned by hand")
+
+
+def users_picture(out: Path, paths: dict) -> None:
+    (out / "v.png").write_bytes(b"my holiday picture")
+
+
+def users_onnx(out: Path, paths: dict) -> None:
+    (out / "m.onnx").write_bytes(b"the model I trained last week")
+
+
+def users_ground_preview(out: Path, paths: dict) -> None:
+    (out / "s_ground.jpg").write_bytes(b"my photo of the ground")
+
+
+def gcp_file(text: str) -> Callable:
+    def setup(out: Path, paths: dict) -> None:
+        (out / "gcp.txt").write_text(text)
+
+    return setup
+
+
+def camera_fifo(out: Path, paths: dict) -> None:
+    os.mkfifo(out / "cameras.json")  # no writer: opening it to read would wait for ever
+
+
+def camera_deep(out: Path, paths: dict) -> None:
+    (out / "cameras.json").write_text('{"cam": ' + "[" * 100_000 + "]" * 100_000 + "}")
+
+
+def truth_singular(out: Path, paths: dict) -> None:
+    from udh_cli.simulate import GROUND_TRUTH_FORMAT
+
+    (out / "truth.json").write_text(json.dumps({"format": GROUND_TRUTH_FORMAT, "frame_size": [160, 120], "consecutive_pairs": [],
+                                                "frames": [{"file": "frame_000.jpg", "ground_from_frame": [[1, 0, 0], [0, 0, 0], [0, 0, 1]]}]}))
+
+
 # ----------------------------------------------------------------------------------------------- cases
 
 
@@ -178,10 +274,11 @@ class Case:
     args: list[str]
     code: int
     message: str
-    needs: str | None = None  # "torch": skipped without it; "user": skipped when running as root
+    needs: str | None = None  # "torch" or "pyproj": skipped without it; "user": skipped when running as root
     setup: Callable | None = None
     forbid: tuple[str, ...] = ()  # "module:attribute" that must not be called (work that must not start)
     absent: tuple[str, ...] = ()  # extra words stderr must not hold
+    env: dict[str, str] | None = None  # environment variables for the case (e.g. a small UDH_MEMORY_BUDGET)
 
 
 CASES = [
@@ -192,7 +289,20 @@ CASES = [
     Case("estimate-text-as-png", ["estimate", "{a}", "{text}"], 1, "not a readable image"),
     Case("estimate-truncated-png", ["estimate", "{trunc}", "{a}"], 1, "not a readable image"),
     Case("estimate-decompression-bomb", ["estimate", "{bomb}", "{a}"], 1, "32000x32000 pixels", forbid=("cv2:imdecode",)),
+    Case("estimate-jpeg-declaring-15000-squared", ["estimate", "{jpeg_bomb}", "{a}", "--full-resolution"], 1, "truncated or damaged",
+         forbid=("cv2:imdecode",)),
+    Case("estimate-full-resolution-over-the-memory-budget", ["estimate", "{a}", "{b}", "-m", "sift", "--full-resolution"], 1,
+         "leave out --full-resolution", env={"UDH_MEMORY_BUDGET": "1e6"}, forbid=("udh_cli.api:require_ok",)),
+    Case("estimate-onnx-declaring-input-8192", ["estimate", "{a}", "{b}", "-m", "supervised", "--model", "{huge_onnx}"], 1,
+         "udh networks take 16 to 512 px", "torch"),
+    Case("estimate-onnx-failing-inside-onnxruntime", ["estimate", "{a}", "{b}", "-m", "supervised", "--model", "{failing_onnx}"], 1,
+         "failed inside onnxruntime", "torch"),
+    Case("estimate-bit-flipped-jpeg", ["estimate", "{flipped}", "{a}", "-m", "sift"], 1, "the file is damaged (the decoder says: Corrupt JPEG data",
+         forbid=("udh_cli.api:require_ok",)),
+    Case("estimate-path-over-4096-bytes", ["estimate", "{in}/" + "x/" * 2100 + "a.png", "{a}"], 1, "File name too long"),
     Case("estimate-viz-onto-input", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{a}"], 1, "one of the input images"),
+    Case("estimate-viz-over-a-users-picture", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{out}/v.png"], 1, "add --overwrite",
+         setup=users_picture, forbid=("udh_cli.api:read_image",)),
     Case("estimate-viz-missing-folder", ["estimate", "{a}", "{b}", "--viz", "{out}/no/v.png"], 1, "does not exist"),
     Case("estimate-viz-name-too-long", ["estimate", "{a}", "{b}", "-m", "sift", "--viz", "{out}/" + LONG + ".png"], 1, "too long"),
     Case("estimate-viz-unwritable-folder", ["estimate", "{a}", "{b}", "--viz", "{out}/ro/v.png"], 1, "not writable", "user", read_only_folder),
@@ -204,6 +314,7 @@ CASES = [
     Case("estimate-not-a-number", ["estimate", "{a}", "{b}", "--best-features", "many"], 2, "--best-features"),
     Case("estimate-unknown-precision", ["estimate", "{a}", "{b}", "-m", "unsupervised", "--precision", "int9"], 1, "unknown precision"),
     Case("estimate-gt-missing", ["estimate", "{a}", "{b}", "--gt", "{in}/missing.txt"], 1, "no such homography file"),
+    Case("estimate-gt-dev-zero", ["estimate", "{a}", "{b}", "--gt", "/dev/zero"], 1, "--gt /dev/zero: not a regular file"),
     Case("estimate-gt-deeply-nested-json", ["estimate", "{a}", "{b}", "--gt", "{deep}"], 1, "not a 3x3 homography"),
     Case("estimate-gt-through-the-horizon", ["estimate", "{a}", "{b}", "-m", "sift", "--gt", "{horizon}"], 1, "through the horizon",
          forbid=("udh_cli.api:require_ok",)),
@@ -211,6 +322,7 @@ CASES = [
     Case("mosaic-missing-folder", ["mosaic", "{in}/missing", "-o", "{out}/m.png"], 1, "no such folder or video"),
     Case("mosaic-folder-without-images", ["mosaic", "{no_images}", "-o", "{out}/m.png"], 1, "no image files found"),
     Case("mosaic-one-image", ["mosaic", "{one}", "-o", "{out}/m.png", "--quiet"], 1, "only one readable image"),
+    Case("mosaic-path-over-4096-bytes", ["mosaic", "{in}/" + "x/" * 2100 + "f", "-o", "{out}/m.png"], 1, "the path is too long"),
     Case("mosaic-single-image-as-source", ["mosaic", "{a}", "-o", "{out}/m.png"], 1, "is a single image"),
     Case("mosaic-text-as-video", ["mosaic", "{video}", "-o", "{out}/m.png"], 1, "cannot open this as a video"),
     Case("mosaic-output-onto-a-frame", ["mosaic", "{frames}", "-o", "{frame}", "-m", "sift"], 1, "would replace an input file",
@@ -219,6 +331,8 @@ CASES = [
          setup=foreign_json, forbid=("udh_cli.mosaic.pipeline:open_frames",)),
     Case("mosaic-foreign-pair-cache", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "sift", "--resume"], 1, "udh did not write",
          setup=foreign_pair_cache),
+    Case("mosaic-pair-cache-past-256-mb", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "sift", "--resume"], 1,
+         "larger than any sidecar or pair cache udh writes", setup=huge_pair_cache, forbid=("udh_cli.mosaic.pipeline:open_frames",)),
     Case("mosaic-output-name-too-long", ["mosaic", "{frames}", "-o", "{out}/" + LONG + ".png", "-m", "sift"], 1, "too long",
          forbid=("udh_cli.mosaic.pipeline:open_frames", "udh_cli.mosaic.pipeline:estimate_pairs")),
     Case("mosaic-output-unknown-type", ["mosaic", "{frames}", "-o", "{out}/m.gif"], 1, "unknown image type"),
@@ -234,6 +348,28 @@ CASES = [
     Case("mosaic-method-option-deeply-nested", ["mosaic", "{frames}", "-o", "{out}/m.png", "-O", "x=" + "[" * 5000 + "]" * 5000], 1,
          "no method here takes 'x'"),
     Case("mosaic-negative-threads", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "unsupervised", "-O", "threads=-1"], 1, "threads -1"),
+    Case("mosaic-camera-fifo-without-writer", ["mosaic", "{frames}", "-o", "{out}/m.png", "--camera", "{out}/cameras.json"], 1,
+         "not a regular file", setup=camera_fifo, forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-camera-dev-zero", ["mosaic", "{frames}", "-o", "{out}/m.png", "--camera", "/dev/zero"], 1, "--camera /dev/zero: not a regular file",
+         forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-camera-deeply-nested", ["mosaic", "{frames}", "-o", "{out}/m.png", "--camera", "{out}/cameras.json"], 1, "nests too deeply",
+         setup=camera_deep, forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gcp-dev-zero", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gcp", "/dev/zero"], 1, "--gcp /dev/zero: not a regular file",
+         needs="pyproj", forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gcp-header-only", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gcp", "{out}/gcp.txt"], 1, "no ground-control points",
+         needs="pyproj", setup=gcp_file("EPSG:32611\n"), forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gcp-wgs84-over-utm", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gcp", "{out}/gcp.txt"], 1,
+         "not longitude and latitude degrees", needs="pyproj", setup=gcp_file("WGS84\n500000 4100000 10 5 5 frame_000.jpg g1\n"),
+         forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gcp-easting-1e300", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gcp", "{out}/gcp.txt"], 1, "no place on Earth",
+         needs="pyproj", setup=gcp_file("EPSG:32611\n1e300 4100000 10 5 5 frame_000.jpg g1\n"), forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gcp-all-at-one-spot", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gcp", "{out}/gcp.txt"], 1, "lie at one spot",
+         needs="pyproj", setup=gcp_file("EPSG:32611\n" + "".join(f"500000 4100000 10 {10 * i} 5 frame_00{i}.jpg g{i}\n" for i in range(4))),
+         forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gt-dev-urandom", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gt", "/dev/urandom"], 1, "/dev/urandom: not a regular file",
+         forbid=("udh_cli.mosaic.pipeline:open_frames",)),
+    Case("mosaic-gt-singular-matrix", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gt", "{out}/truth.json"], 1, "invertible",
+         setup=truth_singular, forbid=("udh_cli.mosaic.pipeline:open_frames",)),
     Case("mosaic-gt-deeply-nested-json", ["mosaic", "{frames}", "-o", "{out}/m.png", "--gt", "{deep}"], 1, "nests too deeply"),
     # ------------------------------------------------------------------ bench
     Case("bench-csv-renamed-npz", ["bench", "synthetic", "--load-pairs", "{csv_npz}", "--out", "{out}/b"], 1, "not an .npz archive",
@@ -245,6 +381,16 @@ CASES = [
     Case("bench-unknown-method", ["bench", "synthetic", "--images", "{pool}", "-m", "surf", "--out", "{out}/b"], 1, "unknown method"),
     Case("bench-bad-option", ["bench", "synthetic", "--images", "{pool}", "--option", "junk", "--out", "{out}/b"], 1, "KEY=VALUE"),
     Case("bench-out-is-a-file", ["bench", "synthetic", "--images", "{pool}", "--out", "{a}"], 1, "is a file"),
+    Case("bench-save-pairs-onto-an-input-image", ["bench", "synthetic", "--images", "{pool}", "--save-pairs", "{frame}", "--out", "{out}/b"],
+         1, "unknown file type '.jpg'", forbid=("udh_cli.bench.suite:held_out_sources",)),
+    Case("bench-save-pairs-onto-a-users-npz", ["bench", "synthetic", "--images", "{pool}", "--save-pairs", "{out}/p.npz", "--out", "{out}/b"],
+         1, "udh did not write it", setup=users_npz, forbid=("udh_cli.bench.suite:held_out_sources",)),
+    Case("bench-out-holds-users-results", ["bench", "synthetic", "--images", "{pool}", "--out", "{out}/b"], 1, "add --overwrite",
+         setup=users_bench_results, forbid=("udh_cli.bench.suite:held_out_sources",)),
+    Case("bench-pairs-out-holds-users-results", ["bench", "pairs", "{bad_csv}", "--out", "{out}/b"], 1, "udh did not write it",
+         setup=users_bench_results),
+    Case("bench-n-beyond-the-memory-budget", ["bench", "synthetic", "--images", "{pool}", "--n", "100000000", "--out", "{out}/b"], 1,
+         "lower --n", env={"UDH_MEMORY_BUDGET": "8e9"}, forbid=("udh_cli.bench.suite:held_out_sources",)),
     Case("bench-pairs-missing-csv", ["bench", "pairs", "{in}/missing.csv", "--out", "{out}/b"], 1, "no such file"),
     Case("bench-pairs-foreign-csv", ["bench", "pairs", "{bad_csv}", "--out", "{out}/b"], 1, "missing column"),
     # ------------------------------------------------------------------ train
@@ -258,12 +404,16 @@ CASES = [
     Case("train-into-an-existing-run", ["train", "-d", "{pool}", "-o", "{out}/run"], 1, "holds a run", "torch", existing_run),
     Case("train-overwrite-with-a-bad-lr-keeps-the-run", ["train", "-d", "{pool}", "-o", "{out}/run", "--overwrite", "--lr", "-1"], 1, "--lr",
          "torch", existing_run),
+    Case("train-out-is-the-data-with-users-config", ["train", "-d", "{out}", "-o", "{out}"], 1, "config.json: exists and udh did not write it",
+         "torch", data_folder_with_users_config),
     Case("train-resume-without-a-run", ["train", "-d", "{pool}", "-o", "{out}/run", "--resume"], 1, "no checkpoint", "torch"),
     Case("train-init-corrupt-checkpoint", ["train", "-d", "{pool}", "-o", "{out}/run", "--init", "{corrupt_pt}"], 1,
          "not a readable udh checkpoint", "torch"),
+    Case("train-init-dev-zero", ["train", "-d", "{pool}", "-o", "{out}/run", "--init", "/dev/zero"], 1, "/dev/zero: not a regular file", "torch"),
     Case("train-init-config-without-arch", ["train", "-d", "{pool}", "-o", "{out}/run", "--init", "{no_arch}"], 1, "lacks 'arch'", "torch"),
     # ------------------------------------------------------------------ export-onnx
     Case("export-missing-checkpoint", ["export-onnx", "{in}/missing.pt", "-o", "{out}/m.onnx"], 1, "no such checkpoint", "torch"),
+    Case("export-checkpoint-dev-zero", ["export-onnx", "/dev/zero", "-o", "{out}/m.onnx"], 1, "/dev/zero: not a regular file", "torch"),
     Case("export-corrupt-checkpoint", ["export-onnx", "{corrupt_pt}", "-o", "{out}/m.onnx"], 1, "not a readable udh checkpoint", "torch"),
     Case("export-image-as-checkpoint", ["export-onnx", "{a}", "-o", "{out}/m.onnx"], 1, "not a readable udh checkpoint", "torch"),
     Case("export-config-without-arch", ["export-onnx", "{no_arch}", "-o", "{out}/m.onnx"], 1, "lacks 'arch'", "torch"),
@@ -275,6 +425,8 @@ CASES = [
     Case("export-weights-of-another-size", ["export-onnx", "{wrong_size}", "-o", "{out}/m.onnx"], 1, "do not fit", "torch"),
     Case("export-onto-its-checkpoint", ["export-onnx", "{out}/model.onnx", "-o", "{out}/model.onnx"], 1, "is the checkpoint being exported",
          "torch", checkpoint_named_onnx),
+    Case("export-over-a-users-model", ["export-onnx", "{good_pt}", "-o", "{out}/m.onnx"], 1, "udh did not write it", "torch", users_onnx,
+         forbid=("udh_cli.train.export:create_model",)),
     Case("export-output-not-onnx", ["export-onnx", "{good_pt}", "-o", "{out}/m.txt"], 1, ".onnx name", "torch"),
     Case("export-check-images-missing", ["export-onnx", "{good_pt}", "-o", "{out}/m.onnx", "--check-images", "{in}/missing"], 1,
          "no such folder", "torch"),
@@ -284,8 +436,15 @@ CASES = [
     Case("quantize-missing-model", ["quantize", "{in}/missing.onnx", "-d", "{pool}", "-o", "{out}/q.onnx"], 1, "no such model file", "torch"),
     Case("quantize-text-as-model", ["quantize", "{text_onnx}", "-d", "{pool}", "-o", "{out}/q.onnx"], 1, "not a loadable ONNX model", "torch"),
     Case("quantize-onto-its-source", ["quantize", "{good_onnx}", "-d", "{pool}", "-o", "{good_onnx}"], 1, "would replace", "torch"),
+    Case("quantize-default-output-is-users-int8", ["quantize", "{out}/model.onnx", "-d", "{pool}"], 1, "add --overwrite", "torch",
+         model_with_users_int8),
     Case("quantize-missing-data", ["quantize", "{good_onnx}", "-d", "{in}/missing", "-o", "{out}/q.onnx"], 1, "no such folder", "torch"),
     Case("quantize-zero-pairs", ["quantize", "{good_onnx}", "-d", "{pool}", "--pairs", "0", "-o", "{out}/q.onnx"], 1, "--pairs", "torch"),
+    # ------------------------------------------------------------------ simulate
+    Case("simulate-ground-preview-over-users-file", ["simulate", "{out}/s", "--ground-preview", "--width", "64", "--height", "64"], 1,
+         "s_ground.jpg: exists and udh did not write it", setup=users_ground_preview, forbid=("udh_cli.simulate:simulate_flight",)),
+    Case("simulate-frames-beyond-the-memory-budget", ["simulate", "{out}/s", "--width", "8000", "--height", "6000"], 1,
+         "lower --width and --height", env={"UDH_MEMORY_BUDGET": "8e9"}, forbid=("udh_cli.simulate:simulate_flight",)),
     # ------------------------------------------------------------------ usage
     Case("usage-unknown-command", ["frobnicate"], 2, "No such command"),
     Case("usage-unknown-option", ["estimate", "{a}", "{b}", "--frobnicate"], 2, "--frobnicate"),
@@ -311,12 +470,16 @@ def test_bad_input_fails_in_one_line_and_leaves_nothing(case: Case, inputs, tmp_
     if case.needs == "torch":
         pytest.importorskip("torch")
         paths.update(request.getfixturevalue("models"))
+    if case.needs == "pyproj":
+        pytest.importorskip("pyproj")
     if case.needs == "user" and IS_ROOT:
         pytest.skip("root can write into read-only folders")
     out = tmp_path / "out"
     out.mkdir()
     if case.setup is not None:
         case.setup(out, paths)
+    for name, value in (case.env or {}).items():
+        monkeypatch.setenv(name, value)
     for target in case.forbid:
         module, attribute = target.split(":")
         monkeypatch.setattr(importlib.import_module(module), attribute, _forbidden(target))
@@ -339,6 +502,42 @@ def test_bad_input_fails_in_one_line_and_leaves_nothing(case: Case, inputs, tmp_
     assert [snapshot(folder) for folder in watched] == before  # no output, no temporary, no input replaced or touched
     leftovers = [p.name for folder in watched for p in folder.rglob(".*") if p.name.endswith(".part") or ".staged" in p.name]
     assert leftovers == []
+
+
+# ------------------------------------------------------------------------------------ frames skipped, and why
+
+
+def with_corrupt_exif(jpeg: bytes) -> bytes:
+    """``jpeg`` with an EXIF block whose tags point past its end (Pillow warns "Corrupt EXIF data")."""
+    tiff = (b"II*\x00" + struct.pack("<IH", 8, 2) + struct.pack("<HHII", 0x010F, 2, 400, 5000) + struct.pack("<HHII", 0x8769, 4, 1, 26)
+            + struct.pack("<IH", 0, 50))
+    app1 = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + jpeg[2:]
+
+
+def test_frames_skipped_say_why_and_library_noise_stays_off_stderr(inputs, tmp_path, monkeypatch, capfd):
+    """A NaN float frame is "NaN", an unreadable one "Permission denied" (not "corrupt"), a bit-flipped JPEG is damaged
+    (not composited with the decoder's grey), and a frame whose EXIF is damaged is used without Pillow's warning."""
+    frames = tmp_path / "frames"
+    shutil.copytree(inputs["frames"], frames)
+    (frames / "ground_truth.json").unlink(missing_ok=True)
+    nan = np.full((120, 160), 0.5, np.float32)
+    nan[5, 5] = np.nan
+    cv2.imwrite(str(frames / "zz_nan.tiff"), nan)
+    last = sorted(frames.glob("frame_*.jpg"))[-1]
+    last.write_bytes(with_corrupt_exif(last.read_bytes()))
+    shutil.copy(inputs["flipped"], frames / "zz_flipped.jpg")
+    if not IS_ROOT:
+        shutil.copy(frames / "frame_000.jpg", frames / "zz_locked.jpg")
+        (frames / "zz_locked.jpg").chmod(0)
+    code, _, err = run_main(monkeypatch, capfd, "mosaic", str(frames), "-o", str(tmp_path / "m.png"), "-m", "sift", "--quiet")
+    assert code == 0, err
+    assert "skipping zz_nan.tiff: cannot be decoded (the image holds NaN or infinite values)" in err
+    assert "skipping zz_flipped.jpg: cannot be decoded (the file is damaged (the decoder says: Corrupt JPEG data" in err
+    assert IS_ROOT or "skipping zz_locked.jpg: cannot be decoded (cannot read it (Permission denied)" in err
+    assert "corrupt or not an image" not in err and "Corrupt EXIF" not in err and "UserWarning" not in err
+    report = json.loads((tmp_path / "m.json").read_text())
+    assert last.name in [frame["file"] for frame in report["frames"]]
 
 
 # ------------------------------------------------------------------------------------ damaged pair caches

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import struct
+import time
 from pathlib import Path
 
 import cv2
@@ -255,3 +256,51 @@ def test_a_fifo_without_a_writer_does_not_hang(tmp_path):
     os.mkfifo(fifo)
     with pytest.raises(UdhError, match="empty"):
         read_image(fifo)
+
+
+def test_image_files_are_bounded_by_size_before_they_are_read(tmp_path, monkeypatch):
+    import threading
+
+    from udh_cli.images import max_file_bytes
+
+    monkeypatch.setenv("UDH_MAX_PIXELS", "64")
+    sparse = tmp_path / "huge.png"
+    with open(sparse, "wb") as handle:
+        handle.truncate(max_file_bytes() + 1)  # no data is written: the size alone must refuse it
+    with pytest.raises(UdhError, match="larger than any image udh reads"):
+        read_image(sparse)
+    if not hasattr(os, "mkfifo"):
+        return
+    pipe = tmp_path / "piped.png"
+    os.mkfifo(pipe)
+
+    def endless_writer() -> None:  # cat /dev/zero > piped.png
+        try:
+            with open(pipe, "wb") as handle:
+                while True:
+                    handle.write(bytes(1 << 20))
+        except (BrokenPipeError, OSError):
+            pass
+
+    keeper = os.open(pipe, os.O_RDONLY | os.O_NONBLOCK)  # a reader already there, so that the writer's open returns
+    writer = threading.Thread(target=endless_writer, daemon=True)
+    writer.start()
+    time.sleep(0.2)
+    try:
+        with pytest.raises(UdhError, match="more than any image udh reads"):
+            read_image(pipe)
+    finally:
+        os.close(keeper)  # the last reader gone: the writer's next write fails and it ends
+    writer.join(timeout=10)
+    assert not writer.is_alive()
+
+
+def test_an_encoder_failure_is_one_line_with_the_codecs_words_off_stderr(tmp_path, monkeypatch, capfd):
+    def failing_encoder(suffix, image, *args):  # what OpenCV's TIFF encoder does on a full disk
+        os.write(2, b"TIFFAppendToStrip: Write error at scanline 12.\n")
+        return False, None
+
+    monkeypatch.setattr(images.cv2, "imencode", failing_encoder)
+    with pytest.raises(UdhError, match=r"could not encode .* \(TIFFAppendToStrip: Write error at scanline 12\.\); check the free space"):
+        write_image(tmp_path / "m.tif", np.zeros((16, 16, 3), np.uint8))
+    assert capfd.readouterr().err == "" and list(tmp_path.iterdir()) == []

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
+from udh_cli.errors import UdhError
 from udh_cli.simulate import FlightConfig, load_ground_truth, make_ground, simulate_flight, write_flight
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "sim_flight"
@@ -61,3 +62,28 @@ def test_shipped_example_is_small_and_complete():
     truth = json.loads((EXAMPLE / "ground_truth.json").read_text())
     assert [r["file"] for r in truth["frames"]] == [f.name for f in files]
     assert len(truth["consecutive_pairs"]) == len(files) - 1
+
+
+def test_a_full_disk_leaves_no_half_flight_and_the_rerun_works(tmp_path, monkeypatch, capfd):
+    from conftest import run_main
+
+    from udh_cli import simulate
+
+    written = []
+    real_write = simulate.atomic_write_bytes
+
+    def full_disk_at_the_third(path, data):
+        written.append(path)
+        if len(written) == 3:
+            raise UdhError(f"{path}: writing it failed (No space left on device); check the free space and permissions")
+        return real_write(path, data)
+
+    monkeypatch.setattr(simulate, "atomic_write_bytes", full_disk_at_the_third)
+    args = ["simulate", str(tmp_path / "s"), "--width", "160", "--height", "120", "--strips", "1", "--frames-per-strip", "4"]
+    code, _, err = run_main(monkeypatch, capfd, *args)
+    assert code == 1 and "No space left on device" in err
+    assert list(tmp_path.iterdir()) == []  # no folder, no staging folder
+    monkeypatch.setattr(simulate, "atomic_write_bytes", real_write)
+    code, _, err = run_main(monkeypatch, capfd, *args)
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "s").iterdir())[-1] == "ground_truth.json" and len(list((tmp_path / "s").iterdir())) == 5

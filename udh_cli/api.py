@@ -10,11 +10,15 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators import DEFAULT_METHOD, Estimate, create_estimator, require_ok
 from udh_cli.homography_files import read_homography
-from udh_cli.images import IMAGE_SUFFIXES, check_output_path, read_image, write_image
+from udh_cli.files import check_replaceable, write_output
+from udh_cli.images import IMAGE_SUFFIXES, check_output_path, encode_image, read_image
 
 # Longest side (pixels) at which `udh estimate` works unless asked for full resolution: the precision of a
 # 1600 px frame, and SIFT, ECC and the networks in bounded time and memory on a 48 MP photo.
 ESTIMATE_WORK_SIZE = 1600
+# Memory the full cascade can take per pixel of the two images at full resolution (its copies, pyramids and
+# SIFT's scale space at once); docs/estimators.md gives the measurement.
+FULL_RESOLUTION_BYTES_PER_PIXEL = 100
 # Below this confidence an answer that carries no verification of its own counts as unverified. It is the
 # mosaic's acceptance floor (Acceptance.min_confidence): what udh would not build a map on.
 MIN_CONFIDENCE = 0.2
@@ -60,6 +64,7 @@ def estimate_report(
     gt: str | Path | None = None,
     viz: str | Path | None = None,
     work_size: int | None = ESTIMATE_WORK_SIZE,
+    overwrite: bool = False,
     **options: Any,
 ) -> dict[str, Any]:
     """What ``udh estimate`` does: estimate ``b_from_a`` for two image files and report on it.
@@ -71,7 +76,8 @@ def estimate_report(
         path_a, path_b: image files; any size, colour or grey, 8 or 16 bit.
         method: a registered estimator name; ``options`` go to it.
         gt: optional ground-truth homography file (``x_B ~ H x_A``), see :func:`read_homography`.
-        viz: optional picture to write (.png, .jpg...): A's border warped onto B, and the truth.
+        viz: optional picture to write (.png, .jpg...): A's border warped onto B, and the truth. An existing file
+            is replaced only when udh wrote it, or with ``overwrite`` (:func:`udh_cli.files.check_replaceable`).
         work_size: the images are estimated with their longer side shrunk to this many pixels (None: full
             resolution), and the answer is rescaled exactly to the full-resolution pixels.
 
@@ -86,14 +92,22 @@ def estimate_report(
         UdhError: for bad input, and when the method finds no homography.
     """
     estimator = create_estimator(method, **options)
-    truth = read_homography(gt) if gt is not None else None
+    truth = read_homography(gt, "--gt") if gt is not None else None
     if viz is not None:
         check_output_path(viz, IMAGE_SUFFIXES)
         if any(Path(viz).resolve() == Path(p).resolve() for p in (path_a, path_b)):
             raise UdhError(f"{viz}: is one of the input images; write the picture to another file")
+        check_replaceable(viz, overwrite)
     if work_size is not None and work_size < 32:
         raise UdhError(f"--work-size {work_size}: give at least 32 pixels")
     image_a, image_b = read_image(path_a), read_image(path_b)
+    if work_size is None:
+        from udh_cli.budget import check_memory
+
+        sizes = [f"{image.shape[1]}x{image.shape[0]}" for image in (image_a, image_b)]
+        check_memory(FULL_RESOLUTION_BYTES_PER_PIXEL * (image_a.shape[0] * image_a.shape[1] + image_b.shape[0] * image_b.shape[1]),
+                     f"--full-resolution on {sizes[0]} and {sizes[1]} images", "leave out --full-resolution (the answer is in "
+                     f"full-resolution pixels all the same; --work-size sets the working size)")
     if truth is not None:
         _check_truth_fits(truth, gt, image_a.shape[1], image_a.shape[0])
     work_a, work_b = _work_copy(image_a, work_size), _work_copy(image_b, work_size)
@@ -117,6 +131,6 @@ def estimate_report(
         from udh_cli.viz import draw_estimate
 
         label = result.method if verified else f"{result.method}: UNVERIFIED, may be wrong"
-        write_image(viz, draw_estimate(image_a, image_b, result.homography, truth, label=label))
+        write_output(viz, encode_image(viz, draw_estimate(image_a, image_b, result.homography, truth, label=label)), overwrite)
         report["viz"] = str(viz)
     return report

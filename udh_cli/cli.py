@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import importlib
 import json
 import signal
@@ -120,6 +121,7 @@ def estimate(
     matcher_model: Annotated[Optional[str], typer.Option(help="Learned methods: the matcher whose global match a doubted answer gets (default: the shipped one with the tile stage; 'none' for none).")] = None,
     work_size: Annotated[int, typer.Option(help="Estimate with the images' longer side shrunk to this many pixels; the answer is in full-resolution pixels.")] = ESTIMATE_WORK_SIZE,
     full_resolution: Annotated[bool, typer.Option("--full-resolution", help="Estimate at the images' full resolution (slow and memory-hungry on large photos).", metavar="")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --viz file that udh did not write.", metavar="")] = False,
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
 ) -> None:
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold]).
@@ -135,7 +137,8 @@ def estimate(
     try:
         options = {**parse_method_options(option, [method.value]).get(method.value, {}),
                    **{key: value for key, value in given.items() if value is not None}}
-        report = estimate_report(image_a, image_b, method.value, gt=gt, viz=viz, work_size=None if full_resolution else work_size, **options)
+        report = estimate_report(image_a, image_b, method.value, gt=gt, viz=viz, work_size=None if full_resolution else work_size,
+                                 overwrite=overwrite, **options)
     except UdhError as exc:
         if json_output:  # scripts read stdout: one object, whatever happened
             sys.stdout.write(json.dumps({"method": method.value, "ok": False, "verified": False, "failure": str(exc), "exit_code": 1}) + "\n")
@@ -238,6 +241,7 @@ def export_onnx(
     checkpoint: Annotated[Path, typer.Argument(metavar="CHECKPOINT", help="A checkpoint written by `udh train` (checkpoint.pt or best.pt).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="The .onnx file to write.")] = Path("model.onnx"),
     check_images: Annotated[Optional[Path], typer.Option(help="Folder of images whose synthetic pairs join the parity check.")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing output file that udh did not write.", metavar="")] = False,
 ) -> None:
     """Export a checkpoint's network to ONNX with its metadata, and check parity against torch."""
     _require_torch()
@@ -252,7 +256,7 @@ def export_onnx(
         sources = load_sources(list_images(check_images)[:20], min_count=1)
         pairs = make_pairs(sources, 16, PairConfig(), np.random.default_rng(0), with_context=False)
         real = np.stack([pairs.patch_a, pairs.patch_b], 1)
-    result = run_export(checkpoint, output, real)
+    result = run_export(checkpoint, output, real, overwrite)
     meta = result["metadata"]
     if meta["mode"] == "match":  # descriptors of images of any size, not offsets of a fixed input
         console.print(f"wrote {result['path']}: {meta['arch']} ({meta['mode']}), {meta['steps']} steps, images of any size "
@@ -270,12 +274,13 @@ def quantize(
     pairs: Annotated[int, typer.Option(help="Calibration pairs per motion level (4 levels up to the model's training rho).")] = 64,
     images: Annotated[int, typer.Option(help="At most this many images are drawn from --data.")] = 200,
     seed: Annotated[int, typer.Option(help="Seed of the image draw and the synthetic pairs.")] = 0,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing output file that udh did not write (the shipped int8 model among them).", metavar="")] = False,
 ) -> None:
     """Quantize a network to int8 for faster CPU inference, calibrated on synthetic pairs of your images."""
     from udh_cli.train.quantize import quantize_from_folders
 
     with console.status("calibrating..."):
-        result = quantize_from_folders(model, output, data, images, pairs, seed)
+        result = quantize_from_folders(model, output, data, images, pairs, seed, overwrite)
     console.print(f"wrote {result['path']}: int8 of {model.name}; offsets differ from float32 by "
                   f"{result['median_drift_px']:.3f} px median, {result['max_drift_px']:.2f} px at most ({result['check_pairs']} check pairs)")
 
@@ -302,6 +307,7 @@ def simulate(
     gps: Annotated[Optional[str], typer.Option("--gps", metavar="LAT,LON", help="Write EXIF GPS into the frames, the ground's top-left corner at LAT,LON (WGS84 degrees).")] = None,
     gps_noise: Annotated[float, typer.Option(min=0.0, max=100.0, help="With --gps: each fix's error, metres (standard deviation).")] = _GPS.noise_m,
     metres_per_pixel: Annotated[float, typer.Option(min=0.001, max=10.0, help="With --gps: ground size of one ground-image pixel, metres.")] = _GPS.metres_per_pixel,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="With --ground-preview: replace an existing FOLDER_ground.jpg that udh did not write.", metavar="")] = False,
 ) -> None:
     """Write a simulated drone flight with exact ground truth (frames + ground_truth.json), for trying udh anywhere."""
     from udh_cli.simulate import GpsConfig, write_flight
@@ -318,7 +324,7 @@ def simulate(
         if not (-80.0 <= latitude <= 84.0 and -180.0 <= longitude <= 180.0):
             raise UdhError(f"--gps {gps}: latitude must be within -80..84 (UTM) and longitude within -180..180")
         gps_config = GpsConfig(latitude, longitude, metres_per_pixel=metres_per_pixel, noise_m=gps_noise)
-    path = write_flight(folder, config, seed, ground_preview=ground_preview, gps=gps_config)
+    path = write_flight(folder, config, seed, ground_preview=ground_preview, gps=gps_config, overwrite=overwrite)
     err_console.print(f"wrote {strips * frames_per_strip} frames and {path}", highlight=False, soft_wrap=True)
 
 
@@ -330,6 +336,7 @@ bench_app = typer.Typer(
 app.add_typer(bench_app, name="bench")
 
 _METHODS_HELP = "Comma-separated registry names (default: every registered method)."
+OVERWRITE_HELP = "Replace existing output files that udh did not write (without it, only files an earlier udh run wrote, unchanged, are replaced)."
 
 
 @bench_app.command("synthetic")
@@ -348,19 +355,20 @@ def bench_synthetic(
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.", metavar="")] = True,
     motion: Annotated[str, typer.Option("--motion", help="paper (128x128 patches, corners moved by --rho) or flight (whole 320x240 frames with real flight motion: turns, scale, low overlap).")] = "paper",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP, metavar="")] = False,
 ) -> None:
     """Benchmark on synthetic pairs from held-out images, drawn with the training generator."""
     from udh_cli.bench import check_output_folder, run_synthetic_bench
     from udh_cli.bench.runner import parse_methods
     from udh_cli.bench.suite import bench_options, parse_rhos
 
-    check_output_folder(out)
+    check_output_folder(out, overwrite)
     result = run_synthetic_bench(
         images=images, rhos=parse_rhos(rho), count=n, seed=seed, illumination=illumination, occluders=occluders,
         methods=parse_methods(methods) if methods else None, mode=mode, options=bench_options(option, methods),
-        save_pairs=save_pairs, load_pairs=load_pairs, motion=motion,
+        save_pairs=save_pairs, load_pairs=load_pairs, motion=motion, overwrite=overwrite,
     )
-    _finish_bench(result, out, plots)
+    _finish_bench(result, out, plots, overwrite)
 
 
 @bench_app.command("pairs")
@@ -372,16 +380,17 @@ def bench_pairs(
     out: Annotated[Path, typer.Option("--out", help="Folder for the result files and plots.")] = Path("bench-results"),
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.", metavar="")] = True,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP, metavar="")] = False,
 ) -> None:
     """Benchmark on real image pairs with known homographies."""
     from udh_cli.bench import check_output_folder, run_pairs_bench
     from udh_cli.bench.runner import parse_methods
     from udh_cli.bench.suite import bench_options
 
-    check_output_folder(out)
+    check_output_folder(out, overwrite)
     result = run_pairs_bench(source, methods=parse_methods(methods) if methods else None, h_column=h_column,
                              prefix=prefix, options=bench_options(option, methods))
-    _finish_bench(result, out, plots)
+    _finish_bench(result, out, plots, overwrite)
 
 
 @bench_app.command("speed")
@@ -394,6 +403,7 @@ def bench_speed(
     out: Annotated[Path, typer.Option("--out", help="Folder for results.json, results.md and stages.png.")] = Path("bench-speed"),
     keep_mosaic: Annotated[bool, typer.Option("--keep-mosaic", help="Write the mosaic into --out as well (default: a temporary folder, removed after).", metavar="")] = False,
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP, metavar="")] = False,
 ) -> None:
     """Time a mosaic stage by stage against a fixed workload timed in the same run (every frame decoded and run
     through SIFT at 800 px on one thread), so that figures from different machines compare."""
@@ -402,11 +412,11 @@ def bench_speed(
     from udh_cli.bench.speed import PAIR_METHODS, run_speed_bench
     from udh_cli.bench.speed_report import markdown, write_speed_outputs
 
-    check_output_folder(out)
+    check_output_folder(out, overwrite)
     pair_methods = parse_methods(methods) if methods else list(PAIR_METHODS)
     options = parse_method_options(option, list(dict.fromkeys([method.value, *(pair_methods if pairs else [])])))
     result = run_speed_bench(folder, method.value, workers, options, pairs, pair_methods, mosaic_dir=out if keep_mosaic else None, progress=True)
-    written = write_speed_outputs(result, out)
+    written = write_speed_outputs(result, out, overwrite)
     sys.stdout.write(markdown(result))
     err_console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, soft_wrap=True)
 
@@ -422,6 +432,7 @@ def bench_hard(
     out: Annotated[Path, typer.Option("--out", help="Folder for results.md, results.json and reliability.png.")] = Path("bench-hard"),
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw reliability.png.", metavar="")] = True,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP, metavar="")] = False,
 ) -> None:
     """Real pairs with known motion (as captured, turned, scaled, tilted): failures, verified-but-wrong and a reliability diagram."""
     from udh_cli.bench import check_output_folder
@@ -430,18 +441,18 @@ def bench_hard(
     from udh_cli.bench.runner import parse_methods
     from udh_cli.bench.suite import bench_options
 
-    check_output_folder(out)
+    check_output_folder(out, overwrite)
     result = run_hard_bench(sources, methods=parse_methods(methods), count=n, seed=seed, prefix=prefix,
                             min_inliers=min_inliers, options=bench_options(option, methods))
-    written = write_hard_outputs(result, out, plots=plots)
+    written = write_hard_outputs(result, out, plots=plots, overwrite=overwrite)
     sys.stdout.write(markdown_table(result))
     err_console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, soft_wrap=True)
 
 
-def _finish_bench(result, out: Path, plots: bool) -> None:
+def _finish_bench(result, out: Path, plots: bool, overwrite: bool) -> None:
     from udh_cli.bench import markdown_table, write_outputs
 
-    written = write_outputs(result, out, plots=plots)
+    written = write_outputs(result, out, plots=plots, overwrite=overwrite)
     sys.stdout.write(markdown_table(result))
     err_console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, soft_wrap=True)
 
@@ -486,6 +497,13 @@ def _run() -> None:
         _fail(str(exc), 1)
     except (KeyboardInterrupt, typer.Abort):
         _fail("interrupted", INTERRUPTED)
+    except OSError as exc:
+        if _state["debug"] or exc.errno != errno.ENAMETOOLONG:
+            raise
+        from udh_cli.images import shown_path
+
+        # Any path argument can be too long; the library checks the ones it opens, this catches the rest.
+        _fail(f"{shown_path(exc.filename)}: the path is too long for this file system; give a shorter one", 1)
     except Exception as exc:  # noqa: BLE001 - the last line of defence: no traceback without --debug
         if _is_usage_error(exc):
             if type(exc).__name__ != "NoArgsIsHelpError":  # that one has printed the help already

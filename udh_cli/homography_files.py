@@ -10,32 +10,36 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
+from udh_cli.files import read_side_file
 
 
-def read_homography(path: str | Path) -> np.ndarray:
+MAX_HOMOGRAPHY_FILE_BYTES = 2**20  # nine numbers, or an OpenCV FileStorage file or estimate's JSON around them
+
+
+def read_homography(path: str | Path, option: str = "") -> np.ndarray:
     """Read a 3x3 homography, ``b_from_a`` in pixels, normalised to h33 = 1.
 
     Accepted forms: nine numbers separated by spaces, commas or newlines (row-major; Oxford/HPatches
     ``H1to3p`` text files are of this kind); a JSON list of 3 rows or of 9 numbers, or an object with a
     ``homography`` key (``udh estimate --json`` output); an OpenCV FileStorage ``.xml``/``.yml`` file,
-    whose first matrix is taken. Raises :class:`UdhError` for anything else.
+    whose first matrix is taken. Only a regular file of at most 1 MiB is read (``option``, e.g. ``--gt``, is
+    named in the messages). Raises :class:`UdhError` for anything else.
     """
     path = Path(path)
     if path.is_dir():
         raise UdhError(f"{path}: is a folder, not a homography file")
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):
         raise UdhError(f"{path}: no such homography file; check the path")
+    text = read_side_file(path, option, MAX_HOMOGRAPHY_FILE_BYTES).decode("utf-8-sig", errors="replace")  # binary: 'not a 3x3'
     suffix = path.suffix.lower()
     try:
         if suffix in (".xml", ".yml", ".yaml"):
-            values = _read_filestorage(path)
+            values = _read_filestorage(text)
         elif suffix == ".json":
-            data = json.loads(path.read_text())
+            data = json.loads(text)
             values = data.get("homography") if isinstance(data, dict) else data
         else:
-            values = parse_numbers(path.read_text())
-    except OSError as exc:
-        raise UdhError(f"{path}: cannot read it ({exc.strerror}); check its permissions") from None
+            values = parse_numbers(text)
     except (ValueError, TypeError, AttributeError, RecursionError, json.JSONDecodeError, cv2.error):  # RecursionError: absurdly nested JSON
         values = None
     return homography_from_values(values, str(path))
@@ -65,10 +69,10 @@ def homography_from_values(values, where: str) -> np.ndarray:
     return matrix
 
 
-def _read_filestorage(path: Path) -> np.ndarray:
-    """The first matrix node in an OpenCV FileStorage file; ValueError if there is none."""
+def _read_filestorage(text: str) -> np.ndarray:
+    """The first matrix node in the text of an OpenCV FileStorage file; ValueError if there is none."""
     try:
-        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        storage = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
     except (cv2.error, SystemError):  # the parser raises (wrapped as SystemError) on malformed XML/YAML
         raise ValueError("unparsable") from None
     if not storage.isOpened():

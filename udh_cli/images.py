@@ -8,6 +8,7 @@ import os
 import sys
 import tempfile
 import threading
+import warnings
 from pathlib import Path
 
 import cv2
@@ -22,6 +23,9 @@ MIN_IMAGE_SIDE = 8  # pixels; below this no estimator can say anything useful
 _PILLOW_LOCK = threading.Lock()
 MAX_PIXELS_ENV = "UDH_MAX_PIXELS"
 DEFAULT_MAX_PIXELS = 250_000_000  # 250 MP: a 16,000 x 15,000 frame; far above any drone camera, far below a bomb
+# Huffman-coded JPEG spends at least about 2 bits on each 8x8 block (256 pixels a byte); far more pixels a byte
+# is a truncated file or a forged header, whose decoder would invent the missing pixels.
+MAX_JPEG_PIXELS_PER_BYTE = 4096
 
 
 def max_pixels() -> int:
@@ -52,16 +56,24 @@ def image_size_from_header(data: bytes | np.ndarray) -> tuple[int, int] | None:
         # Pillow's own bomb check raises before it says the size; udh applies its own limit to the size.
         saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
         try:
-            with Image.open(io.BytesIO(bytes(data))) as header:
-                return header.size
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # Pillow's "Corrupt EXIF data" while it reads the DPI: not the size
+                with Image.open(io.BytesIO(bytes(data))) as header:
+                    return header.size
         except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
             return None
         finally:
             Image.MAX_IMAGE_PIXELS = saved
 
 
-def _read_bytes(path: Path) -> bytes:
-    """The file's bytes; pipes (``<(cat a.png)``) are read as they come, and a FIFO without a writer is empty.
+def max_file_bytes() -> int:
+    """The largest image file udh reads: :func:`max_pixels` of uncompressed 16-bit RGBA, plus room for metadata."""
+    return max_pixels() * 8 + (64 << 20)
+
+
+def _read_bytes(path: Path, limit: int) -> bytes:
+    """The file's bytes, at most ``limit`` (:class:`UdhError` past it, before reading a regular file); pipes
+    (``<(cat a.png)``) are read as they come, and a FIFO without a writer is empty.
 
     A FIFO opened without O_NONBLOCK waits for a writer for ever; opened with it, it reads at once what a
     writer has sent (a process substitution) or nothing (no writer), and the blocking reads that follow end
@@ -72,14 +84,27 @@ def _read_bytes(path: Path) -> bytes:
     try:
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
-        chunks = []
+        if os.fstat(fd).st_size > limit:
+            raise UdhError(f"{path}: {os.fstat(fd).st_size >> 20} MiB, larger than any image udh reads ({limit >> 20} MiB); "
+                           f"check the file, or raise {MAX_PIXELS_ENV} if it is a real image")
+        chunks, total = [], 0
         while True:
             chunk = os.read(fd, 1 << 20)
             if not chunk:
                 return b"".join(chunks)
             chunks.append(chunk)
+            total += len(chunk)
+            if total > limit:  # a pipe that does not end (cat /dev/zero |)
+                raise UdhError(f"{path}: more than {limit >> 20} MiB came through it, more than any image udh reads; "
+                               f"check what writes to it")
     finally:
         os.close(fd)
+
+
+def shown_path(path: str | os.PathLike, limit: int = 160) -> str:
+    """``path`` for a one-line message: whole when short, else its start and end around an ellipsis."""
+    text = str(path)
+    return text if len(text) <= limit else f"{text[: limit // 2 - 2]}...{text[-(limit // 2 - 2):]} ({len(os.fsencode(text))} bytes)"
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
@@ -92,15 +117,19 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     import stat
 
     path = Path(path)
-    if not path.exists():
+    try:
+        exists, is_dir = path.exists(), path.is_dir()
+    except OSError as exc:  # e.g. a name longer than the file system takes (ENAMETOOLONG)
+        raise UdhError(f"{shown_path(path)}: cannot use this path ({exc.strerror or exc}); give a shorter or correct one") from None
+    if not exists:
         raise UdhError(f"{path}: no such file; check the path")
-    if path.is_dir():
+    if is_dir:
         raise UdhError(f"{path}: is a folder, not an image file")
     try:
         mode = path.stat().st_mode
         if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)):
             raise UdhError(f"{path}: not a regular file (a device or socket); give a JPEG, PNG or TIFF file")
-        data = _read_bytes(path)
+        data = _read_bytes(path, max_file_bytes())
     except OSError as exc:
         raise UdhError(f"{path}: cannot read it ({exc.strerror or exc}); check its permissions") from None
     if len(data) == 0:
@@ -110,14 +139,21 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     if size is not None and size[0] * size[1] > limit:
         raise UdhError(f"{path}: the image declares {size[0]}x{size[1]} pixels, over the {limit / 1e6:.0f} MP limit; "
                        f"downscale it, or raise {MAX_PIXELS_ENV} if it is real")
+    if size is not None and data[:2] == b"\xff\xd8" and size[0] * size[1] > len(data) * MAX_JPEG_PIXELS_PER_BYTE:
+        raise UdhError(f"{path}: the JPEG declares {size[0]}x{size[1]} pixels in only {len(data)} bytes: it is truncated or "
+                       f"damaged; copy the whole file again")
     # ANYDEPTH keeps 16-bit data; ANYCOLOR keeps grey as grey. Without IGNORE_ORIENTATION, EXIF is applied.
+    messages: list[str] = []
     try:
-        with _native_messages_silenced():
+        with _native_messages_silenced(messages):
             image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     except cv2.error:  # e.g. beyond OpenCV's pixel limit, or a codec that rejects the stream outright
         image = None
     if image is None:
         raise UdhError(f"{path}: not a readable image; give a JPEG, PNG or TIFF file")
+    damage = next((line.strip() for line in messages if line.lstrip().startswith(DAMAGE_MESSAGES)), None)
+    if damage is not None:  # the decoder went on, filling what it could not read: the pixels are not the photo's
+        raise UdhError(f"{path}: the file is damaged (the decoder says: {damage[:120]}); copy it again from the camera")
     if image.shape[0] * image.shape[1] > limit:  # a format whose header Pillow could not read
         raise UdhError(f"{path}: {image.shape[1]}x{image.shape[0]} pixels, over the {limit / 1e6:.0f} MP limit; "
                        f"downscale it, or raise {MAX_PIXELS_ENV} if it is real")
@@ -128,22 +164,27 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
 
 
 _STDERR_LOCK = threading.Lock()
+# What libjpeg prints when it met damage and went on with invented pixels (grey blocks, a shifted half).
+DAMAGE_MESSAGES = ("Corrupt JPEG data", "Premature end of JPEG file", "Invalid JPEG file structure")
 
 
 @contextlib.contextmanager
-def _native_messages_silenced():
+def _native_messages_silenced(captured: list[str] | None = None):
     """Mute what the C codecs print on stderr while decoding a broken file ("libpng error: ...",
-    "Corrupt JPEG data", OpenCV's WARN log): the user gets one clear line from udh instead."""
+    "Corrupt JPEG data", OpenCV's WARN log): the user gets one clear line from udh instead. The lines printed
+    are appended to ``captured`` when it is given."""
     with _STDERR_LOCK:
         level = cv2.utils.logging.getLogLevel()
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-        saved = None
+        saved = sink = None
         try:
             sys.stderr.flush()
             saved = os.dup(2)
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, 2)
-            os.close(devnull)
+            try:
+                sink = tempfile.TemporaryFile() if captured is not None else open(os.devnull, "wb")  # noqa: SIM115
+            except OSError:  # no room for the capture (a full disk): mute at least
+                sink = open(os.devnull, "wb")  # noqa: SIM115
+            os.dup2(sink.fileno(), 2)
         except (OSError, ValueError, AttributeError):  # no fd 2 or no sys.stderr: only the log is muted
             pass
         try:
@@ -152,6 +193,11 @@ def _native_messages_silenced():
             if saved is not None:
                 os.dup2(saved, 2)
                 os.close(saved)
+            if sink is not None:
+                if captured is not None and sink.seekable():
+                    sink.seek(0)
+                    captured.extend(sink.read(1 << 16).decode(errors="replace").splitlines())
+                sink.close()
             cv2.utils.logging.setLogLevel(level)
 
 
@@ -252,7 +298,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """
     path = check_output_path(path)
     folder = path.parent
-    mode = _new_file_mode(path)
+    mode = new_file_mode(path)
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
     except OSError as exc:
@@ -302,7 +348,7 @@ def check_output_path(path: str | os.PathLike, suffixes: tuple[str, ...] | None 
     return path
 
 
-def _new_file_mode(path: Path) -> int:
+def new_file_mode(path: Path) -> int:
     """Permissions for a file written at ``path``: those of the file it replaces, else 0o666 minus umask."""
     try:
         return path.stat().st_mode & 0o7777
@@ -312,14 +358,24 @@ def _new_file_mode(path: Path) -> int:
         return 0o666 & ~umask
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Encode ``image`` by the suffix of ``path`` (PNG, JPEG, TIFF...) and write it atomically."""
+def encode_image(path: str | os.PathLike, image: np.ndarray) -> bytes:
+    """``image`` encoded by the suffix of ``path`` (PNG, JPEG, TIFF...), whose folder is checked for writing."""
     path = check_output_path(path, IMAGE_SUFFIXES)
     suffix = path.suffix.lower()
+    messages: list[str] = []
     try:
-        ok, encoded = cv2.imencode(suffix, image)
+        # OpenCV's TIFF encoder goes through a temporary file, and libtiff prints its write errors (a full disk).
+        with _native_messages_silenced(messages):
+            ok, encoded = cv2.imencode(suffix, image)
     except cv2.error:
         ok = False
     if not ok:
-        raise UdhError(f"{path}: OpenCV could not encode a {image.shape} {image.dtype} image as {suffix}")
-    return atomic_write_bytes(path, encoded.tobytes())
+        said = next((line.strip() for line in messages if line.strip()), "")
+        raise UdhError(f"{path}: OpenCV could not encode a {image.shape} {image.dtype} image as {suffix}"
+                       + (f" ({said[:120]}); check the free space of the temporary folder" if said else ""))
+    return encoded.tobytes()
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Encode ``image`` by the suffix of ``path`` (PNG, JPEG, TIFF...) and write it atomically."""
+    return atomic_write_bytes(path, encode_image(path, image))

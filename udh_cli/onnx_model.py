@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 from dataclasses import dataclass
@@ -10,8 +11,11 @@ from pathlib import Path
 import numpy as np
 
 from udh_cli.errors import UdhError
+from udh_cli.files import read_side_file
 
 MODEL_FORMAT = "udh-onnx-1"
+MAX_INPUT_SIZE = 512  # px: the largest patch training builds (udh_cli.train.checkpoint.MAX_PATCH_SIZE)
+MAX_MODEL_BYTES = 2**31  # protobuf's own limit for one ONNX file
 
 
 MATCHER_ARCH = "matcher"  # the metadata ``arch`` of a descriptor network (udh_cli.train.archs.DenseMatcher)
@@ -40,7 +44,7 @@ def _open_udh_model(path: str | Path, device: str, threads: int | None) -> tuple
         # QDQ propagation moves an int8 model's first quantize step above its first max-pool, which then
         # runs on uint8 in NCHW, a slow kernel: 0.5 ms of a 1.6 ms pass (`udh quantize`). Off, the pool
         # stays float32 and blocked (20 us). Float32 models have no QDQ nodes, so nothing changes for them.
-        model_bytes = path.read_bytes()
+        model_bytes = read_side_file(path, "", MAX_MODEL_BYTES)
         session = ort.InferenceSession(model_bytes, sess_options=options, providers=providers_for(device),
                                        disabled_optimizers=["QDQPropagationTransformer"])
     except UdhError:
@@ -55,8 +59,9 @@ def _open_udh_model(path: str | Path, device: str, threads: int | None) -> tuple
         mean, std = float(metadata["normalization_mean"]), float(metadata["normalization_std"])
     except (KeyError, ValueError):
         raise UdhError(f"{path}: the model's udh metadata is incomplete or malformed") from None
-    if not (math.isfinite(mean) and math.isfinite(std) and std > 0 and size >= 16):
-        raise UdhError(f"{path}: unusable metadata (input size {size}, mean {mean}, std {std})")
+    if not (math.isfinite(mean) and math.isfinite(std) and std > 0 and 16 <= size <= MAX_INPUT_SIZE):
+        raise UdhError(f"{path}: unusable metadata (input size {size}, mean {mean}, std {std}; udh networks take 16 to "
+                       f"{MAX_INPUT_SIZE} px)")
     return path, session, size, mean, std, metadata, hashlib.blake2b(model_bytes, digest_size=16).hexdigest()
 
 
@@ -75,6 +80,16 @@ def providers_for(device: str) -> list[str]:
     if device == "auto":
         return (["CUDAExecutionProvider"] if "CUDAExecutionProvider" in available else []) + ["CPUExecutionProvider"]
     raise UdhError(f"unknown --device '{device}'; choose auto, cpu or cuda")
+
+
+@functools.cache
+def _quiet_run():
+    """Run options under which onnxruntime prints nothing itself: udh reports a failed run in one line."""
+    import onnxruntime as ort
+
+    options = ort.RunOptions()
+    options.log_severity_level = 4  # fatal only
+    return options
 
 
 @dataclass
@@ -97,6 +112,17 @@ class _UdhOnnxModel:
         what actually ran, which ``--device auto`` or a CPU-only onnxruntime may make differ from the request."""
         providers = self.session.get_providers()
         return providers[0] if providers else "unknown"
+
+    def run(self, batch: np.ndarray) -> np.ndarray:
+        """The network's one output for the standardised ``batch``; a failure inside onnxruntime (a graph that
+        loads but cannot run) is a one-line :class:`UdhError`, not an internal error."""
+        name = self.session.get_inputs()[0].name  # load() checked there is one
+        try:
+            return self.session.run(None, {name: batch}, _quiet_run())[0]
+        except Exception as exc:  # noqa: BLE001 - onnxruntime raises several private exception types
+            detail = " ".join(str(exc).split())[-120:]  # the end names the node's complaint; the start, source paths
+            raise UdhError(f"{self.path}: the network failed inside onnxruntime ({type(exc).__name__}: {detail}); "
+                           f"give a network written by `udh export-onnx`") from None
 
     def standardise(self, grey: np.ndarray) -> np.ndarray:
         """Grey values in [0, 1] (patches or images, any shape) -> the float32 network input, standardised as in
@@ -132,8 +158,7 @@ class OnnxHomographyModel(_UdhOnnxModel):
         if patches.ndim != 4 or patches.shape[1:] != (2, self.input_size, self.input_size):
             raise UdhError(f"expected patches of shape (N, 2, {self.input_size}, {self.input_size}), got {patches.shape}")
         standardised = self.standardise(patches)
-        name = self.session.get_inputs()[0].name  # "patches" from `udh export-onnx`; load() checked there is one
-        outputs = [self.session.run(None, {name: standardised[i : i + batch_size]})[0] for i in range(0, len(patches), batch_size)]
+        outputs = [self.run(standardised[i : i + batch_size]) for i in range(0, len(patches), batch_size)]
         return np.concatenate(outputs).astype(np.float64)
 
 @dataclass
@@ -157,9 +182,7 @@ class OnnxMatcher(_UdhOnnxModel):
         """(H, W) grey in [0, 1], H and W multiples of 4 -> (C, H/4, W/4) float32 unit descriptors."""
         if grey.ndim != 2 or grey.shape[0] % 4 or grey.shape[1] % 4 or min(grey.shape) < 32:
             raise UdhError(f"the matcher takes one grey image with sides multiples of 4 and at least 32 px, got {grey.shape}")
-        standardised = self.standardise(grey)[None, None]
-        name = self.session.get_inputs()[0].name
-        return self.session.run(None, {name: standardised})[0][0]
+        return self.run(self.standardise(grey)[None, None])[0]
 
 
 def write_metadata(proto, metadata: dict[str, str]) -> None:

@@ -26,6 +26,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
+from udh_cli.files import check_replaceable, read_side_text, staged_folder, write_output
 from udh_cli.images import atomic_write_bytes
 
 GROUND_TRUTH_FILE = "ground_truth.json"
@@ -248,6 +249,23 @@ def render_frame(ground: np.ndarray, pose: dict, config: FlightConfig, rng: np.r
     return SimFrame(np.clip(image + 0.5, 0, 255).astype(np.uint8), ground_from_frame, pose)
 
 
+GROUND_BYTES_PER_PIXEL = 64  # make_ground's float32 layers, coordinates and labels at once
+RENDER_BYTES_PER_PIXEL = 48  # render_frame's float32 copies of one frame
+
+
+def check_flight_memory(config: FlightConfig) -> None:
+    """Raise :class:`UdhError`, naming the options to lower, when :func:`simulate_flight` would not fit in memory
+    (:func:`udh_cli.budget.check_memory`): the ground, every frame kept, and one frame's rendering copies."""
+    from udh_cli.budget import check_memory
+
+    _, (ground_w, ground_h) = plan_path(config, np.random.default_rng(0))
+    width, height = config.frame_size
+    frames = config.strips * config.frames_per_strip
+    needed = ground_w * ground_h * GROUND_BYTES_PER_PIXEL + width * height * (3 * frames + RENDER_BYTES_PER_PIXEL)
+    check_memory(needed, f"a {width}x{height} flight of {frames} frames (ground {ground_w}x{ground_h})",
+                 "lower --width and --height, --strips or --frames-per-strip, or raise the overlaps")
+
+
 def simulate_flight(config: FlightConfig = FlightConfig(), seed: int = 0) -> tuple[list[SimFrame], np.ndarray]:
     """The frames of a simulated flight, in flight order, and the ground image they were taken of."""
     rng = np.random.default_rng(seed)
@@ -312,19 +330,31 @@ def _jpeg_with_gps(image: np.ndarray, quality: int, latitude: float, longitude: 
 
 
 def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed: int = 0, ground_preview: bool = False,
-                 gps: GpsConfig | None = None) -> Path:
+                 gps: GpsConfig | None = None, overwrite: bool = False) -> Path:
     """Simulate a flight and write ``frame_NNN.jpg`` (more digits past 1,000 frames) plus ``ground_truth.json``
     into ``folder``.
 
     The ground truth holds every frame's ``ground_from_frame`` and every consecutive pair's ``b_from_a``
     (pixels of frame a to pixels of frame b); with ``gps``, the frames carry EXIF GPS of their centres
-    (with the configured noise) and the truth records each frame's exact ``gps``. Returns the path of the
-    ground-truth file.
+    (with the configured noise) and the truth records each frame's exact ``gps``. With ``ground_preview``, the
+    whole ground goes to ``FOLDER_ground.jpg`` beside the folder, replacing a file there only when udh wrote it,
+    or with ``overwrite``. Returns the path of the ground-truth file.
     """
     folder = Path(folder)
     if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
         raise UdhError(f"{folder}: exists and is not an empty folder; the simulator writes only into a new or empty one")
-    folder.mkdir(parents=True, exist_ok=True)
+    preview = folder.parent / f"{folder.name}_ground.jpg"
+    if ground_preview:
+        check_replaceable(preview, overwrite)
+    check_flight_memory(config)
+    with staged_folder(folder) as staging:  # all or none: a full disk leaves no half flight to block the rerun
+        _write_flight_into(staging, config, seed, gps, preview if ground_preview else None, overwrite)
+    return folder / GROUND_TRUTH_FILE
+
+
+def _write_flight_into(folder: Path, config: FlightConfig, seed: int, gps: GpsConfig | None, preview: Path | None,
+                       overwrite: bool) -> None:
+    """:func:`write_flight`'s work, into ``folder`` (its staging folder); ``preview``: where the ground goes, if anywhere."""
     frames, ground = simulate_flight(config, seed)
     records = []
     noise = np.random.default_rng([seed, 17])
@@ -349,9 +379,9 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
     for a, b in zip(frames[:-1], frames[1:]):
         b_from_a = geometry.invert(b.ground_from_frame) @ a.ground_from_frame
         pairs.append({"a": records[len(pairs)]["file"], "b": records[len(pairs) + 1]["file"], "b_from_a": (b_from_a / b_from_a[2, 2]).tolist()})
-    if ground_preview:
+    if preview is not None:
         ok, data = cv2.imencode(".jpg", ground, [cv2.IMWRITE_JPEG_QUALITY, 85])
-        atomic_write_bytes(folder.parent / f"{folder.name}_ground.jpg", data.tobytes())
+        write_output(preview, data.tobytes(), overwrite)
     truth = {
         "format": GROUND_TRUTH_FORMAT,
         "conventions": "pixel centres at integer (x, y); b_from_a maps pixels of a to pixels of b (x_b ~ H x_a); ground_from_frame maps frame pixels to ground-image pixels",
@@ -363,7 +393,7 @@ def write_flight(folder: str | Path, config: FlightConfig = FlightConfig(), seed
         "frames": records,
         "consecutive_pairs": pairs,
     }
-    return atomic_write_bytes(folder / GROUND_TRUTH_FILE, (json.dumps(truth, indent=1) + "\n").encode())
+    atomic_write_bytes(folder / GROUND_TRUTH_FILE, (json.dumps(truth, indent=1) + "\n").encode())
 
 
 def load_ground_truth(path: str | Path) -> dict:
@@ -374,7 +404,7 @@ def load_ground_truth(path: str | Path) -> dict:
     """
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(read_side_text(path))
     except (OSError, ValueError) as exc:
         raise UdhError(f"{path}: cannot read the ground truth ({exc})") from None
     except RecursionError:  # absurdly nested JSON
@@ -388,15 +418,18 @@ def load_ground_truth(path: str | Path) -> dict:
             "consecutive_pairs": [(str(p["a"]), str(p["b"]), _homography(p["b_from_a"])) for p in data["consecutive_pairs"]],
         }
     except (KeyError, TypeError, ValueError):
-        raise UdhError(f"{path}: the ground truth is damaged (missing keys, or homographies that are not finite 3x3 matrices)") from None
+        raise UdhError(f"{path}: the ground truth is damaged (missing keys, or homographies that are not finite, invertible "
+                       f"3x3 matrices)") from None
     if len(truth["frame_size"]) != 2:
         raise UdhError(f"{path}: the ground truth's frame_size is not [width, height]")
     return truth
 
 
 def _homography(values) -> np.ndarray:
-    """A stored 3x3 homography; ValueError unless it is a finite 3x3 matrix."""
+    """A stored 3x3 homography; ValueError unless it is a finite, invertible 3x3 matrix."""
     matrix = np.asarray(values, np.float64)
     if matrix.shape != (3, 3) or not np.isfinite(matrix).all():
         raise ValueError("not a finite 3x3 matrix")
+    if abs(np.linalg.det(matrix)) <= 1e-12 * max(1.0, float(np.abs(matrix).max())) ** 3:  # errors need its inverse
+        raise ValueError("a singular matrix")
     return matrix

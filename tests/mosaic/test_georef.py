@@ -49,6 +49,28 @@ def test_a_bad_gps_fix_is_left_out_and_too_few_frames_give_none():
     assert found.epsg == 32615 and found.frames_rejected == (4,) and found.residual_rms_m < 0.01
     assert found.pixel_size_m == pytest.approx(0.1, rel=1e-4) and abs(found.north_deg) < 0.01
     assert georeference_part(frames[:2]) is None
+    one_fix = [(k, size, h, frames[0][3], frames[0][4]) for k, size, h, _, _ in frames]  # a receiver repeating one fix
+    assert georeference_part(one_fix) is None and georeference_part(one_fix, min_frames=2) is None
+
+
+def test_frames_sharing_one_gps_fix_give_a_mosaic_without_a_georeference(tmp_path, monkeypatch, capfd):
+    from PIL import Image
+
+    from conftest import run_main
+    from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
+
+    write_flight(tmp_path / "flight", FlightConfig(frame_size=(320, 240), strips=1, frames_per_strip=5, focal_px=300.0), seed=3,
+                 gps=GpsConfig(46.85, -92.0))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    files = sorted((tmp_path / "flight").glob("frame_*.jpg"))
+    exif = Image.open(files[0]).info["exif"]
+    for path in files:
+        Image.open(path).save(frames / path.name, "JPEG", quality=95, exif=exif)
+    code, _, err = run_main(monkeypatch, capfd, "mosaic", str(frames), "-o", str(tmp_path / "m.png"), "-m", "sift", "--quiet")
+    assert code == 0, err
+    assert "internal error" not in err and "written without a georeference" in err
+    assert json.loads((tmp_path / "m.json").read_text())["parts"][0]["georeference"] is None
 
 
 def test_a_simulated_flight_with_gps_lands_where_its_gps_says(tmp_path):

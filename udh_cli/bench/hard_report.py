@@ -12,7 +12,7 @@ from udh_cli.bench.hard import HardResult
 from udh_cli.bench.report import _png_bytes, check_output_folder, environment
 from udh_cli.bench.verdicts import ALL_KINDS, VERIFIED_CONFIDENCE, right, verified
 from udh_cli.errors import UdhError
-from udh_cli.images import atomic_write_bytes
+from udh_cli.files import write_file_set
 
 RULES = (
     f"failures: no answer, or a mean corner error (MACE, at A's four corners, in B's pixels at 800 px) over "
@@ -61,11 +61,12 @@ def _finite(value: float) -> float | str:
     return float(value) if math.isfinite(value) else str(value)
 
 
-def write_hard_outputs(result: HardResult, out_dir: str | Path, plots: bool = True) -> list[Path]:
-    """Write ``results.md``, ``results.json`` and (with ``plots``) ``reliability.png`` into ``out_dir``."""
+def write_hard_outputs(result: HardResult, out_dir: str | Path, plots: bool = True, overwrite: bool = False) -> list[Path]:
+    """Write ``results.md``, ``results.json`` and (with ``plots``) ``reliability.png`` into ``out_dir``, all or none,
+    replacing only files udh wrote unless ``overwrite``."""
     from udh_cli.bench.reliability_plot import reliability_plot
 
-    out_dir = check_output_folder(out_dir)
+    out_dir = check_output_folder(out_dir, overwrite)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -75,9 +76,7 @@ def write_hard_outputs(result: HardResult, out_dir: str | Path, plots: bool = Tr
         "results": [{k: _finite(v) if isinstance(v, float) else v for k, v in s.to_dict().items()} for s in result.scores],
         "reliability": [c.to_dict() for c in result.curves], "pairs": _per_pair(result),
     }
-    written = [atomic_write_bytes(out_dir / "results.md", markdown_table(result).encode()),
-               atomic_write_bytes(out_dir / "results.json", json.dumps(payload, indent=2).encode())]
+    files = {"results.md": markdown_table(result).encode(), "results.json": json.dumps(payload, indent=2).encode()}
     if plots:
-        image = reliability_plot(result.curves, title="reliability: all kinds of motion")
-        written.append(atomic_write_bytes(out_dir / "reliability.png", _png_bytes(image)))
-    return written
+        files["reliability.png"] = _png_bytes(reliability_plot(result.curves, title="reliability: all kinds of motion"))
+    return write_file_set(out_dir, files, overwrite)

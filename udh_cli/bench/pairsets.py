@@ -31,7 +31,8 @@ import numpy as np
 
 from udh_cli import geometry, synthetic
 from udh_cli.errors import UdhError
-from udh_cli.images import MIN_IMAGE_SIDE, atomic_write_bytes
+from udh_cli.files import write_output
+from udh_cli.images import MIN_IMAGE_SIDE
 
 CHUNK = 64  # pairs drawn per generator call; each chunk has its own seeded stream (see synthetic_set)
 MIN_IMAGES = 5  # fewer held-out images than this make a set too narrow to say much about a method
@@ -150,6 +151,16 @@ def held_out_sources(
     return sources, f"{where}, {len(sources)} images"
 
 
+PAIR_BYTES = 2 * 4 * (128 * 128 + 320 * 240)  # a pair's two patches and two frames, as float32 at most
+
+
+def check_pairs_memory(count: int, sets: int) -> None:
+    """Raise :class:`UdhError` naming ``--n`` when ``sets`` sets of ``count`` pairs would not fit in memory."""
+    from udh_cli.budget import check_memory
+
+    check_memory(count * sets * PAIR_BYTES, f"--n {count} pairs in {sets} set(s)", "lower --n")
+
+
 def synthetic_set(
     sources: list[np.ndarray], rho: float, count: int, seed: int, illumination: bool = True,
     with_full: bool = False, patch_size: int = 128, occluders: bool = False,
@@ -238,13 +249,14 @@ def _to_u8(frame: np.ndarray) -> np.ndarray:
     return np.clip(frame * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
-def save_sets(path: str | Path, sets: list[PairSet], meta: dict) -> None:
+def save_sets(path: str | Path, sets: list[PairSet], meta: dict, overwrite: bool = False) -> None:
     """Save synthetic sets to one ``.npz``, atomically.
 
     The arrays of all sets are concatenated, with a per-pair ``rho``. The keys ``patch_a``, ``patch_b``,
     ``offsets``, ``origin`` and ``source_index`` are those of :func:`udh_cli.synthetic.save_pairs`, so
     :func:`udh_cli.synthetic.load_pairs` reads the file too. ``full_a``/``full_b`` (uint8) are stored when
-    every set has full frames. ``meta`` (how the pairs were made) is stored as JSON.
+    every set has full frames. ``meta`` (how the pairs were made) is stored as JSON. An existing file is
+    replaced only when udh wrote it, or with ``overwrite``.
     """
     if not sets or any(s.rho is None for s in sets):
         raise UdhError("only synthetic pair sets can be saved")
@@ -265,7 +277,7 @@ def save_sets(path: str | Path, sets: list[PairSet], meta: dict) -> None:
         arrays["full_window"] = np.concatenate([s.full_window for s in sets])
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)
-    atomic_write_bytes(path, buffer.getvalue())
+    write_output(path, buffer.getvalue(), overwrite)
 
 
 def _check_is_zip(path: str | Path) -> None:

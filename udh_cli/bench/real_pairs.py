@@ -14,6 +14,7 @@ Two ways to list them:
 from __future__ import annotations
 
 import csv
+import io
 import re
 from pathlib import Path
 
@@ -21,6 +22,7 @@ import numpy as np
 
 from udh_cli.bench.pairsets import PairSet
 from udh_cli.errors import UdhError
+from udh_cli.files import read_side_text
 from udh_cli.homography_files import homography_from_values, parse_numbers, read_homography
 from udh_cli.images import IMAGE_SUFFIXES, read_image
 
@@ -43,10 +45,9 @@ def load_real_pairs(path: str | Path, h_column: str = "H", prefix: str | None = 
 def load_csv_pairs(path: Path, h_column: str = "H") -> PairSet:
     """Read a pairs CSV (columns ``img1``, ``img2`` and ``h_column``)."""
     try:
-        with open(path, newline="") as handle:
-            rows = list(csv.DictReader(handle))
-            columns = list(rows[0].keys()) if rows else []
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        rows = list(csv.DictReader(io.StringIO(read_side_text(path), newline="")))
+        columns = list(rows[0].keys()) if rows else []
+    except csv.Error as exc:
         raise UdhError(f"{path}: not a readable CSV ({exc})") from None
     if not rows:
         raise UdhError(f"{path}: no pairs; write a header img1,img2,H and one line per pair")

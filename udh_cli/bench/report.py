@@ -16,7 +16,7 @@ from typing import Any
 from udh_cli.bench import metrics
 from udh_cli.bench.runner import WARMUP_PAIRS, MethodRun
 from udh_cli.errors import UdhError
-from udh_cli.images import atomic_write_bytes
+from udh_cli.files import check_replaceable, write_file_set
 
 RULES = (
     "Errors in pixels at the four corners of image A (for synthetic pairs, the 128x128 patch), measured in B. "
@@ -101,9 +101,14 @@ def environment() -> dict[str, Any]:
     }
 
 
-def check_output_folder(out_dir: str | Path) -> Path:
+RESULT_FILES = ("results.md", "results.csv", "results.json", "per_pair.csv")
+PLOT_FILES = ("percentiles.png", "speed_accuracy.png")
+
+
+def check_output_folder(out_dir: str | Path, overwrite: bool = False) -> Path:
     """Raise :class:`UdhError` unless ``out_dir`` is a folder, or can be created as one, that udh may write
-    into. Call it before the benchmark runs, so that a bad ``--out`` fails at once, not after the work."""
+    into, and its result files are udh's own or ``overwrite`` is given (:func:`udh_cli.files.check_replaceable`).
+    Call it before the benchmark runs, so that a bad ``--out`` fails at once, not after the work."""
     out_dir = Path(out_dir)
     existing = out_dir
     while not existing.exists() and existing != existing.parent:
@@ -113,33 +118,37 @@ def check_output_folder(out_dir: str | Path) -> Path:
         raise UdhError(f"{out_dir}:{where} is a file, not a folder; give --out a folder for the results")
     if not os.access(existing, os.W_OK):
         raise UdhError(f"{out_dir}: the folder {existing} is not writable; choose another --out")
+    if existing == out_dir:
+        for name in RESULT_FILES + PLOT_FILES:
+            check_replaceable(out_dir / name, overwrite)
     return out_dir
 
 
-def write_outputs(result: BenchResult, out_dir: str | Path, plots: bool = True) -> list[Path]:
+def write_outputs(result: BenchResult, out_dir: str | Path, plots: bool = True, overwrite: bool = False) -> list[Path]:
     """Write ``results.md``, ``results.csv``, ``results.json``, ``per_pair.csv`` and (with ``plots``)
-    ``percentiles.png`` and ``speed_accuracy.png`` into ``out_dir`` (created if needed); returns the paths."""
-    out_dir = check_output_folder(out_dir)
+    ``percentiles.png`` and ``speed_accuracy.png`` into ``out_dir`` (created if needed); returns the paths.
+    Existing files are replaced only when udh wrote them, or with ``overwrite``; the set is written all or none."""
+    out_dir = check_output_folder(out_dir, overwrite)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UdhError(f"{out_dir}: cannot create the results folder ({exc.strerror}); choose another --out") from None
     rows = table_rows(result)
-    written = [
-        atomic_write_bytes(out_dir / "results.md", markdown_table(result).encode()),
-        atomic_write_bytes(out_dir / "results.csv", _csv_bytes(rows)),
-        atomic_write_bytes(out_dir / "results.json", json.dumps({
+    files = {
+        "results.md": markdown_table(result).encode(),
+        "results.csv": _csv_bytes(rows),
+        "results.json": json.dumps({
             "kind": result.kind, "config": result.config, "rules": list(RULES), "notes": result.notes,
             "environment": environment(), "results": [_json_safe(r) for r in rows],
-        }, indent=2).encode()),
-        atomic_write_bytes(out_dir / "per_pair.csv", _csv_bytes(_per_pair_rows(result))),
-    ]
+        }, indent=2).encode(),
+        "per_pair.csv": _csv_bytes(_per_pair_rows(result)),
+    }
     if plots:
         from udh_cli.bench.plots import percentile_plot, speed_accuracy_plot
 
-        written.append(atomic_write_bytes(out_dir / "percentiles.png", _png_bytes(percentile_plot(result.runs))))
-        written.append(atomic_write_bytes(out_dir / "speed_accuracy.png", _png_bytes(speed_accuracy_plot(result.runs))))
-    return written
+        files["percentiles.png"] = _png_bytes(percentile_plot(result.runs))
+        files["speed_accuracy.png"] = _png_bytes(speed_accuracy_plot(result.runs))
+    return write_file_set(out_dir, files, overwrite)  # all or none: a full disk leaves no half-replaced set
 
 
 def _png_bytes(image) -> bytes:

@@ -13,7 +13,7 @@ from udh_cli.bench.plots import GRID, PALETTE, TEXT, Axes, _number, _text
 from udh_cli.bench.report import _png_bytes, check_output_folder
 from udh_cli.bench.speed import REFERENCE_SIDE, UNSTAGED, SpeedResult
 from udh_cli.errors import UdhError
-from udh_cli.images import atomic_write_bytes
+from udh_cli.files import write_file_set
 
 REFERENCE_COLOUR = (70, 70, 70)  # darker than every stage's colour
 UNSTAGED_COLOUR = (215, 215, 215)
@@ -106,13 +106,14 @@ def _bar(axes: Axes, centre: float, segments: list[tuple[float, tuple[int, int, 
     _text(axes.canvas, label, (axes.rect[0] - 8, int(axes.to_px([0.0], [centre])[0, 1])), align="right", valign="middle", colour=TEXT)
 
 
-def write_speed_outputs(result: SpeedResult, out_dir: str | Path) -> list[Path]:
-    """Write ``results.json``, ``results.md`` and ``stages.png`` into ``out_dir`` (created); returns their paths."""
-    out_dir = check_output_folder(out_dir)
+def write_speed_outputs(result: SpeedResult, out_dir: str | Path, overwrite: bool = False) -> list[Path]:
+    """Write ``results.json``, ``results.md`` and ``stages.png`` into ``out_dir`` (created), all or none, replacing
+    only files udh wrote unless ``overwrite``; returns their paths."""
+    out_dir = check_output_folder(out_dir, overwrite)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UdhError(f"{out_dir}: cannot create the results folder ({exc.strerror}); choose another --out") from None
-    return [atomic_write_bytes(out_dir / "results.json", (json.dumps(result.to_json(), indent=2) + "\n").encode()),
-            atomic_write_bytes(out_dir / "results.md", markdown(result).encode()),
-            atomic_write_bytes(out_dir / "stages.png", _png_bytes(stage_bars(result)))]
+    return write_file_set(out_dir, {"results.json": (json.dumps(result.to_json(), indent=2) + "\n").encode(),
+                                    "results.md": markdown(result).encode(),
+                                    "stages.png": _png_bytes(stage_bars(result))}, overwrite)

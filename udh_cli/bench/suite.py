@@ -13,10 +13,11 @@ from typing import Any
 import numpy as np
 
 from udh_cli.bench import runner
-from udh_cli.bench.pairsets import held_out_sources, load_sets, save_sets, synthetic_set
+from udh_cli.bench.pairsets import check_pairs_memory, held_out_sources, load_sets, save_sets, synthetic_set
 from udh_cli.bench.real_pairs import load_real_pairs
 from udh_cli.bench.report import BenchResult
 from udh_cli.errors import UdhError
+from udh_cli.files import check_replaceable
 from udh_cli.estimators.registry import parse_method_options
 from udh_cli.estimators import estimator_names
 from udh_cli.images import check_output_path
@@ -92,16 +93,20 @@ def run_synthetic_bench(
     load_pairs: Path | None = None,
     show_progress: bool = True,
     motion: str = "paper",
+    overwrite: bool = False,
 ) -> BenchResult:
     """Benchmark ``methods`` on synthetic pairs from held-out images (see :mod:`udh_cli.bench.pairsets`).
 
     With ``load_pairs``, the saved set replaces ``images``, ``rhos``, ``count``, ``seed`` and
     ``illumination``. ``mode`` says whether ``full_methods`` see the patches, the full frames, or both.
     ``motion`` "flight" draws whole 320x240 frames with real flight motion instead (every method sees them;
-    ``rhos``, ``mode``, ``occluders`` and saving do not apply).
+    ``rhos``, ``mode``, ``occluders`` and saving do not apply). An existing ``save_pairs`` file is replaced only
+    when udh wrote it, or with ``overwrite`` (:func:`udh_cli.files.check_replaceable`).
     """
     if motion not in ("paper", "flight"):
         raise UdhError(f"--motion {motion}: choose paper or flight")
+    if load_pairs is None and count >= 1:
+        check_pairs_memory(count, 1 if motion == "flight" else len(rhos))
     if motion == "flight":
         if save_pairs is not None or load_pairs is not None:
             raise UdhError("--save-pairs and --load-pairs hold the paper-motion pairs; the flight-motion set is drawn "
@@ -111,7 +116,8 @@ def run_synthetic_bench(
     jobs = runner.make_jobs(methods, _inputs_for(mode), full_methods, options)
     with_full = any(job.input == "full" for job in jobs)
     if save_pairs is not None and load_pairs is None:
-        check_output_path(save_pairs)  # before the pairs are drawn
+        check_output_path(save_pairs, (".npz",))  # before the pairs are drawn
+        check_replaceable(save_pairs, overwrite)
     if load_pairs is not None:
         sets, meta = load_sets(load_pairs)
         config = {"pairs_loaded_from": str(load_pairs), **meta}
@@ -124,7 +130,7 @@ def run_synthetic_bench(
         sets = [synthetic_set(sources, rho, count, seed, illumination, with_full=with_full, occluders=occluders)
                 for rho in rhos]
         if save_pairs is not None:
-            save_sets(save_pairs, sets, meta)
+            save_sets(save_pairs, sets, meta, overwrite)
         config = dict(meta)
     config.update({"methods": methods, "mode": mode, "full_methods": [m for m in full_methods if m in methods],
                    "options": options or {}})

@@ -235,7 +235,8 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
                 image = read_image(path)
             except UdhError as exc:
                 skipped.append({"file": path.name, "reason": str(exc)})
-                reporter.warn(f"skipping {path.name}: cannot be decoded (corrupt or not an image)")
+                # The reason read_image gives: unreadable (permissions), NaN pixels, not an image...
+                reporter.warn(f"skipping {path.name}: cannot be decoded ({str(exc).removeprefix(f'{path}: ')})")
                 advance(1)
                 continue
             if lens is not None:

@@ -21,6 +21,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
+from udh_cli.files import read_side_file
 from udh_cli.mosaic.georef import MIN_GPS_FRAMES, fit_similarity
 
 MIN_GCPS = MIN_GPS_FRAMES  # a similarity has 4 unknowns: three points leave one check
@@ -28,6 +29,9 @@ OBSERVATION_SPREAD_PX = 50.0  # one point's observations farther apart in the mo
 SAME_PIXEL_PX = 3.0  # two points marked this close in one image are one target given two labels
 INCONSISTENT_M = 1.0  # a checkpoint error above this and OUTLIER_FACTOR x the median marks a contradicting point
 OUTLIER_FACTOR = 4.0
+MAX_MAP_COORDINATE_M = 1e8  # projected coordinates stay within the Earth's circumference, 4e7 m
+MAX_ELEVATION_M = 1e5  # far above any terrain, in metres or in feet
+SAME_SPOT_M = 0.01  # distinct points closer than this all over cannot place or scale a map
 
 
 @dataclass(frozen=True)
@@ -53,10 +57,8 @@ class GcpFile:
 def read_gcp_file(path: str | Path) -> GcpFile:
     """Parse and check a GCP file; :class:`UdhError` names the line and what is wrong with it."""
     path = Path(path)
-    try:
-        lines = path.read_text(errors="replace").splitlines()
-    except OSError as exc:
-        raise UdhError(f"{path}: cannot read the GCP file ({exc.strerror})") from None
+    # A byte-order mark (Windows editors) is not part of the CRS line.
+    lines = read_side_file(path, "--gcp").decode("utf-8-sig", errors="replace").splitlines()
     lines = [line for line in lines if line.strip() and not line.lstrip().startswith("#")]
     if not lines:
         raise UdhError(f"{path}: empty GCP file; the first line is the CRS, then one 'x y z px py image [name]' per line")
@@ -72,8 +74,15 @@ def read_gcp_file(path: str | Path) -> GcpFile:
             raise UdhError(f"{path}, line {number}: x, y, z, px and py must be numbers") from None
         if not all(math.isfinite(v) for v in (x, y, z, px, py)):
             raise UdhError(f"{path}, line {number}: a coordinate is not finite")
+        if geographic and not (-180.0 <= x <= 180.0 and -90.0 <= y <= 90.0):
+            raise UdhError(f"{path}, line {number}: {x:g} {y:g} are not longitude and latitude degrees, as the CRS line says; "
+                           f"give the CRS the numbers are in (e.g. EPSG:32611 for UTM zone 11N)")
+        if max(abs(x), abs(y)) > MAX_MAP_COORDINATE_M or abs(z) > MAX_ELEVATION_M:
+            raise UdhError(f"{path}, line {number}: {x:g} {y:g} {z:g} is no place on Earth in a projected CRS; check the numbers")
         name = fields[6] if len(fields) > 6 else f"line{number}"
         observations.append(Observation(x, y, z, px, py, fields[5], name, number))
+    if not observations:
+        raise UdhError(f"{path}: no ground-control points after the CRS line; add one 'x y z px py image [name]' per line")
     if geographic:  # longitude, latitude degrees: to the UTM zone of their centre
         from udh_cli.mosaic.georef import utm_transformer, utm_epsg
 
@@ -81,6 +90,9 @@ def read_gcp_file(path: str | Path) -> GcpFile:
         epsg = utm_epsg(float(lat), float(lon))
         eastings, northings = utm_transformer(epsg).transform([o.x for o in observations], [o.y for o in observations])
         observations = [Observation(e, n, o.z, o.px, o.py, o.image, o.name, o.line) for o, e, n in zip(observations, eastings, northings)]
+    positions = np.array(list({o.name: (o.x, o.y) for o in observations}.values()))
+    if len(positions) > 1 and np.ptp(positions, axis=0).max() < SAME_SPOT_M:  # no scale or heading can come from one spot
+        raise UdhError(f"{path}: all {len(positions)} ground-control points lie at one spot on the map; check their coordinates")
     return GcpFile(epsg, observations)
 
 

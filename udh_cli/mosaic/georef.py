@@ -24,6 +24,7 @@ from udh_cli.errors import UdhError
 
 WORLD_FILE_SUFFIX = {".png": ".pgw", ".tif": ".tfw", ".tiff": ".tfw", ".jpg": ".jgw", ".jpeg": ".jgw"}
 MIN_GPS_FRAMES = 3  # a similarity has 4 unknowns; three frames leave one check
+MIN_GPS_SPREAD_M = 1.0  # fixes all closer than this are one fix repeated: they give the map no scale
 OUTLIER_FACTOR = 4.0  # a frame whose GPS residual exceeds this many times the median (and 5 m) is a bad fix
 OUTLIER_FLOOR_M = 5.0
 
@@ -105,11 +106,13 @@ def georeference_part(frames: Sequence[tuple[int, tuple[int, int], np.ndarray, f
                       min_frames: int = MIN_GPS_FRAMES) -> Georeference | None:
     """Fit a part's georeference from ``(frame index, (width, height), mosaic_from_frame, latitude, longitude)``
     of its placed frames that have GPS; None with fewer than ``min_frames`` (two fix a similarity exactly,
-    with nothing left to check it)."""
+    with nothing left to check it), or when every fix is at one spot (a receiver repeating one fix: no scale)."""
     if len(frames) < max(2, min_frames):
         return None
     latitudes, longitudes = np.array([f[3] for f in frames]), np.array([f[4] for f in frames])
     epsg, map_points = to_utm(latitudes, longitudes)
+    if np.ptp(map_points, axis=0).max() < MIN_GPS_SPREAD_M:
+        return None
     centres = np.array([geometry.transform_points(h, np.array([[(w - 1) / 2, (hgt - 1) / 2]]))[0] for _, (w, hgt), h, _, _ in frames])
     used = np.ones(len(frames), bool)
     least = max(2, min_frames)

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
+from udh_cli.files import read_side_text
 
 SUPPORTED_PROJECTIONS = ("perspective", "brown")
 ASPECT_TOLERANCE = 0.01  # a camera calibrated on frames of another shape is another camera
@@ -112,16 +113,19 @@ class Lens:
                 "c_x": self.c_x, "c_y": self.c_y, "k1": self.k1, "k2": self.k2, "p1": self.p1, "p2": self.p2, "k3": self.k3}
 
 
+MAX_CAMERAS_BYTES = 2**20  # one camera's parameters take a few hundred bytes
+
+
 def read_cameras(path: str | Path) -> Lens:
     """The one camera of an OpenSfM/OpenDroneMap ``cameras.json`` (a file with several cameras is refused:
     which frames each took is not in the file)."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UdhError(f"--camera {path}: no such file") from None
+        data = json.loads(read_side_text(path, "--camera", MAX_CAMERAS_BYTES))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise UdhError(f"--camera {path}: not a cameras.json ({exc})") from None
+    except RecursionError:
+        raise UdhError(f"--camera {path}: not a cameras.json (its JSON nests too deeply)") from None
     if not isinstance(data, dict) or not data:
         raise UdhError(f"--camera {path}: expected a JSON object of cameras, as OpenDroneMap writes in cameras.json")
     if len(data) > 1:

@@ -9,6 +9,7 @@ the packet with a pattern, as ODM and exiftool's users commonly do.
 from __future__ import annotations
 
 import re
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -65,15 +66,17 @@ def read_metadata(path: str | Path) -> FrameMetadata:
 
     values: dict[str, Any] = {}
     try:
-        with Image.open(path) as image:
-            exif = image.getexif()
-            sub = exif.get_ifd(_EXIF_IFD)
-            values["capture_time"] = _text(sub.get(_DATE_TIME_ORIGINAL)) or _text(exif.get(_DATE_TIME))
-            values["focal_length_mm"] = _number(sub.get(_FOCAL_LENGTH))
-            values["focal_length_35mm"] = _number(sub.get(_FOCAL_35MM))
-            camera = " ".join(t for t in (_text(exif.get(_MAKE)), _text(exif.get(_MODEL))) if t)
-            values["camera"] = camera or None
-            values.update(_gps(exif.get_ifd(_GPS_IFD)))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # Pillow's "Corrupt EXIF data": damaged metadata counts as none
+            with Image.open(path) as image:
+                exif = image.getexif()
+                sub = exif.get_ifd(_EXIF_IFD)
+                values["capture_time"] = _text(sub.get(_DATE_TIME_ORIGINAL)) or _text(exif.get(_DATE_TIME))
+                values["focal_length_mm"] = _number(sub.get(_FOCAL_LENGTH))
+                values["focal_length_35mm"] = _number(sub.get(_FOCAL_35MM))
+                camera = " ".join(t for t in (_text(exif.get(_MAKE)), _text(exif.get(_MODEL))) if t)
+                values["camera"] = camera or None
+                values.update(_gps(exif.get_ifd(_GPS_IFD)))
     except Exception:  # noqa: BLE001 - Pillow raises many types for damaged headers; metadata is optional
         pass
     values.update(_dji_xmp(path))

@@ -50,8 +50,9 @@ def preview_path(mosaic_file: Path) -> Path:
 def _is_udh_json(path: Path, formats: tuple[str, ...]) -> bool:
     """Whether ``path`` is a JSON file udh wrote (its ``format`` starts with one of ``formats``)."""
     try:
-        if path.stat().st_size > 256 * 2**20:  # no sidecar or pair cache of ours is this large
-            return False
+        if path.stat().st_size > 256 * 2**20:  # no sidecar or pair cache of ours is this large: say so, not "not ours"
+            raise UdhError(f"{path}: {path.stat().st_size >> 20} MiB, larger than any sidecar or pair cache udh writes; "
+                           f"move it away or choose another output name")
         text = path.read_text(errors="replace")
     except OSError:
         return False

@@ -27,12 +27,15 @@ import numpy as np
 from udh_cli import __version__, geometry
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.estimators.base import TYPED_FIELDS
+from udh_cli.errors import UdhError
+from udh_cli.files import read_side_file
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.frames import Frame
 from udh_cli.mosaic.pairs import ACCEPTANCE_REVISION, Acceptance, PairRequest, PairResult, full_resolution, work_inputs
 from udh_cli.mosaic.report import Reporter
 
 CACHE_FORMAT = "udh-mosaic-pairs/1"
+MAX_CACHE_BYTES = 256 * 2**20  # thousands of pairs take a few MB; a larger file is not a cache of ours
 _MAX_RECORD_DEPTH = 64  # a pair record nests a few levels (estimates, details); deeper is damage, and could not be written back
 
 
@@ -171,13 +174,16 @@ def _read(path: Path, reporter: Reporter) -> dict[str, dict]:
         reporter.info(f"--resume: no pair cache at {path}; estimating every pair")
         return {}
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(read_side_file(path, "--resume", MAX_CACHE_BYTES))
         if not isinstance(data, dict) or data.get("format") != CACHE_FORMAT:
             raise ValueError(f"format {data.get('format') if isinstance(data, dict) else type(data).__name__!r}")
         if not isinstance(data.get("pairs"), list):
             raise ValueError("no list of pairs")
     except (OSError, ValueError, RecursionError, MemoryError) as exc:  # RecursionError: absurdly nested JSON
         reporter.warn(f"--resume: cannot use the pair cache {path} ({_describe(exc)}); estimating every pair")
+        return {}
+    except UdhError as exc:  # not a regular file, or too large to be one of ours
+        reporter.warn(f"cannot use the pair cache: {exc}; estimating every pair")
         return {}
     # Records are checked one by one: a damaged one costs its own pair, not the whole cache.
     records = {record["key"]: record for record in data["pairs"]

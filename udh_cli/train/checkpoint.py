@@ -10,6 +10,7 @@ from typing import Any
 import torch
 
 from udh_cli.errors import UdhError
+from udh_cli.files import read_side_file
 from udh_cli.images import atomic_write_bytes
 
 CHECKPOINT_FORMAT = "udh-checkpoint-1"
@@ -29,13 +30,17 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     atomic_write_bytes(path, buffer.getvalue())
 
 
+MAX_CHECKPOINT_BYTES = 4 * 2**30  # the paper's 34 M-parameter network with Adam's state takes about 0.4 GB
+
+
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
     """Load a udh checkpoint without unpickling arbitrary objects, and check that it is one of ours."""
     path = Path(path)
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):
         raise UdhError(f"{path}: no such checkpoint file")
+    data = read_side_file(path, "", MAX_CHECKPOINT_BYTES)  # a regular file, bounded: never a FIFO that blocks
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling/format problem means "not a checkpoint"
         raise UdhError(f"{path}: not a readable udh checkpoint ({type(exc).__name__}); give a .pt written by `udh train`") from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:

@@ -22,7 +22,8 @@ import numpy as np
 import torch
 
 from udh_cli.errors import UdhError
-from udh_cli.images import atomic_write_bytes, check_output_path
+from udh_cli.files import check_replaceable, write_output
+from udh_cli.images import check_output_path
 from udh_cli.onnx_model import MODEL_FORMAT, write_metadata
 from udh_cli.train.archs import MATCHERS, create_model
 from udh_cli.train.checkpoint import load_checkpoint
@@ -78,8 +79,10 @@ def model_metadata(state: dict[str, Any]) -> dict[str, str]:
     }
 
 
-def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.ndarray | None = None) -> dict[str, Any]:
-    """Export ``checkpoint`` to ``output`` (written atomically) and verify it against torch.
+def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.ndarray | None = None,
+                overwrite: bool = False) -> dict[str, Any]:
+    """Export ``checkpoint`` to ``output`` (written atomically; an existing file only when udh wrote it, or with
+    ``overwrite``) and verify it against torch.
 
     ``check_inputs`` (N, 2, P, P) in [0, 1] adds real patches to the random ones used for the parity check;
     they are resized to the network's S x S input when P differs (``udh export-onnx --check-images`` draws 128).
@@ -93,6 +96,7 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
     if Path(output).exists() and Path(checkpoint).exists() and Path(output).resolve() == Path(checkpoint).resolve():
         raise UdhError(f"{output}: is the checkpoint being exported; choose another output name")
     check_output_path(output)
+    check_replaceable(output, overwrite)
     state = load_checkpoint(checkpoint)  # checks the config's fields, patch_size among them
     size = int(state["config"]["patch_size"])
     _check_weights_fit(checkpoint, state, size)
@@ -153,7 +157,7 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
         max_diff = max(max_diff, float(np.abs(got - expected).max()))
     if not max_diff < 1e-3:
         raise UdhError(f"ONNX and torch disagree by {max_diff:.3g} {'in a descriptor' if matcher else 'px'}; the export is not trustworthy")
-    atomic_write_bytes(output, data)
+    write_output(output, data, overwrite)
     return {"path": str(output), "max_abs_diff": max_diff, "metadata": metadata}
 
 

@@ -70,7 +70,7 @@ def init_arch(init: str | None, mode: str = "unsupervised") -> str:
 def resolve_init(init: str) -> Path:
     """A checkpoint path, or the name of a shipped model ("unsupervised", "supervised")."""
     path = Path(init)
-    if path.is_file():
+    if path.exists() and not path.is_dir():  # a FIFO or device too: load_checkpoint refuses it by name
         return path
     from udh_cli.models_catalog import shipped_checkpoint
 
@@ -324,9 +324,10 @@ class Trainer:
         c = self.config
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
-            from udh_cli.images import atomic_write_bytes
+            from udh_cli.files import write_output
 
-            atomic_write_bytes(self.out / "config.json", json.dumps(asdict(c), indent=2).encode())
+            # Checked before the run starts (_check_fresh_out); recorded so that a later run knows it as udh's.
+            write_output(self.out / "config.json", json.dumps(asdict(c), indent=2).encode(), overwrite=True)
         # SIGTERM and Ctrl-C ask the loop to stop at the next step boundary, after that step's validation,
         # log line and a checkpoint: saving mid-step would record a half-done step and resume inexactly.
         # A second signal stops at once, from the last checkpoint (as SIGKILL would).
@@ -491,7 +492,11 @@ def _check_config(config: TrainConfig, out: Path) -> None:
 
 
 def _check_fresh_out(out: Path, overwrite: bool) -> None:
-    """A new run never mixes into an earlier one: an ``--out`` that holds a run needs --resume or --overwrite."""
+    """A new run never mixes into an earlier one: an ``--out`` that holds a run needs --resume or --overwrite,
+    and a ``config.json`` that udh did not write (a data folder given as --out) needs --overwrite."""
+    from udh_cli.files import check_replaceable
+
+    check_replaceable(out / "config.json", overwrite)
     found = [name for name in ("checkpoint.pt", "best.pt", "metrics.jsonl") if (out / name).is_file()]
     if not found:
         return

@@ -28,7 +28,8 @@ from typing import Any
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import atomic_write_bytes, check_output_path
+from udh_cli.files import check_replaceable, write_output
+from udh_cli.images import check_output_path
 from udh_cli.onnx_model import OnnxHomographyModel, write_metadata
 from udh_cli.flight_motion import MotionConfig, make_motion_pairs, source_size
 from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs, split_holdout
@@ -94,13 +95,14 @@ def _nodes_to_quantize(model_proto: Any) -> list[str]:
 
 
 def quantize_from_folders(source: str | Path, output: str | Path | None, folders: list[Path], images: int = 200,
-                          pairs_per_motion: int = 64, seed: int = 0) -> dict[str, Any]:
+                          pairs_per_motion: int = 64, seed: int = 0, overwrite: bool = False) -> dict[str, Any]:
     """What ``udh quantize`` does: :func:`quantize_model` calibrated on up to ``images`` images drawn (by
     ``seed``) from the training part of ``folders`` (every tenth image, the benchmarks' held-out split, is
-    left out). ``output`` ``None`` writes ``<source stem>-int8.onnx`` beside ``source``."""
+    left out). ``output`` ``None`` writes ``<source stem>-int8.onnx`` beside ``source``; an existing file there is
+    replaced only when udh wrote it, or with ``overwrite``."""
     source = Path(source)
     output = source.with_name(f"{source.stem}-int8.onnx") if output is None else Path(output)
-    _check_request(source, output, pairs_per_motion, seed)
+    _check_request(source, output, pairs_per_motion, seed, overwrite)
     if images < 1:
         raise UdhError(f"--images ({images}) must be at least 1")
     found = list_images(folders)
@@ -111,12 +113,12 @@ def quantize_from_folders(source: str | Path, output: str | Path | None, folders
     chosen = sorted(rng.choice(len(train_paths), min(images, len(train_paths)), replace=False))
     flight = OnnxHomographyModel.load(source).metadata.get("motion") == "flight"
     sources = load_sources([train_paths[i] for i in chosen], min_count=1, size_for=source_size if flight else None)
-    return quantize_model(source, output, sources, pairs_per_motion, seed)
+    return quantize_model(source, output, sources, pairs_per_motion, seed, overwrite)
 
 
-def _check_request(source: Path, output: Path, pairs_per_motion: int, seed: int) -> Path:
+def _check_request(source: Path, output: Path, pairs_per_motion: int, seed: int, overwrite: bool) -> Path:
     """Fail before any work on a missing onnx package or source, a bad output path, an output that would
-    replace the source, or bad numbers."""
+    replace the source or a file udh did not write (without ``overwrite``), or bad numbers."""
     if importlib.util.find_spec("onnx") is None:  # onnxruntime's quantisation tools need it
         raise UdhError("quantisation needs the onnx package: pip install onnx (it comes with the udh checkout's train extra: pip install '.[train]')")
     if not Path(source).is_file():
@@ -124,6 +126,7 @@ def _check_request(source: Path, output: Path, pairs_per_motion: int, seed: int)
     output = check_output_path(output, (".onnx",))
     if output.resolve() == Path(source).resolve():
         raise UdhError(f"{output}: the int8 copy would replace the float32 network it is made from; give another --output")
+    check_replaceable(output, overwrite)
     if pairs_per_motion < 1:
         raise UdhError(f"--pairs ({pairs_per_motion}) must be at least 1: calibration pairs per motion level")
     if seed < 0:
@@ -132,7 +135,7 @@ def _check_request(source: Path, output: Path, pairs_per_motion: int, seed: int)
 
 
 def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndarray], pairs_per_motion: int = 64,
-                   seed: int = 0) -> dict[str, Any]:
+                   seed: int = 0, overwrite: bool = False) -> dict[str, Any]:
     """Write an int8 copy of the udh ONNX network ``source`` to ``output`` (atomically), calibrated on
     synthetic pairs from ``sources`` (320x240 grey uint8 images, see :func:`udh_cli.synthetic.load_sources`;
     give training images, never the held-out ones).
@@ -144,7 +147,7 @@ def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndar
 
     Returns ``{"path", "median_drift_px", "max_drift_px", "check_pairs", "metadata"}``.
     """
-    output = _check_request(Path(source), Path(output), pairs_per_motion, seed)
+    output = _check_request(Path(source), Path(output), pairs_per_motion, seed, overwrite)
     import onnx
     from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
@@ -199,6 +202,6 @@ def quantize_model(source: str | Path, output: str | Path, sources: list[np.ndar
     if median_drift > MAX_MEDIAN_DRIFT_PX:
         raise UdhError(f"{source}: the int8 network drifts {median_drift:.2f} px (median) from the float32 one, more "
                        f"than {MAX_MEDIAN_DRIFT_PX} px; calibrate on more, or more typical, images (--data)")
-    atomic_write_bytes(output, proto.SerializeToString())
+    write_output(output, proto.SerializeToString(), overwrite)
     return {"path": output, "median_drift_px": median_drift, "max_drift_px": max_drift, "check_pairs": len(check),
             "metadata": metadata}

@@ -291,12 +291,12 @@ def simulate(
     err_console.print(f"wrote {strips * frames_per_strip} frames and {path}", highlight=False, soft_wrap=True)
 
 
-from udh_cli.mosaic.composite import BLENDS as _BLENDS  # noqa: E402 - the --blend choices live there
-from udh_cli.mosaic.gains import EXPOSURES as _EXPOSURES  # noqa: E402 - the --exposure choices live there
-from udh_cli.mosaic.seams import SEAM_FINDERS as _SEAM_FINDERS  # noqa: E402 - the --seams choices live there
+from udh_cli.mosaic.render.composite import BLENDS as _BLENDS  # noqa: E402 - the --blend choices live there
+from udh_cli.mosaic.render.gains import EXPOSURES as _EXPOSURES  # noqa: E402 - the --exposure choices live there
+from udh_cli.mosaic.render.seams import SEAM_FINDERS as _SEAM_FINDERS  # noqa: E402 - the --seams choices live there
 from udh_cli.mosaic.pipeline import SOLVES as _SOLVES, MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
-from udh_cli.mosaic.follow import FollowConfig as _FollowConfig  # noqa: E402
-from udh_cli.mosaic.workers import MAX_AUTO_WORKERS as _MAX_AUTO_WORKERS, POOL_MIN_FRAMES as _POOL_MIN_FRAMES  # noqa: E402
+from udh_cli.mosaic.live.follow import FollowConfig as _FollowConfig  # noqa: E402
+from udh_cli.mosaic.pairs.workers import MAX_AUTO_WORKERS as _MAX_AUTO_WORKERS, POOL_MIN_FRAMES as _POOL_MIN_FRAMES  # noqa: E402
 
 _MOSAIC = _MosaicConfig()
 _FOLLOW = _FollowConfig()

@@ -9,9 +9,9 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.estimators import create_estimator
-from udh_cli.mosaic.follow import ends_whole
-from udh_cli.mosaic.pairs import Acceptance
-from udh_cli.mosaic.quicklook import FRAME_SIDE, QuickLook, live_picture_path, live_record_path
+from udh_cli.mosaic.live.follow import ends_whole
+from udh_cli.mosaic.pairs.types import Acceptance
+from udh_cli.mosaic.live.quicklook import FRAME_SIDE, QuickLook, live_picture_path, live_record_path
 from udh_cli.simulate import load_ground_truth
 
 from mosaic_flights import ACCURATE, make_flight
@@ -59,7 +59,7 @@ def test_a_frame_that_fails_is_left_out_and_the_next_one_goes_on_from_the_last_p
 
 
 def test_the_picture_grows_and_halves_to_hold_a_long_flight(tmp_path, monkeypatch):
-    import udh_cli.mosaic.quicklook as quicklook
+    import udh_cli.mosaic.live.quicklook as quicklook
 
     monkeypatch.setattr(quicklook, "MAX_SIDE", 700)
     folder = tmp_path / "flight"

@@ -8,8 +8,8 @@ estimation, the method then the fallback), :mod:`.graph` (parts, chaining, overl
 :mod:`.quicklook` draws each frame as it lands).
 """
 
-from udh_cli.mosaic.follow import FollowConfig
-from udh_cli.mosaic.live import run_live
+from udh_cli.mosaic.live.follow import FollowConfig
+from udh_cli.mosaic.live.run import run_live
 from udh_cli.mosaic.pipeline import DEFAULT_METHOD, MosaicConfig, run_mosaic
 from udh_cli.mosaic.report import Reporter
 

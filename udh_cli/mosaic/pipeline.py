@@ -22,31 +22,31 @@ from udh_cli.errors import UdhError
 from udh_cli.estimators import DEFAULT_METHOD, Estimator, create_estimator
 from udh_cli.estimators.registry import estimator_options
 from udh_cli.images import atomic_write_bytes, check_output_path, write_image
-from udh_cli.mosaic import composite as compositing
-from udh_cli.mosaic.frames import ORDERS, FrameSet, open_frames
-from udh_cli.mosaic.gains import EXPOSURES, exposure_gains, mean_gain
-from udh_cli.mosaic.seams import SEAM_FINDERS, find_seams
-from udh_cli.mosaic.small import draw_small
-from udh_cli.mosaic.graph import NEAR_IN_SEQUENCE, chain_to_reference, connected_parts, overlap_candidates, reference_frame
-from udh_cli.mosaic.outputs import (SIDECAR_FORMAT, StagedFiles, cameras_path, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
+from udh_cli.mosaic.render import composite as compositing
+from udh_cli.mosaic.inputs.frames import ORDERS, FrameSet, open_frames
+from udh_cli.mosaic.render.gains import EXPOSURES, exposure_gains, mean_gain
+from udh_cli.mosaic.render.seams import SEAM_FINDERS, find_seams
+from udh_cli.mosaic.render.small import draw_small
+from udh_cli.mosaic.solve.graph import NEAR_IN_SEQUENCE, chain_to_reference, connected_parts, overlap_candidates, reference_frame
+from udh_cli.mosaic.outputs.staging import (SIDECAR_FORMAT, StagedFiles, cameras_path, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
-from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
-from udh_cli.mosaic.lens import read_cameras
-from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, frames_focal, undistort_by_fitted_lens
-from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
-from udh_cli.mosaic.workers import EstimatorSpec, automatic_workers, open_runner
-from udh_cli.mosaic.gps_pairs import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
+from udh_cli.mosaic.georef.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
+from udh_cli.mosaic.inputs.lens import read_cameras
+from udh_cli.mosaic.inputs.lens_fit import CAMERA_ESTIMATE, frames_focal, undistort_by_fitted_lens
+from udh_cli.mosaic.georef.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
+from udh_cli.mosaic.pairs.workers import EstimatorSpec, automatic_workers, open_runner
+from udh_cli.mosaic.pairs.gps import (bridge_candidates, gps_disagreement_m, gps_limit_m, ground_positions, measure_ground_scale, part_map,
                                       placement_error_m)
-from udh_cli.mosaic.georef import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
-from udh_cli.mosaic.pair_cache import PairCache, cache_path, estimator_identity
-from udh_cli.mosaic.pairs import Acceptance, PairRequest, PairResult
-from udh_cli.mosaic.quicklook import live_picture_path, live_record_path
-from udh_cli.mosaic.pairwise import corner_disagreement_px, estimate_pairs
+from udh_cli.mosaic.georef.gps import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_path, world_file_text
+from udh_cli.mosaic.pairs.cache import PairCache, cache_path, estimator_identity
+from udh_cli.mosaic.pairs.types import Acceptance, PairRequest, PairResult
+from udh_cli.mosaic.live.quicklook import live_picture_path, live_record_path
+from udh_cli.mosaic.pairs.estimate import corner_disagreement_px, estimate_pairs
 from udh_cli.mosaic.report import Reporter
-from udh_cli.mosaic.cameras import CameraSolution, solve_cameras
-from udh_cli.mosaic.rectify import keep_reference_view, rectifying_homography
-from udh_cli.mosaic.solve import Anchors, pair_points, pair_rms_px, solve_part, solve_with_rejection, summarise
-from udh_cli.mosaic.truth import corner_errors_vs_truth, map_shape_errors, summarise_truth
+from udh_cli.mosaic.solve.cameras import CameraSolution, solve_cameras
+from udh_cli.mosaic.solve.rectify import keep_reference_view, rectifying_homography
+from udh_cli.mosaic.solve.homographies import Anchors, pair_points, pair_rms_px, solve_part, solve_with_rejection, summarise
+from udh_cli.mosaic.solve.truth import corner_errors_vs_truth, map_shape_errors, summarise_truth
 from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
 
 OUTPUT_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
@@ -67,7 +67,7 @@ class MosaicConfig:
         every: for a video, keep every N-th frame.
         min_confidence: estimates below this confidence count as failures (then fallback, then split).
         min_verified: estimates whose photometric alignment check (see
-            :class:`~udh_cli.mosaic.pairs.Acceptance`) is below this count as failures too; 0: no check.
+            :class:`~udh_cli.mosaic.pairs.types.Acceptance`) is below this count as failures too; 0: no check.
         overlap_min: non-consecutive frames whose chained footprints overlap by this share of the smaller
             frame are estimated too (loop closure).
         overlap_per_frame: at most this many loop-closure partners per frame (bounds the work).
@@ -76,7 +76,7 @@ class MosaicConfig:
             joining a long flight's parts can chain homographies further than one plane per frame holds
             (measured in docs/mosaic.md).
         gps_sigma_m: with GPS in the frames, the fixes join the global solve as anchors of this standard
-            error in metres (:class:`~udh_cli.mosaic.solve.Anchors`): they bound the projective drift of long
+            error in metres (:class:`~udh_cli.mosaic.solve.homographies.Anchors`): they bound the projective drift of long
             chains that loop closures alone leave. 0: off, the solve uses the pairs alone.
         gcp_sigma_m: with ground-control points (``run_mosaic(gcp=...)``), their observations join the global
             solve as anchors of this standard error in metres, so that the mosaic bends to them instead of only

@@ -24,8 +24,8 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimator
 from udh_cli.images import atomic_write_bytes, read_image, to_bgr_u8, to_gray_u8
-from udh_cli.mosaic.frames import work_copy
-from udh_cli.mosaic.workers import judge_opinions
+from udh_cli.mosaic.inputs.frames import work_copy
+from udh_cli.mosaic.pairs.workers import judge_opinions
 
 LIVE_PICTURE_SUFFIX = ".live.jpg"
 LIVE_RECORD_SUFFIX = ".live.json"
@@ -58,7 +58,7 @@ class QuickLook:
     Args:
         output: the mosaic's path; the quick look's files are named after it.
         opinions: the mosaic's estimators, asked in order while the answer is doubted.
-        acceptance: the mosaic's :class:`~udh_cli.mosaic.pairs.Acceptance`.
+        acceptance: the mosaic's :class:`~udh_cli.mosaic.pairs.types.Acceptance`.
         work_size: longest side, pixels, of the copies the estimators see (the mosaic's ``--work-size``).
     """
 

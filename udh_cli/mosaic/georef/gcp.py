@@ -21,7 +21,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.georef import MIN_GPS_FRAMES, fit_similarity
+from udh_cli.mosaic.georef.gps import MIN_GPS_FRAMES, fit_similarity
 
 MIN_GCPS = MIN_GPS_FRAMES  # a similarity has 4 unknowns: three points leave one check
 OBSERVATION_SPREAD_PX = 50.0  # one point's observations farther apart in the mosaic are not one target
@@ -75,7 +75,7 @@ def read_gcp_file(path: str | Path) -> GcpFile:
         name = fields[6] if len(fields) > 6 else f"line{number}"
         observations.append(Observation(x, y, z, px, py, fields[5], name, number))
     if geographic:  # longitude, latitude degrees: to the UTM zone of their centre
-        from udh_cli.mosaic.georef import utm_transformer, utm_epsg
+        from udh_cli.mosaic.georef.gps import utm_transformer, utm_epsg
 
         lon, lat = np.median([o.x for o in observations]), np.median([o.y for o in observations])
         epsg = utm_epsg(float(lat), float(lon))
@@ -198,14 +198,14 @@ def fit_gcps(gcps: GcpFile, frames: dict[str, tuple[tuple[int, int], np.ndarray 
 
 def gcp_anchors(gcps: GcpFile, frames: dict[str, tuple[int, tuple[int, int]]], sigma_m: float, image_width: int | None = None,
                 leave_out: str | None = None):
-    """The observations as anchors of the global solve (:class:`~udh_cli.mosaic.solve.Anchors`), in the file's CRS.
+    """The observations as anchors of the global solve (:class:`~udh_cli.mosaic.solve.homographies.Anchors`), in the file's CRS.
 
     ``frames``: file name -> (frame index, (width, height) at full resolution); ``image_width`` as in
     :func:`fit_gcps`. Marks that contradict each other (:func:`_contradicting_labels`), images that are not
     frames and pixels outside their frame are left out, as the fit leaves them out. ``leave_out``: a point's
     name whose observations are left out too (to check it honestly). None when no observation is usable.
     """
-    from udh_cli.mosaic.solve import Anchors
+    from udh_cli.mosaic.solve.homographies import Anchors
 
     rows = []
     for o in _contradicting_labels(gcps.observations, []):

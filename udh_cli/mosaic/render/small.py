@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
-from udh_cli.mosaic.frames import FrameSet
+from udh_cli.mosaic.inputs.frames import FrameSet
 from udh_cli.mosaic.report import Reporter
 
 # Per frame, as in OpenCV's stitching sample (seam_megapix 0.1): enough for brightness and seams, small enough

@@ -23,8 +23,8 @@ from scipy import sparse
 from scipy.sparse import linalg as sparse_linalg
 
 from udh_cli import geometry
-from udh_cli.mosaic.georef import fit_similarity
-from udh_cli.mosaic.pairs import PairResult
+from udh_cli.mosaic.georef.gps import fit_similarity
+from udh_cli.mosaic.pairs.types import PairResult
 
 GRID_POINTS = 3  # per side: 9 correspondences per pair
 # Anchor residuals beyond this many of their sigmas count linearly: a GPS glitch or a mislabelled mark must not

@@ -13,12 +13,12 @@ from typing import Any
 from udh_cli.errors import UdhError
 from udh_cli.estimators import create_estimator
 from udh_cli.images import atomic_write_bytes
-from udh_cli.mosaic.follow import FollowConfig, check_followed_folder, follow_mosaic
-from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE
-from udh_cli.mosaic.pair_cache import cache_path
+from udh_cli.mosaic.live.follow import FollowConfig, check_followed_folder, follow_mosaic
+from udh_cli.mosaic.inputs.lens_fit import CAMERA_ESTIMATE
+from udh_cli.mosaic.pairs.cache import cache_path
 from udh_cli.mosaic.pipeline import MosaicConfig, acceptance, check_config, check_output, mosaic_method_options, own_files, run_mosaic
-from udh_cli.mosaic.outputs import check_outputs_are_not_inputs, sidecar_path
-from udh_cli.mosaic.quicklook import QuickLook, live_picture_path, live_record_path
+from udh_cli.mosaic.outputs.staging import check_outputs_are_not_inputs, sidecar_path
+from udh_cli.mosaic.live.quicklook import QuickLook, live_picture_path, live_record_path
 from udh_cli.mosaic.report import Reporter
 
 

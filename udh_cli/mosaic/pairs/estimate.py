@@ -10,10 +10,10 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.estimators import Estimator
-from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.pairs import Acceptance, PairRequest, PairResult, full_resolution, work_inputs
+from udh_cli.mosaic.inputs.frames import Frame
+from udh_cli.mosaic.pairs.types import Acceptance, PairRequest, PairResult, full_resolution, work_inputs
 from udh_cli.mosaic.report import Reporter
-from udh_cli.mosaic.workers import DaskRunner, LocalRunner, PoolRunner, in_order
+from udh_cli.mosaic.pairs.workers import DaskRunner, LocalRunner, PoolRunner, in_order
 
 
 def estimate_pairs(
@@ -34,7 +34,7 @@ def estimate_pairs(
     process pool or on a Dask cluster, several at once, each with the estimators it builds from their names
     (``opinions`` are then not used); results are taken in batch order, so they are the same either way.
 
-    With a ``cache`` (a :class:`~udh_cli.mosaic.pair_cache.PairCache`, which depends on this stage's types, so it
+    With a ``cache`` (a :class:`~udh_cli.mosaic.pairs.cache.PairCache`, which depends on this stage's types, so it
     is not imported here), a request whose key the cache holds is
     taken from it, and every finished batch is added to it and saved, so an interrupt loses at most the
     batches in flight. Batches are cut from ``requests`` the same way with or without cached pairs, so a

@@ -35,9 +35,9 @@ from scipy import sparse
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.georef import fit_similarity
-from udh_cli.mosaic.lens_fit import DEFAULT_FOCAL
-from udh_cli.mosaic.solve import ANCHOR_HUBER_SIGMAS, Anchors, PairPoints, anchor_targets, anchors_hold, huber, levenberg_marquardt
+from udh_cli.mosaic.georef.gps import fit_similarity
+from udh_cli.mosaic.inputs.lens_fit import DEFAULT_FOCAL
+from udh_cli.mosaic.solve.homographies import ANCHOR_HUBER_SIGMAS, Anchors, PairPoints, anchor_targets, anchors_hold, huber, levenberg_marquardt
 
 PARAMETERS = 6  # per frame: Rodrigues vector (3), X, Y, Z
 GAUGE = (2, 3, 4, 5)  # the reference's parameters held fixed: its yaw, X, Y and Z

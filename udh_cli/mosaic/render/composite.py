@@ -21,10 +21,10 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.frames import FrameSet
-from udh_cli.mosaic.gains import apply_gain
+from udh_cli.mosaic.inputs.frames import FrameSet
+from udh_cli.mosaic.render.gains import apply_gain
 from udh_cli.mosaic.report import Reporter
-from udh_cli.mosaic.seams import Seams
+from udh_cli.mosaic.render.seams import Seams
 
 BLENDS = ("feather", "multiband", "none")  # the --blend choices
 # Peak memory per pixel of a tile (with its margin) while blending, accumulators and output together: the rise in

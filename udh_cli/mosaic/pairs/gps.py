@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from udh_cli import geometry
-from udh_cli.mosaic.georef import fit_similarity, to_utm
+from udh_cli.mosaic.georef.gps import fit_similarity, to_utm
 
 MIN_SCALE_PAIRS = 3  # ground scale from fewer working pairs than this is not trusted
 REACH_STEPS = 2.0  # candidate frames lie within this many median GPS steps of each other,

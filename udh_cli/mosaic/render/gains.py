@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.small import SmallPart
+from udh_cli.mosaic.render.small import SmallPart
 
 EXPOSURES = ("blocks", "channels", "gain", "none")  # the --exposure choices
 

@@ -18,9 +18,9 @@ import numpy as np
 
 from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES, _native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
-from udh_cli.mosaic.lens import Lens
-from udh_cli.mosaic.metadata import FrameMetadata, read_metadata
-from udh_cli.mosaic.outputs import earlier_outputs
+from udh_cli.mosaic.inputs.lens import Lens
+from udh_cli.mosaic.inputs.metadata import FrameMetadata, read_metadata
+from udh_cli.mosaic.outputs.staging import earlier_outputs
 from udh_cli.mosaic.report import Reporter
 
 ORDERS = ("name", "time")  # the --order choices

@@ -28,7 +28,7 @@ import numpy as np
 
 from udh_cli.errors import UdhError
 from udh_cli.estimators.features import keypoint_points, ratio_test_points
-from udh_cli.mosaic.lens import Lens
+from udh_cli.mosaic.inputs.lens import Lens
 
 DEFAULT_FOCAL = 0.7  # focal length over the longer side: a 24-25 mm (35 mm equivalent) drone camera
 K1_RANGE = (-0.5, 0.3)  # beyond these a lens is a fisheye, which this model does not describe
@@ -69,7 +69,7 @@ def focal_from_exif(focal_length_35mm: float | None) -> tuple[float, str]:
 
 
 def frames_focal(frames) -> tuple[float, str]:
-    """:func:`focal_from_exif` of the first of ``frames`` (:class:`~udh_cli.mosaic.frames.Frame`) whose EXIF gives a
+    """:func:`focal_from_exif` of the first of ``frames`` (:class:`~udh_cli.mosaic.inputs.frames.Frame`) whose EXIF gives a
     35 mm equivalent focal length: over the longer side, and where it came from."""
     metadata = next((f.metadata for f in frames if f.metadata is not None and f.metadata.focal_length_35mm), None)
     return focal_from_exif(metadata.focal_length_35mm if metadata is not None else None)
@@ -146,7 +146,7 @@ CAMERA_ESTIMATE = "estimate"  # `--camera estimate`: fit k1 from the flight inst
 
 
 def undistort_by_fitted_lens(frames, reporter) -> K1Fit:
-    """Fit k1 on a :class:`~udh_cli.mosaic.frames.FrameSet`'s work copies (:func:`fit_k1`) and, when a lens is
+    """Fit k1 on a :class:`~udh_cli.mosaic.inputs.frames.FrameSet`'s work copies (:func:`fit_k1`) and, when a lens is
     found, undistort those copies in place and set ``frames.lens`` (so that compositing undistorts the
     full-resolution frames as it reads them) and ``frames.lens_fit``. Returns the fit."""
     focal, source = frames_focal(frames.frames)

@@ -26,7 +26,7 @@ from typing import Sequence
 import numpy as np
 
 from udh_cli import geometry
-from udh_cli.mosaic.solve import frame_normaliser
+from udh_cli.mosaic.solve.homographies import frame_normaliser
 
 MIN_FRAMES = 10  # fewer frames hold too little evidence about the ground's plane: the reference's view is kept
 PERSPECTIVE_ROUNDS = 5  # reweightings of the perspective fit; it had settled after 3 on the simulated surveys

@@ -1,7 +1,7 @@
 """Resumable pairwise estimation: every finished pair estimate is kept in ``<output stem>.pairs.json``.
 
 Pairwise estimation is the expensive stage of a mosaic run. :class:`PairCache` records each finished pair
-(its :class:`~udh_cli.mosaic.pairs.PairResult`) and rewrites the file atomically after every batch, so an
+(its :class:`~udh_cli.mosaic.pairs.types.PairResult`) and rewrites the file atomically after every batch, so an
 interrupted run loses at most the batch it was in. With ``resume`` a later run takes a pair from the file
 only when its key matches exactly; anything else is estimated again.
 
@@ -28,8 +28,8 @@ from udh_cli import __version__, geometry
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.estimators.base import TYPED_FIELDS
 from udh_cli.images import atomic_write_bytes
-from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.pairs import ACCEPTANCE_REVISION, Acceptance, PairRequest, PairResult, full_resolution, work_inputs
+from udh_cli.mosaic.inputs.frames import Frame
+from udh_cli.mosaic.pairs.types import ACCEPTANCE_REVISION, Acceptance, PairRequest, PairResult, full_resolution, work_inputs
 from udh_cli.mosaic.report import Reporter
 
 CACHE_FORMAT = "udh-mosaic-pairs/1"

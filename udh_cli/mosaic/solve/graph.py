@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
-from udh_cli.mosaic.pairs import PairResult
+from udh_cli.mosaic.pairs.types import PairResult
 
 _KIND_PRIORITY = {"consecutive": 0, "bridge": 1, "gps": 2, "overlap": 3}  # chain along the sequence first
 

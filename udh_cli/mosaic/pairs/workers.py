@@ -39,7 +39,7 @@ Opinion = tuple[str, dict[str, Any]]  # an estimator by registry name and option
 class EstimatorSpec:
     """How a worker builds the mosaic's opinions, in order: registry names and options; and the acceptance test.
 
-    ``acceptance`` is a :class:`~udh_cli.mosaic.pairs.Acceptance`."""
+    ``acceptance`` is a :class:`~udh_cli.mosaic.pairs.types.Acceptance`."""
 
     opinions: tuple[Opinion, ...]
     acceptance: Any = None

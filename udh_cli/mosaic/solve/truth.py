@@ -20,8 +20,8 @@ from typing import Sequence
 import numpy as np
 
 from udh_cli import geometry
-from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.georef import fit_similarity
+from udh_cli.mosaic.inputs.frames import Frame
+from udh_cli.mosaic.georef.gps import fit_similarity
 
 
 def corner_errors_vs_truth(frames: Sequence[Frame], reference: int, ref_from: dict[int, np.ndarray], truth: dict) -> dict[int, dict[str, float]]:

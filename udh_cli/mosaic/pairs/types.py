@@ -16,7 +16,7 @@ from udh_cli import geometry
 from udh_cli.estimators import Estimate
 from udh_cli.estimators.pair import ImageLike
 from udh_cli.estimators.verify import VERIFIER
-from udh_cli.mosaic.frames import Frame
+from udh_cli.mosaic.inputs.frames import Frame
 
 
 # The revision of what makes a pair accepted: these rules, and what an estimator calls confirmed (the tile

@@ -294,7 +294,7 @@ def simulate(
 from udh_cli.mosaic.render.composite import BLENDS as _BLENDS  # noqa: E402 - the --blend choices live there
 from udh_cli.mosaic.render.gains import EXPOSURES as _EXPOSURES  # noqa: E402 - the --exposure choices live there
 from udh_cli.mosaic.render.seams import SEAM_FINDERS as _SEAM_FINDERS  # noqa: E402 - the --seams choices live there
-from udh_cli.mosaic.pipeline import SOLVES as _SOLVES, MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
+from udh_cli.mosaic.config import SOLVES as _SOLVES, MosaicConfig as _MosaicConfig  # noqa: E402 - the mosaic options' defaults live there
 from udh_cli.mosaic.live.follow import FollowConfig as _FollowConfig  # noqa: E402
 from udh_cli.mosaic.pairs.workers import MAX_AUTO_WORKERS as _MAX_AUTO_WORKERS, POOL_MIN_FRAMES as _POOL_MIN_FRAMES  # noqa: E402
 

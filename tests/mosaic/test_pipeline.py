@@ -127,7 +127,7 @@ def test_too_big_canvas_is_refused_before_writing(small_flight, tmp_path):
 
 
 def test_learned_methods_search_for_large_motion_in_mosaics_unless_told_otherwise():
-    from udh_cli.mosaic.pipeline import MOSAIC_SEARCH, mosaic_method_options
+    from udh_cli.mosaic.config import MOSAIC_SEARCH, mosaic_method_options
 
     assert mosaic_method_options("unsupervised", {}) == {"search": MOSAIC_SEARCH}
     assert mosaic_method_options("auto", {"model": "m.onnx"}) == {"model": "m.onnx", "search": MOSAIC_SEARCH}

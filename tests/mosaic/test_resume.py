@@ -16,7 +16,8 @@ import pytest
 from udh_cli import cli
 from udh_cli.estimators import Estimator
 from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
-from udh_cli.mosaic.pairs.cache import cache_path, estimator_identity
+from udh_cli.mosaic.outputs.files import RunFiles
+from udh_cli.mosaic.pairs.cache import estimator_identity
 
 from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
 
@@ -57,7 +58,7 @@ def uninterrupted(flight, tmp_path_factory):
 
 
 def cached_pairs(output) -> list[dict]:
-    return json.loads(cache_path(output).read_text())["pairs"]
+    return json.loads(RunFiles(output).pair_cache.read_text())["pairs"]
 
 
 def assert_same_geometry(report: dict, reference: dict) -> None:

@@ -198,14 +198,14 @@ def fit_gcps(gcps: GcpFile, frames: dict[str, tuple[tuple[int, int], np.ndarray 
 
 def gcp_anchors(gcps: GcpFile, frames: dict[str, tuple[int, tuple[int, int]]], sigma_m: float, image_width: int | None = None,
                 leave_out: str | None = None):
-    """The observations as anchors of the global solve (:class:`~udh_cli.mosaic.solve.homographies.Anchors`), in the file's CRS.
+    """The observations as anchors of the global solve (:class:`~udh_cli.mosaic.georef.anchors.Anchors`), in the file's CRS.
 
     ``frames``: file name -> (frame index, (width, height) at full resolution); ``image_width`` as in
     :func:`fit_gcps`. Marks that contradict each other (:func:`_contradicting_labels`), images that are not
     frames and pixels outside their frame are left out, as the fit leaves them out. ``leave_out``: a point's
     name whose observations are left out too (to check it honestly). None when no observation is usable.
     """
-    from udh_cli.mosaic.solve.homographies import Anchors
+    from udh_cli.mosaic.georef.anchors import Anchors
 
     rows = []
     for o in _contradicting_labels(gcps.observations, []):

@@ -1,7 +1,7 @@
 """GeoTIFFs (rasterio, whose wheels bundle GDAL): a mosaic streamed tile by tile, and the north-up COG.
 
 The mosaic is drawn in its reference frame's pixels; a ``.tif`` mosaic is written tile by tile as it is blended
-(:func:`write_tiled_tiff`), so that its area costs no memory. The georeference (:mod:`.georef`, :mod:`.gcp`)
+(:func:`write_tiled_tiff`), so that its area costs no memory. The georeference (:mod:`.gps`, :mod:`.gcp`)
 maps those pixels to map metres. Here the mosaic is resampled onto a north-up grid of the same pixel size,
 strip by strip, and written as a COG: tiled, with overviews and an alpha band, in the map's CRS, which QGIS,
 GDAL and web map servers read directly.
@@ -17,16 +17,10 @@ import numpy as np
 
 from udh_cli.errors import UdhError
 
-COG_SUFFIX = ".cog.tif"
 # GDAL's block cache, in MB. Its default is 5 % of the machine's memory (1.2 GB here), which it fills while it
 # copies a large map into a COG with overviews: seneca's run peaked at 1.21 GB with it, 0.76 GB with this.
 GDAL_CACHE_MB = 128
 GDAL_SETTINGS = {"GDAL_NUM_THREADS": "1", "GDAL_CACHEMAX": GDAL_CACHE_MB}
-
-
-def cog_path(mosaic_file: Path) -> Path:
-    """``NAME.cog.tif`` beside ``NAME.png``."""
-    return mosaic_file.with_name(f"{mosaic_file.stem}{COG_SUFFIX}")
 
 
 def has_rasterio() -> bool:
@@ -335,3 +329,9 @@ def _vrt_with_overviews(base: Path, overviews: list[Path], columns: int, rows: i
                      f"<SourceBand>{band}</SourceBand></SimpleSource>{levels}</VRTRasterBand>")
     return (f'<VRTDataset rasterXSize="{columns}" rasterYSize="{rows}"><SRS>EPSG:{epsg}</SRS>'
             f"<GeoTransform>{west!r}, {pixel!r}, 0.0, {north!r}, 0.0, {-pixel!r}</GeoTransform>{''.join(bands)}</VRTDataset>")
+
+
+def streams_to_file(path: Path) -> bool:
+    """Whether a mosaic written to ``path`` streams tile by tile (a TIFF, with rasterio) rather than being held
+    whole to be encoded (PNG, JPEG)."""
+    return path.suffix.lower() in (".tif", ".tiff") and has_rasterio()

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -22,7 +21,6 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 
-WORLD_FILE_SUFFIX = {".png": ".pgw", ".tif": ".tfw", ".tiff": ".tfw", ".jpg": ".jgw", ".jpeg": ".jgw"}
 MIN_GPS_FRAMES = 3  # a similarity has 4 unknowns; three frames leave one check
 OUTLIER_FACTOR = 4.0  # a frame whose GPS residual exceeds this many times the median (and 5 m) is a bad fix
 OUTLIER_FLOOR_M = 5.0
@@ -135,13 +133,6 @@ def georeference_part(frames: Sequence[tuple[int, tuple[int, int], np.ndarray, f
         # The mosaic's "up" (-y) direction, in degrees clockwise from north: what a viewer must turn.
         north_deg=float(math.degrees(math.atan2(-fit[0, 1], -fit[1, 1]))),
     )
-
-
-def world_file_path(mosaic_file: Path) -> Path:
-    suffix = WORLD_FILE_SUFFIX.get(mosaic_file.suffix.lower())
-    if suffix is None:
-        raise UdhError(f"{mosaic_file}: no world file convention for '{mosaic_file.suffix}'")
-    return mosaic_file.with_suffix(suffix)
 
 
 def world_file_text(georeference: Georeference) -> str:

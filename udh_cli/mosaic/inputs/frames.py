@@ -11,7 +11,7 @@ import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -309,3 +309,8 @@ def _check_sizes(frames: FrameSet, reporter: Reporter) -> None:
     if len(sizes) > 1:
         listing = ", ".join(f"{w}x{h} ({n})" for (w, h), n in sizes.most_common())
         reporter.warn(f"the frames come in {len(sizes)} sizes: {listing}; each frame is used at its own size")
+
+
+def gps_fixes(frames: Sequence[Frame]) -> dict[int, tuple[float, float]]:
+    """Frame index -> (latitude, longitude) of every frame whose EXIF carries GPS."""
+    return {f.index: (f.metadata.latitude, f.metadata.longitude) for f in frames if f.metadata is not None and f.metadata.has_gps}

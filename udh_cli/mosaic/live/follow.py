@@ -5,7 +5,7 @@ half-way): a JPEG or PNG as soon as it ends with its format's end marker and dec
 and modification time are unchanged over two polls and it is at least ``settle_s`` old. Each new frame is
 handed at once to ``on_frames`` (the quick look, :mod:`.quicklook`). Every ``refresh_every`` new frames the
 mosaic, its preview, sidecar and map files are rewritten from the frames so far. Each refresh is a whole
-:func:`~udh_cli.mosaic.pipeline.run_mosaic` run with the pair cache, so only the new frames' pairs (and the
+:func:`~udh_cli.mosaic.run.run_mosaic` run with the pair cache, so only the new frames' pairs (and the
 loop closures that changed) are estimated: the solve is redone in full each time, which costs little next to
 the pairs (1.3 s for 500 frames). A refresh can run in another process (``start_refresh``), so that new frames
 are not kept waiting behind it. The flight is over when a file named ``sentinel`` appears in the folder or no

@@ -25,23 +25,14 @@ from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimator
 from udh_cli.images import atomic_write_bytes, read_image, to_bgr_u8, to_gray_u8
 from udh_cli.mosaic.inputs.frames import work_copy
+from udh_cli.mosaic.outputs.files import RunFiles
 from udh_cli.mosaic.pairs.workers import judge_opinions
 
-LIVE_PICTURE_SUFFIX = ".live.jpg"
-LIVE_RECORD_SUFFIX = ".live.json"
 FRAME_SIDE = 240  # longer side, pixels, of a frame in the picture: a whole survey stays a few MB to encode
 MAX_SIDE = 3000  # the picture is halved when it would grow past this many pixels on a side
 GROWTH = 512  # pixels added on each side that must grow, so that the picture is not reallocated per frame
 BACKGROUND = 40  # grey of the picture where no frame is
 MAX_PAIR_SCALE = 3.0  # consecutive frames of one flight differ in scale far less (the mosaic's --max-frame-scale)
-
-
-def live_picture_path(output: Path) -> Path:
-    return output.with_name(f"{output.stem}{LIVE_PICTURE_SUFFIX}")
-
-
-def live_record_path(output: Path) -> Path:
-    return output.with_name(f"{output.stem}{LIVE_RECORD_SUFFIX}")
 
 
 @dataclass
@@ -168,7 +159,7 @@ class QuickLook:
         if write_picture:
             ok, encoded = cv2.imencode(".jpg", self.shown(), [cv2.IMWRITE_JPEG_QUALITY, 85])
             if ok:
-                atomic_write_bytes(live_picture_path(self.output), encoded.tobytes())
+                atomic_write_bytes(RunFiles(self.output).live_picture, encoded.tobytes())
         record["drawn_at"] = time.time()
         try:
             record["latency_s"] = round(record["drawn_at"] - path.stat().st_mtime, 3)
@@ -176,7 +167,7 @@ class QuickLook:
             record["latency_s"] = None
         self.records.append(record)
         placed = sum(r["placed"] for r in self.records)
-        document = {"format": "udh-mosaic-live/1", "picture": live_picture_path(self.output).name, "frames_seen": len(self.records),
+        document = {"format": "udh-mosaic-live/1", "picture": RunFiles(self.output).live_picture.name, "frames_seen": len(self.records),
                     "frames_placed": placed, "frames": self.records}
-        atomic_write_bytes(live_record_path(self.output), (json.dumps(document, indent=1) + "\n").encode())
+        atomic_write_bytes(RunFiles(self.output).live_record, (json.dumps(document, indent=1) + "\n").encode())
         return record

@@ -15,10 +15,11 @@ from udh_cli.estimators import create_estimator
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.live.follow import FollowConfig, check_followed_folder, follow_mosaic
 from udh_cli.mosaic.inputs.lens_fit import CAMERA_ESTIMATE
-from udh_cli.mosaic.pairs.cache import cache_path
-from udh_cli.mosaic.pipeline import MosaicConfig, acceptance, check_config, check_output, mosaic_method_options, own_files, run_mosaic
-from udh_cli.mosaic.outputs.staging import check_outputs_are_not_inputs, sidecar_path
-from udh_cli.mosaic.live.quicklook import QuickLook, live_picture_path, live_record_path
+from udh_cli.mosaic.config import MosaicConfig, acceptance, check_config, mosaic_method_options
+from udh_cli.mosaic.outputs.files import RunFiles, check_output
+from udh_cli.mosaic.run import run_mosaic
+from udh_cli.mosaic.outputs.staging import check_outputs_are_not_inputs
+from udh_cli.mosaic.live.quicklook import QuickLook
 from udh_cli.mosaic.report import Reporter
 
 
@@ -42,9 +43,9 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     if str(options.get("camera")) == CAMERA_ESTIMATE:  # each refresh would fit another k1 and estimate every pair again
         raise UdhError("--camera estimate cannot follow a flight as it is written: fit the lens once on a finished flight "
                        "(it writes NAME.cameras.json) and give that file, or the camera's own cameras.json")
-    check_outputs_are_not_inputs(Path(folder), {"live picture": live_picture_path(output), "live record": live_record_path(output)},
-                                 sidecar_path(output))
-    cache_file = cache_path(output) if cache_dir is None else Path(cache_dir) / cache_path(output).name
+    files = RunFiles(output, None if cache_dir is None else Path(cache_dir))
+    check_outputs_are_not_inputs(Path(folder), files.live_roles(), files.sidecar)
+    cache_file = files.pair_cache
 
     def run(source: Path) -> dict[str, Any]:
         reporter.timings_s.clear()  # each run's stage times are its own, as its total is
@@ -73,7 +74,7 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
         def start_refresh(source: Path):
             return refresher.submit(_live_run, source, output, config, cache_file, None, options)
 
-        report = follow_mosaic(folder, output, run, follow, reporter, exclude=lambda: {p.resolve() for p in own_files(output)},
+        report = follow_mosaic(folder, output, run, follow, reporter, exclude=lambda: {p.resolve() for p in files.own_files()},
                                on_frames=on_frames if look is not None else None, start_refresh=start_refresh)
     sidecar = Path(report["sidecar"])
     written = json.loads(sidecar.read_text())

@@ -1,4 +1,4 @@
-"""The files of a mosaic run: their names, and writing them so that they appear together or not at all.
+"""Writing the files of a mosaic run so that they appear together or not at all (their names: :mod:`.files`).
 
 A split run writes ``NAME.part1.png``, ``NAME.part2.png``... and a preview of each. Each is first written
 under a hidden temporary name (:class:`StagedFiles`); only when every part has been written are they
@@ -19,32 +19,10 @@ from typing import Iterable
 
 from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES
+from udh_cli.mosaic.outputs.files import CAMERAS_SUFFIX, GEOREFERENCE_SUFFIXES, PREVIEW_SUFFIX, MosaicFiles, RunFiles
+from udh_cli.mosaic.report import Reporter
 
 SIDECAR_FORMAT = "udh-mosaic/1"  # the sidecar's "format", its first key
-
-PREVIEW_SUFFIX = ".preview.jpg"
-CAMERAS_SUFFIX = ".cameras.json"  # the lens `--camera estimate` fitted, in OpenSfM's format
-GEOREFERENCE_SUFFIXES = (".pgw", ".tfw", ".jgw", ".prj", ".cog.tif")  # world and projection files beside a georeferenced mosaic
-
-
-def output_paths(output: Path, n_parts: int) -> list[Path]:
-    """The mosaic file of each part: ``output`` itself for one part, ``stem.partK.suffix`` for several."""
-    if n_parts == 1:
-        return [output]
-    return [output.with_name(f"{output.stem}.part{k}{output.suffix}") for k in range(1, n_parts + 1)]
-
-
-def cameras_path(output: Path) -> Path:
-    """``NAME.cameras.json``: the lens ``--camera estimate`` fitted, in OpenSfM's format."""
-    return output.with_name(f"{output.stem}{CAMERAS_SUFFIX}")
-
-
-def sidecar_path(output: Path) -> Path:
-    return output.with_suffix(".json")
-
-
-def preview_path(mosaic_file: Path) -> Path:
-    return mosaic_file.with_name(f"{mosaic_file.stem}{PREVIEW_SUFFIX}")
 
 
 def _is_udh_json(path: Path, formats: tuple[str, ...]) -> bool:
@@ -160,8 +138,10 @@ class StagedFiles:
         """The temporary name ``final`` is staged under, or None."""
         return next((temporary for temporary, staged_final in self.staged if staged_final == final), None)
 
-    def publish(self) -> None:
-        """Rename every staged file to its final name. Raises :class:`UdhError` if a rename fails."""
+    def publish(self) -> list[Path]:
+        """Rename every staged file to its final name; returns the final names. Raises :class:`UdhError` if a
+        rename fails."""
+        published = [final for _, final in self.staged]
         for temporary, final in self.staged:
             try:
                 if final.exists():
@@ -170,6 +150,7 @@ class StagedFiles:
             except OSError as exc:
                 raise UdhError(f"{final}: cannot put the new file in place ({exc.strerror}); check the folder's permissions") from None
         self.staged = []
+        return published
 
     def discard(self) -> None:
         """Delete the staged files that were not published (after a failure)."""
@@ -184,7 +165,7 @@ def earlier_outputs(files: Iterable[Path]) -> dict[Path, str]:
     like, each mapped to its sidecar's file name.
 
     Why: a mosaic written into its frames' folder under another name than this run's would otherwise be stitched
-    in as a frame by the next run (its own outputs, :func:`.pipeline.own_files`, are left out by name)."""
+    in as a frame by the next run (its own outputs, :meth:`.files.RunFiles.own_files`, are left out by name)."""
     files = list(files)
     stems = [path.stem for path in files if path.suffix.lower() == ".json" and _is_sidecar(path)]
     return {path: f"{stem}.json" for path in files for stem in stems
@@ -199,3 +180,20 @@ def _is_sidecar(path: Path) -> bool:
     except OSError:
         return False
     return re.search(rb'"format"\s*:\s*"' + re.escape(SIDECAR_FORMAT.encode()) + rb'"', head) is not None
+
+
+def remove_stale_files(files: RunFiles, published: list[Path], mosaics: list[Path], reporter: Reporter) -> None:
+    """Remove part files of this output name (an earlier run with more parts) that this run did not write
+    (``published``), and the georeference files (world, .prj, GeoTIFF) beside ``mosaics`` that this run did not
+    write again: an old world file beside a new mosaic would put it on the map in the wrong place."""
+    produced = {f.resolve() for f in published}
+    stale = stale_part_files(files.output, published)
+    for mosaic in mosaics:
+        stale += [f for f in MosaicFiles(mosaic).georeference if f.is_file() and f.resolve() not in produced and f not in stale]
+    for path in stale:
+        try:
+            path.unlink()
+        except OSError as exc:
+            reporter.warn(f"{path.name} is left from an earlier run and could not be removed ({exc.strerror})")
+    if stale:
+        reporter.info(f"removed {len(stale)} part files of an earlier run: {', '.join(p.name for p in stale)}")

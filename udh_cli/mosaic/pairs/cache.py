@@ -36,12 +36,6 @@ CACHE_FORMAT = "udh-mosaic-pairs/1"
 _MAX_RECORD_DEPTH = 64  # a pair record nests a few levels (estimates, details); deeper is damage, and could not be written back
 
 
-def cache_path(output: str | Path) -> Path:
-    """The pair cache of a mosaic output: ``mosaic.png`` -> ``mosaic.pairs.json``."""
-    output = Path(output)
-    return output.with_name(f"{output.stem}.pairs.json")
-
-
 def estimator_identity(estimator: Estimator | None) -> dict[str, Any] | None:
     """What makes an estimator's answers what they are: its registry name, its settings record
     (:meth:`~udh_cli.estimators.base.Estimator.settings`) and its model files, each named with its size and

@@ -1,6 +1,6 @@
 """Pairwise estimation for the mosaic: batched through the estimators at the working size, each pair asked of the
 mosaic's opinions in order (its method, then ``--fallback``) until one is accepted, and rescaled exactly to
-full resolution (types: :mod:`.pairs`)."""
+full resolution (types: :mod:`.types`)."""
 
 from __future__ import annotations
 

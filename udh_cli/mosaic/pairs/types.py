@@ -1,6 +1,6 @@
 """What the mosaic's pair stage works with: a request, its result, the acceptance test, and the working images.
 
-Its own module so that the pair stage (:mod:`.pairwise`), the pair cache (:mod:`.pair_cache`), the solve and
+Its own module so that the pair stage (:mod:`.estimate`), the pair cache (:mod:`.cache`), the solve and
 the reports all depend on these types, and none of them on another.
 """
 

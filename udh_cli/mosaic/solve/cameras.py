@@ -1,6 +1,6 @@
 """The camera-model solve: every frame a pinhole camera over one flat ground, instead of a free homography.
 
-Why: the homography solve (:mod:`.solve`) gives every frame 8 free parameters. Its pairs fix each frame
+Why: the homography solve (:mod:`.homographies`) gives every frame 8 free parameters. Its pairs fix each frame
 relative to its neighbours, but a long survey can still bend by small perspective errors that compound from
 pair to pair (projective drift), which their loops do not show (the scale benchmark in docs/benchmarks.md).
 A camera looking at a flat ground has 6 degrees of freedom (a rotation and a position), and all the frames of a
@@ -20,7 +20,7 @@ the others.
 
 The Jacobian is taken by central differences, each of the 6 camera parameters moved in every frame at once (a
 residual sees at most two frames; 12 batched evaluations of every pair's points), and the Levenberg-Marquardt of
-the homography solve (:func:`.solve.levenberg_marquardt`) runs on the sparse normal equations, with the same
+the homography solve (:func:`.homographies.levenberg_marquardt`) runs on the sparse normal equations, with the same
 Huber loss.
 """
 
@@ -137,14 +137,14 @@ def solve_cameras(
         reference: the part's reference frame.
         initial: frame -> (3, 3) ``ref_from_frame``; its keys are the part.
         sizes: (width, height) of every frame, full resolution; the part's frames must share one.
-        points: correspondences of every accepted pair inside the part (:func:`.solve.pair_points`).
+        points: correspondences of every accepted pair inside the part (:func:`.homographies.pair_points`).
         focal_px: the focal length, pixels (None: :data:`DEFAULT_FOCAL` of the longer side).
         huber_px: residuals beyond this many ground units (about reference pixels) count linearly.
         solve_focal: solve the focal length too, from ``focal_px``. Off by default: a nadir survey shows it only
             through its few degrees of tilt, so the map hardly depends on it, and on real flights a solved focal
             length ran off to absorb what the model lacks, lens distortion and relief (docs/mosaic.md).
         anchors: map positions of points of the part's frames (GPS fixes, ground-control observations), used as
-            :func:`.solve.solve_part` uses them: when they lie on enough frames spread over an area, each pulls
+            :func:`.homographies.solve_part` uses them: when they lie on enough frames spread over an area, each pulls
             its point, through a similarity from the ground to the map solved with the cameras, towards its
             position; an anchor ``sigma_m`` off costs as much as a pair 1 px off. Why, when the cameras cannot
             bend: a long chain can still drift in scale and heading.

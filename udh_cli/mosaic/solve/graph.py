@@ -75,7 +75,7 @@ def footprint(ref_from_frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 # Loop pairs at most this far apart in the sequence close loops the chain nearly closes already: a frame with
-# none but these is not tied to another strip (pipeline._close_loops gives it a far partner).
+# none but these is not tied to another strip (loops.close_loops gives it a far partner).
 NEAR_IN_SEQUENCE = 3
 BOX_BLOCK_ROWS = 256  # frames per block of overlap_candidates' bounding-box test
 

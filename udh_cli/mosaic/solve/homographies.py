@@ -8,7 +8,7 @@ parameterised by 8 entries (h33 = 1) in Hartley-normalised coordinates, so the n
 conditioned. They are 8 (N - 1) square but sparse (a pair ties two frames), and are assembled and solved
 with scipy's sparse matrices, so memory and time grow with the pairs, not with N squared.
 
-With anchors (GPS fixes, ground-control marks: :class:`Anchors`) every frame is free, the reference too; the
+With anchors (GPS fixes, ground-control marks: :class:`~udh_cli.mosaic.georef.anchors.Anchors`) every frame is free, the reference too; the
 anchors fix the plane instead, and the answer is expressed relative to the reference again (:func:`solve_part`).
 """
 
@@ -23,6 +23,7 @@ from scipy import sparse
 from scipy.sparse import linalg as sparse_linalg
 
 from udh_cli import geometry
+from udh_cli.mosaic.georef.anchors import Anchors
 from udh_cli.mosaic.georef.gps import fit_similarity
 from udh_cli.mosaic.pairs.types import PairResult
 
@@ -42,35 +43,6 @@ MIN_ANCHOR_SPREAD = 0.05  # the anchored positions' smaller principal extent, as
 # An anchored solution whose pairs disagree by more than this many Huber widths on average is a collapse, not a
 # compromise with the anchors (seneca's anchored pairs: 3.8 px mean): the part is solved from its pairs alone.
 MAX_ANCHORED_PAIR_WIDTHS = 10.0
-
-
-@dataclass(frozen=True)
-class Anchors:
-    """Points of frames whose map position is known: GPS fixes of frame centres, ground-control observations.
-
-    Attributes:
-        frames: (A,) the frame of each anchor.
-        pixels: (A, 2) where it is in its frame, full-resolution pixels.
-        positions: (A, 2) easting, northing in metres (one projected CRS, e.g. UTM).
-        sigma_m: (A,) each position's standard error, metres: an anchor this far from the solution costs as
-            much as a pair correspondence 1 px off.
-    """
-
-    frames: np.ndarray
-    pixels: np.ndarray
-    positions: np.ndarray
-    sigma_m: np.ndarray
-
-    @classmethod
-    def frame_centres(cls, positions: dict[int, np.ndarray], sizes: Sequence[tuple[int, int]], sigma_m: float) -> "Anchors":
-        """GPS fixes: frame -> (2,) position of its centre, all with the same error."""
-        frames = sorted(positions)
-        pixels = np.array([[(sizes[i][0] - 1) / 2, (sizes[i][1] - 1) / 2] for i in frames]).reshape(-1, 2)
-        return cls(np.array(frames, int), pixels, np.array([positions[i] for i in frames]).reshape(-1, 2), np.full(len(frames), float(sigma_m)))
-
-    def __add__(self, other: "Anchors") -> "Anchors":
-        return Anchors(*(np.concatenate([a, b]) for a, b in ((self.frames, other.frames), (self.pixels, other.pixels),
-                                                             (self.positions, other.positions), (self.sigma_m, other.sigma_m))))
 
 
 @dataclass(frozen=True)

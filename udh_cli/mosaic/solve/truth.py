@@ -15,6 +15,7 @@ Two measures:
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -22,6 +23,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.mosaic.inputs.frames import Frame
 from udh_cli.mosaic.georef.gps import fit_similarity
+from udh_cli.simulate import GROUND_TRUTH_FILE, load_ground_truth
 
 
 def corner_errors_vs_truth(frames: Sequence[Frame], reference: int, ref_from: dict[int, np.ndarray], truth: dict) -> dict[int, dict[str, float]]:
@@ -66,3 +68,11 @@ def summarise_truth(per_frame: dict[int, dict[str, float]]) -> dict[str, float |
         return {"frames": 0, "mean_corner_px": None, "max_corner_px": None}
     means = [v["mean_corner_px"] for v in per_frame.values()]
     return {"frames": len(per_frame), "mean_corner_px": float(np.mean(means)), "max_corner_px": float(max(v["max_corner_px"] for v in per_frame.values()))}
+
+
+def load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:
+    """The simulator's ground truth: ``ground_truth`` when given, else ``SOURCE/ground_truth.json`` when there is one."""
+    if ground_truth is not None:
+        return load_ground_truth(ground_truth)
+    auto = source / GROUND_TRUTH_FILE
+    return load_ground_truth(auto) if source.is_dir() and auto.is_file() else None

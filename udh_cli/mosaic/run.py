@@ -84,13 +84,13 @@ def run_mosaic(
     cache = PairCache.open(files.pair_cache, frameset.frames, opinions, acceptance(config), resume, reporter, keep=resume or cache_dir is not None)
     pairs, parts = _pairs_and_parts(frameset, opinions, spec, config, reporter, cache, resume)
     anchors = solve_anchors(frameset, config.gcp_sigma_m, config.gps_sigma_m, reporter, gcps, gcp_image_width)
-    loops = solve_parts(frameset, parts, pairs, config.global_solve(), reporter, anchors)
+    solved = solve_parts(frameset, parts, pairs, config.global_solve(), reporter, anchors)
     plan_canvases(frameset, parts, files, config.drawing())
     staged = StagedFiles()  # the images of every part appear together, or none of them does
     try:
         gains = {i: gain for part in parts for i, gain in composite_part(frameset, part, config.drawing(), reporter, staged).items()}
         warn_about_earlier_output(files, parts, reporter)
-        report = _write_report(frameset, parts, pairs, gains, loops, truth, config, opinions, reporter, staged, files, gcps, gcp_image_width,
+        report = _write_report(frameset, parts, solved.pairs, gains, solved.loops, truth, config, opinions, reporter, staged, files, gcps, gcp_image_width,
                                cache, started)
         published = staged.publish()
     finally:

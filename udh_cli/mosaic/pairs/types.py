@@ -6,7 +6,7 @@ the reports all depend on these types, and none of them on another.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
 import cv2
@@ -88,6 +88,15 @@ class PairRequest:
     prior: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class PairVerdict:
+    """What the global solve found of one pair: its consistency (rms px before and after the solve, and whether it
+    closes a loop) and, for a pair the others contradict, why it is rejected."""
+
+    consistency_px: dict[str, Any]
+    rejected_because: str | None = None
+
+
 @dataclass
 class PairResult:
     """The outcome of one pair.
@@ -121,6 +130,12 @@ class PairResult:
     @property
     def ok(self) -> bool:
         return self.status == "ok"
+
+    def judged(self, verdict: PairVerdict) -> PairResult:
+        """A copy with the global solve's ``verdict``: its consistency figures, and rejected where it says why."""
+        if verdict.rejected_because is None:
+            return replace(self, consistency_px=verdict.consistency_px)
+        return replace(self, consistency_px=verdict.consistency_px, status="rejected", b_from_a=None, reason=verdict.rejected_because)
 
     @property
     def confidence(self) -> float:

@@ -10,7 +10,7 @@ from udh_cli.errors import UdhError
 from udh_cli.mosaic.georef.anchors import Anchors
 from udh_cli.mosaic.inputs.frames import FrameSet
 from udh_cli.mosaic.inputs.lens_fit import frames_focal
-from udh_cli.mosaic.pairs.types import PairResult
+from udh_cli.mosaic.pairs.types import PairResult, PairVerdict
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.solve.cameras import solve_cameras
 from udh_cli.mosaic.solve.homographies import pair_points, pair_rms_px, solve_with_rejection, summarise
@@ -65,37 +65,47 @@ def _solve_cameras(frameset: FrameSet, part: Part, points: list, huber_px: float
     part.solved = part.cameras.ref_from
 
 
+@dataclass(frozen=True)
+class SolvedPairs:
+    """What the global solve says of the pairs: ``pairs`` as given, each pair inside a part judged (its consistency
+    figures, and rejected where the other pairs contradict it), and the loop summaries for the sidecar."""
+
+    pairs: list[PairResult]
+    loops: dict[str, Any]
+
+
 def solve_parts(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], settings: GlobalSolve, reporter: Reporter,
-                anchors: Anchors | None = None) -> dict[str, Any]:
-    """Global solve per part (with ``anchors``, :func:`.anchors.solve_anchors`); fills every pair's consistency figures
-    and returns the loop summaries."""
+                anchors: Anchors | None = None) -> SolvedPairs:
+    """Global solve per part (with ``anchors``, :func:`.anchors.solve_anchors`): each part's ``solved`` (and
+    ``cameras``, ``rectified``); returns the pairs judged by it, new records where it judged them."""
     sizes = [f.size for f in frameset.frames]
     loops_before, loops_after, all_after = [], [], []
+    verdicts: dict[int, PairVerdict] = {}  # index in ``pairs`` -> what the solve found
     multi = [p for p in parts if len(p.frames) > 1]
     with reporter.stage("global solve", len(multi)) as advance:
         for part in multi:
             members = set(part.frames)
-            inside = [p for p in pairs if p.ok and p.a in members and p.b in members]
-            points = [pair_points(p, sizes[p.a], sizes[p.b]) for p in inside]
+            inside = [k for k, p in enumerate(pairs) if p.ok and p.a in members and p.b in members]
+            points = [pair_points(pairs[k], sizes[pairs[k].a], sizes[pairs[k].b]) for k in inside]
+            in_loop = [id(pairs[k]) not in part.tree for k in inside]
             # From the loop rounds' last solve when there was one (Part.solved starts as the chain).
             part.solved, dropped = solve_with_rejection(
-                part.reference, part.solved, sizes, points, [p.kind == "overlap" or (p.kind == "gps" and id(p) not in part.tree) for p in inside],
+                part.reference, part.solved, sizes, points, [pairs[k].kind == "overlap" or (pairs[k].kind == "gps" and loop) for k, loop in zip(inside, in_loop)],
                 settings.huber_px, settings.outlier_px, anchors=anchors
             )
             for i, residual in dropped.items():  # loop pairs the other pairs contradict
-                inside[i].consistency_px = {"before": pair_rms_px(part.chained, points[i]), "after": residual, "loop": True}
-                inside[i].status, inside[i].b_from_a = "rejected", None
-                inside[i].reason = (f"contradicted by the other pairs{' and the anchors' if anchors is not None else ''}: "
-                                    f"{residual:.1f} px from the joint solution, which improved without it")
-            inside = [p for i, p in enumerate(inside) if i not in dropped]
-            points = [p for i, p in enumerate(points) if i not in dropped]
+                verdicts[inside[i]] = PairVerdict({"before": pair_rms_px(part.chained, points[i]), "after": residual, "loop": True},
+                                                  f"contradicted by the other pairs{' and the anchors' if anchors is not None else ''}: "
+                                                  f"{residual:.1f} px from the joint solution, which improved without it")
+            kept = [i for i in range(len(inside)) if i not in dropped]
+            points = [points[i] for i in kept]
             if settings.model == "camera":
                 _solve_cameras(frameset, part, points, settings.huber_px, reporter, anchors)
-            for pair, pts in zip(inside, points):
+            for i, pts in zip(kept, points):
                 before, after = pair_rms_px(part.chained, pts), pair_rms_px(part.solved, pts)
-                pair.consistency_px = {"before": before, "after": after, "loop": id(pair) not in part.tree}
+                verdicts[inside[i]] = PairVerdict({"before": before, "after": after, "loop": in_loop[i]})
                 all_after.append(after)
-                if id(pair) not in part.tree:
+                if in_loop[i]:
                     loops_before.append(before)
                     loops_after.append(after)
             # The camera model's ground, whatever --rectify says: the model knows it. Otherwise anchors already put
@@ -114,9 +124,9 @@ def solve_parts(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], 
                 part.solved = {i: plane @ h for i, h in part.solved.items()}
                 part.rectified = True
             advance(1)
-    return {
+    return SolvedPairs([pair.judged(verdicts[k]) if k in verdicts else pair for k, pair in enumerate(pairs)], {
         "units": "pixels of each part's reference frame at full resolution",
         "loops_before": summarise(loops_before),
         "loops_after": summarise(loops_after),
         "all_pairs_after": summarise(all_after),
-    }
+    })

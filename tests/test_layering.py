@@ -142,3 +142,11 @@ def test_stage_folders_never_import_the_run(graph):
 def test_no_mosaic_module_is_longer_than_450_lines():
     long = {module_name(p): n for p in (PACKAGE / "mosaic").rglob("*.py") if (n := len(p.read_text().splitlines())) > 450}
     assert not long, long
+
+
+def test_every_package_folder_is_listed_for_installation():
+    import tomllib
+
+    listed = set(tomllib.loads((PACKAGE.parent / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {module_name(p) for p in PACKAGE.rglob("__init__.py")}
+    assert folders <= listed, sorted(folders - listed)  # a folder left out is missing from `pip install .`

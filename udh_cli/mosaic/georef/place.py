@@ -46,7 +46,7 @@ def georeference(frameset: FrameSet, parts: list[PartOnCanvas], staged: StagedFi
     """World and projection files for every written part placed by ground-control points (``gcps``) or else
     by its frames' GPS (see :mod:`.gcp`, :mod:`.gps`), staged with the images; returns what the sidecar
     records of them. ``gcps_in_solve``: the points also anchored the solve."""
-    placement = Placement({})
+    placement = Placement()
     if gcps is not None:
         _georeference_by_gcps(frameset, parts, placement, staged, reporter, gcps, gcp_image_width, gcps_in_solve)
         return placement
@@ -106,11 +106,11 @@ def _write_combined_map(placed: list, staged: StagedFiles, reporter: Reporter, p
         reporter.warn(f"no combined map: {exc}")
         return None
     on_gps_alone = sum(len(part.frames) for part, _ in same_zone[1:])
-    found = {**written, "file": path.name, "crs": f"EPSG:{epsg}", "parts": len(same_zone),
-                     "frames": sum(len(part.frames) for part, _ in same_zone), "frames_on_gps_alone": on_gps_alone}
+    entry = {**written, "file": path.name, "crs": f"EPSG:{epsg}", "parts": len(same_zone),
+             "frames": sum(len(part.frames) for part, _ in same_zone), "frames_on_gps_alone": on_gps_alone}
     reporter.info(f"{path.name}: {len(same_zone)} parts in one map, placed by GPS; {on_gps_alone} frames "
                   f"rest on GPS alone (outside the largest part)")
-    return found
+    return entry
 
 
 def _staged_bgra(staged: StagedFiles, part: PartOnCanvas) -> MosaicImage | None:

@@ -26,7 +26,7 @@ from udh_cli.mosaic.pairs.cache import PairCache
 from udh_cli.mosaic.pairs.plan import estimate_sequence
 from udh_cli.mosaic.pairs.types import PairResult
 from udh_cli.mosaic.pairs.workers import open_runner
-from udh_cli.mosaic.render.canvases import composite_part, on_canvas, plan_canvases, warn_about_earlier_output
+from udh_cli.mosaic.render.canvases import CanvasPlan, DrawnPart, composite_part, on_canvas, plan_canvases, warn_about_earlier_output
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.sidecar import build_sidecar, relative_to
 from udh_cli.mosaic.solve.anchors import solve_anchors
@@ -85,17 +85,17 @@ def run_mosaic(
     pairs, parts = _pairs_and_parts(frameset, opinions, spec, config, reporter, cache, resume)
     anchors = solve_anchors(frameset, config.gcp_sigma_m, config.gps_sigma_m, reporter, gcps, gcp_image_width)
     solved = solve_parts(frameset, parts, pairs, config.global_solve(), reporter, anchors)
-    plan_canvases(frameset, parts, files, config.drawing())
+    plan = plan_canvases(frameset, parts, files, config.drawing())
     staged = StagedFiles()  # the images of every part appear together, or none of them does
     try:
-        gains = {i: gain for part in parts for i, gain in composite_part(frameset, part, config.drawing(), reporter, staged).items()}
-        warn_about_earlier_output(files, parts, reporter)
-        report = _write_report(frameset, parts, solved.pairs, gains, solved.loops, truth, config, opinions, reporter, staged, files, gcps, gcp_image_width,
-                               cache, started)
+        drawn = [composite_part(frameset, part, config.drawing(), reporter, staged) for part in plan.parts]
+        warn_about_earlier_output(files, plan, reporter)
+        report = _write_report(frameset, plan, drawn, solved.pairs, solved.loops, truth, config, opinions, reporter, staged, files, gcps,
+                               gcp_image_width, cache, started)
         published = staged.publish()
     finally:
         staged.discard()  # after a failure; nothing is left to discard after publish()
-    remove_stale_files(files, published, [files.output, *(p.file for p in parts if p.file is not None)], reporter)
+    remove_stale_files(files, published, [files.output, *(part.file for part in plan.parts)], reporter)
     report["sidecar"] = str(files.sidecar)
     return report
 
@@ -169,16 +169,16 @@ def _pairs_and_parts(frameset: FrameSet, opinions, spec, config: MosaicConfig, r
     return pairs, parts
 
 
-def _write_report(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], gains: dict[int, list[float]], loops: dict[str, Any],
+def _write_report(frameset: FrameSet, plan: CanvasPlan, drawn: list[DrawnPart], pairs: list[PairResult], loops: dict[str, Any],
                   truth: dict | None, config: MosaicConfig, opinions, reporter: Reporter, staged: StagedFiles, files: RunFiles,
                   gcps: GcpFile | None, gcp_image_width: int | None, cache: PairCache, started: float) -> dict[str, Any]:
     """The sidecar, with the map placement, staged last beside the images (a run that fails while writing leaves
     the earlier run's files, all of them, and never new images beside an old sidecar); returns its content."""
-    drawn = on_canvas(parts)
-    report = build_sidecar(frameset, parts, drawn, pairs, gains, loops, truth, config, opinions, reporter, files.sidecar.parent)
+    on_map = on_canvas(plan)
+    report = build_sidecar(frameset, plan, drawn, on_map, pairs, loops, truth, config, opinions, reporter, files.sidecar.parent)
     if gcps is not None or gps_fixes(frameset.frames):
         with reporter.stage("georeferencing", 1) as advance:  # world files and the north-up GeoTIFFs
-            placement = georeference(frameset, drawn, staged, reporter, files, gcps, gcp_image_width, config.gcp_sigma_m > 0)
+            placement = georeference(frameset, on_map, staged, reporter, files, gcps, gcp_image_width, config.gcp_sigma_m > 0)
             advance(1)
         for entry in report["parts"]:
             entry.update(placement.parts.get(entry["part"], {}))

@@ -19,26 +19,25 @@ from udh_cli.mosaic.pairs.cache import estimator_identity
 from udh_cli.mosaic.pairs.types import PairResult
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.solve.homographies import summarise
-from udh_cli.mosaic.solve.parts import Part
+from udh_cli.mosaic.render.canvases import CanvasPlan, DrawnPart, PlannedPart
 from udh_cli.mosaic.solve.truth import corner_errors_vs_truth, map_shape_errors, summarise_truth
 
 
-def build_sidecar(frameset: FrameSet, parts: list[Part], drawn: list[PartOnCanvas], pairs: list[PairResult], gains: dict[int, list[float]],
+def build_sidecar(frameset: FrameSet, plan: CanvasPlan, drawn: list[DrawnPart], on_map: list[PartOnCanvas], pairs: list[PairResult],
                   loops: dict[str, Any], truth: dict | None, config: MosaicConfig, opinions: Sequence[Estimator], reporter: Reporter,
                   folder: Path) -> dict[str, Any]:
     """The sidecar's content, from the stages' results; its paths are relative to ``folder``, where it is written.
-    ``drawn``: the written parts (:func:`.render.canvases.on_canvas`); ``gains``: each placed frame's mean gain per
-    channel (B, G, R)."""
+    ``on_map``: the drawn parts as placed on their canvases (:func:`.render.canvases.on_canvas`)."""
     method, fallback = opinions[0], (opinions[1] if len(opinions) > 1 else None)
     frames = frameset.frames
-    part_of = {i: part for part in parts for i in part.frames}
-    dropped = {i: reason for part in parts for i, reason in part.dropped.items()}
-    on_canvas = {i: m for part in drawn for i, m in part.mosaic_from_frame.items()}
+    part_of = {i: part for part in plan.parts for i in part.frames}
+    gains = {i: gain for part in drawn for i, gain in part.gains.items()}  # per placed frame, its mean gain per channel (B, G, R)
+    on_canvas = {i: m for part in on_map for i, m in part.mosaic_from_frame.items()}
     records = []
     for frame in frames:
         part = part_of.get(frame.index)
-        placed = part is not None and part.canvas is not None
-        reason = None if placed else dropped.get(frame.index) or _unplaced_reason(frame.index, pairs, frames)
+        placed = part is not None
+        reason = None if placed else plan.dropped.get(frame.index) or _unplaced_reason(frame.index, pairs, frames)
         if not placed:
             reporter.warn(f"{frame.name} is not in any mosaic: {reason}")
         records.append(
@@ -55,10 +54,10 @@ def build_sidecar(frameset: FrameSet, parts: list[Part], drawn: list[PartOnCanva
                 "metadata": None if frame.metadata is None else frame.metadata.to_json(),
                 "mosaic_from_frame": on_canvas[frame.index].tolist() if placed else None,
                 # --solve camera: how far the frame's camera looked from straight down (a check on oblique frames)
-                "tilt_deg": part.cameras.tilt_deg.get(frame.index) if placed and part.cameras is not None else None,
+                "tilt_deg": part.part.cameras.tilt_deg.get(frame.index) if placed and part.part.cameras is not None else None,
             }
         )
-    multi = [p for p in parts if p.canvas is not None]
+    multi = plan.parts
     if len(multi) > 1:
         reporter.warn(f"the sequence is split into {len(multi)} parts, each written on its own: {', '.join(p.file.name for p in multi)}")
     report: dict[str, Any] = {
@@ -75,27 +74,7 @@ def build_sidecar(frameset: FrameSet, parts: list[Part], drawn: list[PartOnCanva
         # the lens every frame was undistorted by, and (--camera estimate) how it was fitted
         "camera": None if frameset.lens is None and frameset.lens_fit is None else
                   {**(frameset.lens.to_json() if frameset.lens is not None else {}), "estimated": frameset.lens_fit},
-        "parts": [
-            {
-                "part": p.number,
-                "file": relative_to(p.file, folder),
-                "preview": None if p.preview is None else relative_to(p.preview, folder),
-                "width": p.canvas.size[0],
-                "height": p.canvas.size[1],
-                "scale": p.canvas.scale,
-                "reference_frame": p.reference,
-                "plane": ("ground (camera model)" if p.cameras is not None else "ground (rectified)") if p.rectified else "reference frame",
-                # --solve camera: the shared focal length and how far each camera looked from straight down
-                "cameras": None if p.cameras is None else {
-                    "focal_px": p.cameras.focal_px,
-                    "focal_source": p.focal_source,
-                    "tilt_deg": {"median": float(np.median([p.cameras.tilt_deg[i] for i in p.frames])),
-                                 "max": max(p.cameras.tilt_deg[i] for i in p.frames)},
-                },
-                "frames": p.frames,
-            }
-            for p in multi
-        ],
+        "parts": [_part_record(d.plan, d.preview, folder) for d in drawn],
         "frames": records,
         "skipped_files": frameset.skipped,
         "pairs": [p.to_json() for p in pairs],
@@ -117,9 +96,9 @@ def build_sidecar(frameset: FrameSet, parts: list[Part], drawn: list[PartOnCanva
     if truth is not None:
         before, after, shape = {}, {}, {}
         for p in multi:
-            before.update(corner_errors_vs_truth(frames, p.reference, {i: p.chained[i] for i in p.frames}, truth))
-            after.update(corner_errors_vs_truth(frames, p.reference, {i: p.solved[i] for i in p.frames}, truth))
-            shape.update(map_shape_errors(frames, {i: p.solved[i] for i in p.frames}, truth))
+            before.update(corner_errors_vs_truth(frames, p.part.reference, {i: p.part.chained[i] for i in p.frames}, truth))
+            after.update(corner_errors_vs_truth(frames, p.part.reference, {i: p.part.solved[i] for i in p.frames}, truth))
+            shape.update(map_shape_errors(frames, {i: p.part.solved[i] for i in p.frames}, truth))
         report["ground_truth_error"] = {
             "measure": "corner distance of frame->reference homographies vs the truth, reference-frame pixels",
             "chained": summarise_truth(before),
@@ -129,6 +108,29 @@ def build_sidecar(frameset: FrameSet, parts: list[Part], drawn: list[PartOnCanva
                                      "ground pixels, per frame", **summarise(list(shape.values()))},
         }
     return report
+
+
+def _part_record(plan: PlannedPart, preview: Path | None, folder: Path) -> dict[str, Any]:
+    """One drawn part as the sidecar lists it."""
+    part = plan.part
+    return {
+        "part": plan.number,
+        "file": relative_to(plan.file, folder),
+        "preview": None if preview is None else relative_to(preview, folder),
+        "width": plan.canvas.size[0],
+        "height": plan.canvas.size[1],
+        "scale": plan.canvas.scale,
+        "reference_frame": part.reference,
+        "plane": ("ground (camera model)" if part.cameras is not None else "ground (rectified)") if part.rectified else "reference frame",
+        # --solve camera: the shared focal length and how far each camera looked from straight down
+        "cameras": None if part.cameras is None else {
+            "focal_px": part.cameras.focal_px,
+            "focal_source": part.focal_source,
+            "tilt_deg": {"median": float(np.median([part.cameras.tilt_deg[i] for i in plan.frames])),
+                         "max": max(part.cameras.tilt_deg[i] for i in plan.frames)},
+        },
+        "frames": plan.frames,
+    }
 
 
 def _unplaced_reason(index: int, pairs: list[PairResult], frames) -> str:

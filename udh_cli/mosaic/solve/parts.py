@@ -1,10 +1,8 @@
-"""A part: a connected run of frames mosaicked on its own, from chaining to its canvas."""
+"""A part: a connected run of frames mosaicked on its own, from chaining to the global solve."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -13,13 +11,10 @@ from udh_cli.mosaic.pairs.types import PairResult
 from udh_cli.mosaic.solve.cameras import CameraSolution
 from udh_cli.mosaic.solve.graph import chain_to_reference, connected_parts, reference_frame
 
-if TYPE_CHECKING:  # the canvas is render's; a part only carries it from planning to the sidecar
-    from udh_cli.mosaic.render.composite import Canvas
-
 
 @dataclass
 class Part:
-    """A connected run of frames mosaicked on its own: its frames, reference, homographies and canvas."""
+    """A connected run of frames mosaicked on its own: its frames, its reference and their homographies to it."""
 
     number: int
     frames: list[int]
@@ -27,10 +22,6 @@ class Part:
     chained: dict[int, np.ndarray]
     solved: dict[int, np.ndarray]  # the chain at first, then each loop round's solve, then the global solve's
     tree: set[int]
-    canvas: Canvas | None = None
-    file: Path | None = None
-    preview: Path | None = None
-    dropped: dict[int, str] = field(default_factory=dict)  # frame -> why it was taken out of the part
     rectified: bool = False  # solved on the ground's plane (rectify.py, cameras.py) rather than in the reference frame's view
     cameras: CameraSolution | None = None  # the camera-model solve's answer (--solve camera)
     focal_source: str | None = None  # where the camera-model solve's focal length came from

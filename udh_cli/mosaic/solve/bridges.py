@@ -43,18 +43,18 @@ def bridge_by_gps(frameset: FrameSet, parts: list[Part], pairs: list[PairResult]
         return []
     results = estimate_pairs([PairRequest(a, b, "gps") for a, b, _ in candidates], frames, opinions, acceptance,
                              reporter, "GPS bridges between parts", batch_size, cache, runner)
-    part_of = {i: part for part in parts for i in part.frames}
-    placed = {id(part): part_map(positions, part.chained, sizes) for part in parts if len(part.frames) >= 3}
+    part_of = {i: k for k, part in enumerate(parts) for i in part.frames}  # frame -> index of its part
+    placed = {k: part_map(positions, part.chained, sizes) for k, part in enumerate(parts) if len(part.frames) >= 3}
     for result in results:
         if not result.ok:
             continue
         # Through whichever part GPS places on the map (the larger first): where the estimate puts the other frame.
         checks = sorted([(result.a, result.b, geometry.invert(result.b_from_a)), (result.b, result.a, result.b_from_a)],
-                        key=lambda c: -len(part_of[c[0]].frames))
-        through = next(((f, o, h) for f, o, h in checks if placed.get(id(part_of[f])) is not None), None)
+                        key=lambda c: -len(parts[part_of[c[0]]].frames))
+        through = next(((f, o, h) for f, o, h in checks if placed.get(part_of[f]) is not None), None)
         if through is not None:
             frame, other, frame_from_other = through
-            off, limit = placement_error_m(frame_from_other, frame, other, part_of[frame].chained[frame], placed[id(part_of[frame])], positions, sizes)
+            off, limit = placement_error_m(frame_from_other, frame, other, parts[part_of[frame]].chained[frame], placed[part_of[frame]], positions, sizes)
             what = f"places {frames[other].name} {off:.0f} m from its GPS position (limit {limit:.0f} m)"
         else:
             off, limit = gps_disagreement_m(result.b_from_a, result.a, result.b, positions, sizes, scale), gps_limit_m(scale)

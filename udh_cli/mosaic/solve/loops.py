@@ -56,13 +56,13 @@ def close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], 
     sizes = [f.size for f in frames]
     known = {(min(p.a, p.b), max(p.a, p.b)) for p in pairs}
     # Priors and candidates come from Part.solved: the chain at first, then each round's solve.
-    wanted = {id(part): [(a, b) for a, b, _ in overlap_candidates(part.frames, part.solved, sizes, known, settings.overlap_min, settings.overlap_per_frame)]
-              for part in parts if len(part.frames) >= 3}
+    wanted = {k: [(a, b) for a, b, _ in overlap_candidates(part.frames, part.solved, sizes, known, settings.overlap_min, settings.overlap_per_frame)]
+              for k, part in enumerate(parts) if len(part.frames) >= 3}  # part index -> the pairs to estimate
     results: dict[tuple[int, int], PairResult] = {}
     for round_number in range(LOOP_ROUNDS):
         requests, requested = [], []
-        for part in parts:
-            for a, b in wanted.get(id(part), []):
+        for k, part in enumerate(parts):
+            for a, b in wanted.get(k, []):
                 requested.append((a, b))
                 prior = geometry.invert(part.solved[b]) @ part.solved[a]
                 requests.append(PairRequest(a, b, "overlap", prior / prior[2, 2]))
@@ -86,9 +86,9 @@ def close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], 
         if round_number + 1 == LOOP_ROUNDS:
             break
         tried = known | set(results)
-        solving = [part for part in parts if id(part) in wanted]
+        solving = [(k, part) for k, part in enumerate(parts) if k in wanted]
         with reporter.stage("loop-closure solves", len(solving)) as advance:
-            for part in solving:
+            for k, part in solving:
                 members = set(part.frames)
                 used = [p for p in [*pairs, *results.values()] if p.ok and p.a in members and p.b in members]
                 # From the previous round's solve, which the pairs it had already hold: nearer this round's answer
@@ -99,6 +99,6 @@ def close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], 
                 tied = {f for p in used if abs(p.b - p.a) > NEAR_IN_SEQUENCE for f in (p.a, p.b)}
                 found = [(a, b) for a, b, _ in overlap_candidates(part.frames, part.solved, sizes, tried, settings.overlap_min, 1)
                          if b - a > NEAR_IN_SEQUENCE and not (a in tied and b in tied)]
-                wanted[id(part)] = [key for key in wanted[id(part)] if key in retry] + found
+                wanted[k] = [key for key in wanted[k] if key in retry] + found
                 advance(1)
     return list(results.values())

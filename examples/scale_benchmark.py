@@ -8,7 +8,7 @@ one process, and `udh mosaic` runs on it in another, so that each size's peak me
 Prints a Markdown table: frames placed, parts, wall time and time per frame, the pairs' share of it, peak
 memory (the process's maximum resident set), the solved frames' corner error against the truth in
 reference-frame pixels, and the map's shape: every frame's corners against their true ground positions after
-the best similarity (``udh_cli.mosaic.truth``). ``--rectify`` mosaics with ``udh mosaic --rectify``, ``--solve camera`` with ``udh mosaic --solve camera``. The
+the best similarity (``udh_cli.mosaic.solve.truth``). ``--rectify`` mosaics with ``udh mosaic --rectify``, ``--solve camera`` with ``udh mosaic --solve camera``. The
 surveys carry EXIF GPS with 2 m of noise (5 cm ground pixels); ``--gps-sigma M`` mosaics them with
 ``udh mosaic --gps-sigma M``, the fixes anchoring the global solve.
 """

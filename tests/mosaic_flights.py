@@ -12,7 +12,7 @@ from udh_cli.errors import EstimationFailed
 from udh_cli.estimators import Estimator, create_estimator
 from udh_cli.estimators.pair import PreparedImage
 from udh_cli.images import read_image
-from udh_cli.mosaic.frames import work_copy
+from udh_cli.mosaic.inputs.frames import work_copy
 from udh_cli.simulate import FlightConfig, write_flight
 
 SMALL = FlightConfig(frame_size=(320, 240), strips=2, frames_per_strip=4, focal_px=300.0)  # 8 frames, fast
@@ -26,7 +26,7 @@ def make_flight(folder: Path, config: FlightConfig = SMALL, seed: int = 3) -> li
 
 
 def distort(image: np.ndarray, lens) -> np.ndarray:
-    """What ``lens`` (a :class:`~udh_cli.mosaic.lens.Lens`) makes of a pinhole image: distorted pixel d shows the
+    """What ``lens`` (a :class:`~udh_cli.mosaic.inputs.lens.Lens`) makes of a pinhole image: distorted pixel d shows the
     pinhole pixel its undistortion gives."""
     import cv2
 

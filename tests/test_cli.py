@@ -326,5 +326,5 @@ def test_start_up_imports_nothing_heavy(args):
 
 def test_the_mosaic_command_loads_when_invoked():
     loaded = modules_loaded_by("mosaic", "--help")
-    assert "udh_cli.mosaic.pipeline" in loaded and "udh_cli.cli_mosaic" in loaded
+    assert "udh_cli.mosaic.config" in loaded and "udh_cli.cli_mosaic" in loaded
     assert not {"onnxruntime", "torch"} & loaded

@@ -98,7 +98,7 @@ def test_a_second_bench_into_the_same_folder_replaces_its_own_results(tmp_path, 
 
 def test_a_gcp_file_with_a_byte_order_mark_reads_its_crs(tmp_path):
     pytest.importorskip("pyproj")
-    from udh_cli.mosaic.gcp import read_gcp_file
+    from udh_cli.mosaic.georef.gcp import read_gcp_file
 
     path = tmp_path / "gcp_list.txt"
     path.write_bytes("EPSG:32611\n500000 4100000 10 5 5 a.jpg g1\n500100 4100000 10 9 5 b.jpg g2\n".encode("utf-8-sig"))

@@ -12,6 +12,12 @@ PACKAGE = Path(__file__).resolve().parents[1] / "udh_cli"
 # Each layer may import from the layers listed before it, never after. Top-level modules not named here
 # (errors, geometry, images, ...) form the base that every layer may use.
 LAYERS = ["estimators", "mosaic", "bench", "train", "api", "cli", "cli_mosaic"]
+# Inside udh_cli/mosaic/: the progress reporter, then the stage folders in this order (a folder may import its own
+# modules and the folders before it), then the run's own modules (config, sidecar, run), then live mode over them.
+MOSAIC_BASE = ["report"]
+MOSAIC_STAGES = ["outputs", "inputs", "georef", "pairs", "solve", "render"]
+MOSAIC_RUN = ["config", "sidecar", "run"]
+MOSAIC_TOP = ["live"]
 TORCH_FREE = ["estimators", "mosaic", "bench", "api", "geometry", "images", "onnx_model", "synthetic", "flight_motion"]
 
 
@@ -98,3 +104,49 @@ def test_inference_never_imports_torch():
             if "import torch" in path.read_text() or "from torch" in path.read_text():
                 offenders.append(name)
     assert not offenders, offenders
+
+
+def mosaic_rank(module: str) -> tuple[int, str] | None:
+    """Where a module of udh_cli.mosaic sits: (rank, its group); None outside the mosaic package or for its front door."""
+    parts = module.split(".")
+    if parts[:2] != ["udh_cli", "mosaic"] or len(parts) < 3:
+        return None
+    ordered = [*MOSAIC_BASE, *MOSAIC_STAGES, "run level", *MOSAIC_TOP]
+    name = "run level" if parts[2] in MOSAIC_RUN else parts[2]
+    assert name in ordered, f"{module}: not in the mosaic's layers; add its folder to MOSAIC_STAGES (or MOSAIC_RUN) in order"
+    return ordered.index(name), name
+
+
+def test_mosaic_stage_folders_import_only_earlier_stages(graph):
+    wrong = []
+    for module, targets in graph.items():
+        own = mosaic_rank(module)
+        if own is None:
+            continue
+        for target in targets:
+            other = mosaic_rank(target)
+            if other is None and target == "udh_cli.mosaic":
+                wrong.append(f"{module} -> {target} (the package's front door)")
+            elif other is not None and other[0] > own[0]:
+                wrong.append(f"{module} -> {target}")
+    assert not wrong, wrong
+
+
+def test_stage_folders_never_import_the_run(graph):
+    stages = [m for m in graph if (mosaic_rank(m) or (0, ""))[1] in MOSAIC_STAGES]
+    assert len({mosaic_rank(m)[1] for m in stages}) >= 4
+    run_level = {f"udh_cli.mosaic.{name}" for name in MOSAIC_RUN}
+    assert not [f"{m} -> {t}" for m in stages for t in graph[m] if t in run_level]
+
+
+def test_no_mosaic_module_is_longer_than_450_lines():
+    long = {module_name(p): n for p in (PACKAGE / "mosaic").rglob("*.py") if (n := len(p.read_text().splitlines())) > 450}
+    assert not long, long
+
+
+def test_every_package_folder_is_listed_for_installation():
+    import tomllib
+
+    listed = set(tomllib.loads((PACKAGE.parent / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {module_name(p) for p in PACKAGE.rglob("__init__.py")}
+    assert folders <= listed, sorted(folders - listed)  # a folder left out is missing from `pip install .`

@@ -12,12 +12,12 @@ from rich.table import Table
 
 from udh_cli.cli import LAZY_COMMANDS, METHOD_HELP, OPTION_HELP, Method, _choices, console, err_console
 from udh_cli.estimators.registry import parse_method_options
-from udh_cli.mosaic.composite import BLENDS as _BLENDS  # the --blend choices live there
-from udh_cli.mosaic.follow import FollowConfig as _FollowConfig
-from udh_cli.mosaic.gains import EXPOSURES as _EXPOSURES  # the --exposure choices live there
-from udh_cli.mosaic.pipeline import SOLVES as _SOLVES, MosaicConfig as _MosaicConfig  # the mosaic options' defaults live there
-from udh_cli.mosaic.seams import SEAM_FINDERS as _SEAM_FINDERS  # the --seams choices live there
-from udh_cli.mosaic.workers import MAX_AUTO_WORKERS as _MAX_AUTO_WORKERS, POOL_MIN_FRAMES as _POOL_MIN_FRAMES
+from udh_cli.mosaic.render.composite import BLENDS as _BLENDS  # the --blend choices live there
+from udh_cli.mosaic.live.follow import FollowConfig as _FollowConfig
+from udh_cli.mosaic.render.gains import EXPOSURES as _EXPOSURES  # the --exposure choices live there
+from udh_cli.mosaic.config import SOLVES as _SOLVES, MosaicConfig as _MosaicConfig  # the mosaic options' defaults live there
+from udh_cli.mosaic.render.seams import SEAM_FINDERS as _SEAM_FINDERS  # the --seams choices live there
+from udh_cli.mosaic.pairs.workers import MAX_AUTO_WORKERS as _MAX_AUTO_WORKERS, POOL_MIN_FRAMES as _POOL_MIN_FRAMES
 
 app = typer.Typer(rich_markup_mode="rich", pretty_exceptions_enable=False, add_completion=False)
 _MOSAIC = _MosaicConfig()

@@ -1,4 +1,4 @@
-"""The camera-model solve (udh_cli.mosaic.cameras): pinhole cameras over a flat ground instead of free homographies."""
+"""The camera-model solve (udh_cli.mosaic.solve.cameras): pinhole cameras over a flat ground instead of free homographies."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.cameras import camera_from_homography, ground_from_frame, rotations, solve_cameras
-from udh_cli.mosaic.solve import Anchors, PairPoints, solve_part
+from udh_cli.mosaic.solve.cameras import camera_from_homography, ground_from_frame, rotations, solve_cameras
+from udh_cli.mosaic.solve.homographies import Anchors, PairPoints, solve_part
 from udh_cli.simulate import frame_from_ground
 
 SIZE = (320, 240)

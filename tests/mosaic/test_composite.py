@@ -10,8 +10,8 @@ import pytest
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.composite import BYTES_PER_PIXEL, OUTPUT_BYTES_PER_PIXEL, composite, composite_tiles, plan_canvas
-from udh_cli.mosaic.frames import open_frames
+from udh_cli.mosaic.render.composite import BYTES_PER_PIXEL, OUTPUT_BYTES_PER_PIXEL, composite, composite_tiles, plan_canvas
+from udh_cli.mosaic.inputs.frames import open_frames
 from udh_cli.mosaic.report import Reporter
 from udh_cli.simulate import load_ground_truth
 
@@ -55,7 +55,7 @@ def test_tiles_blended_in_threads_are_the_same_tiles_in_the_same_order(small_fli
     frames, to_ground, size = _true_placement(small_flight)
     import threading
 
-    import udh_cli.mosaic.composite as composite_module
+    import udh_cli.mosaic.render.composite as composite_module
 
     one = list(composite_tiles(frames, to_ground, size, blend, Reporter(quiet=True), tile_side=96))
     threads = set()
@@ -69,7 +69,7 @@ def test_tiles_blended_in_threads_are_the_same_tiles_in_the_same_order(small_fli
 
 
 def test_frames_evicted_from_the_decoded_cache_are_read_again(small_flight, monkeypatch):
-    import udh_cli.mosaic.composite as composite_module
+    import udh_cli.mosaic.render.composite as composite_module
 
     frames, to_ground, size = _true_placement(small_flight)
     whole = composite(frames, to_ground, size, "feather", Reporter(quiet=True))
@@ -134,9 +134,9 @@ def test_compositing_memory_is_the_canvas_plus_one_frame(small_flight, blend):
 
 @pytest.mark.parametrize("blend, seam_finder", [("feather", None), ("multiband", None), ("none", None), ("multiband", "dp"), ("none", "graphcut")])
 def test_every_blend_reproduces_the_ground_with_true_homographies(small_flight, blend, seam_finder):
-    from udh_cli.mosaic.gains import exposure_gains
-    from udh_cli.mosaic.seams import find_seams
-    from udh_cli.mosaic.small import draw_small
+    from udh_cli.mosaic.render.gains import exposure_gains
+    from udh_cli.mosaic.render.seams import find_seams
+    from udh_cli.mosaic.render.small import draw_small
     from udh_cli.simulate import simulate_flight
 
     frames = open_frames(small_flight, 800)

@@ -183,7 +183,7 @@ def test_an_answer_its_network_could_not_confirm_is_doubted_even_when_it_aligns(
     aligns; an answer of a method that verifies itself (auto) is its method's to judge."""
     from conftest import warped_pair
     from udh_cli.estimators.base import Estimate
-    from udh_cli.mosaic.pairs import Acceptance
+    from udh_cli.mosaic.pairs.types import Acceptance
 
     truth = geometry.translation(6.0, -4.0)
     a, b = warped_pair(truth, seed=3)
@@ -203,7 +203,7 @@ def test_a_network_answer_its_global_match_verified_skips_the_photometric_check_
     too, which is why the estimator gives that mark only above CONFIDENT_INLIERS."""
     from conftest import warped_pair
     from udh_cli.estimators.base import Estimate
-    from udh_cli.mosaic.pairs import Acceptance
+    from udh_cli.mosaic.pairs.types import Acceptance
 
     truth = geometry.translation(6.0, -4.0)
     a, b = warped_pair(truth, seed=3)

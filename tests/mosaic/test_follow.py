@@ -11,7 +11,7 @@ import pytest
 
 from udh_cli.errors import UdhError
 from udh_cli.mosaic import FollowConfig, MosaicConfig, run_live, run_mosaic
-from udh_cli.mosaic.follow import _Watch, poll_complete_frames
+from udh_cli.mosaic.live.follow import _Watch, poll_complete_frames
 
 
 def test_a_frame_joins_only_once_it_stopped_changing(tmp_path):
@@ -96,7 +96,7 @@ def test_a_refresh_that_fails_or_whose_process_dies_does_not_end_the_flight(tmp_
     from concurrent.futures.process import BrokenProcessPool
 
     from mosaic_flights import make_flight
-    from udh_cli.mosaic.follow import follow_mosaic
+    from udh_cli.mosaic.live.follow import follow_mosaic
     from udh_cli.mosaic.report import Reporter
     from udh_cli.simulate import FlightConfig
 
@@ -141,7 +141,7 @@ def test_a_refresh_that_fails_or_whose_process_dies_does_not_end_the_flight(tmp_
 
 def test_the_quick_look_s_failures_are_warnings_in_a_live_run(tmp_path, monkeypatch):
     from mosaic_flights import SMALL, make_flight
-    from udh_cli.mosaic import quicklook
+    from udh_cli.mosaic.live import quicklook
     from udh_cli.mosaic.report import Reporter
 
     folder = tmp_path / "flight"

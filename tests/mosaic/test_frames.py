@@ -13,8 +13,8 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimator, create_estimator
 from udh_cli.mosaic import MosaicConfig, run_mosaic
-from udh_cli.mosaic.metadata import capture_time, read_metadata
-from udh_cli.mosaic.frames import open_frames
+from udh_cli.mosaic.inputs.metadata import capture_time, read_metadata
+from udh_cli.mosaic.inputs.frames import open_frames
 
 from conftest import textured_image
 from mosaic_flights import SMALL, fingerprint, make_flight, work_fingerprints
@@ -128,7 +128,7 @@ def test_narrow_range_16_bit_frames_mosaic_as_well_as_their_8_bit_originals(tmp_
 
     from mosaic_flights import SMALL, make_flight
     from udh_cli.mosaic import MosaicConfig, run_mosaic
-    from udh_cli.mosaic.frames import open_frames
+    from udh_cli.mosaic.inputs.frames import open_frames
 
     eight = tmp_path / "eight"
     eight.mkdir()

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.gains import apply_gain, exposure_gains, mean_gain
-from udh_cli.mosaic.small import SmallPart, small_scale
+from udh_cli.mosaic.render.gains import apply_gain, exposure_gains, mean_gain
+from udh_cli.mosaic.render.small import SmallPart, small_scale
 
 from conftest import textured_image
 

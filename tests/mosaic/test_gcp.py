@@ -9,7 +9,7 @@ import pytest
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.gcp import fit_gcps, read_gcp_file
+from udh_cli.mosaic.georef.gcp import fit_gcps, read_gcp_file
 
 pyproj = pytest.importorskip("pyproj")
 
@@ -106,7 +106,7 @@ def test_observations_become_anchors_of_the_solve(tmp_path):
     """gcp_anchors: one anchor per usable observation, its pixel scaled to the frame, in the file's CRS; two
     labels on one pixel, images that are not frames, pixels outside the frame and a point left out on purpose
     are not anchors."""
-    from udh_cli.mosaic.gcp import gcp_anchors
+    from udh_cli.mosaic.georef.gcp import gcp_anchors
 
     lines = ["0 0 0 100 100 a.jpg p0", "20 0 0 101 100 a.jpg p4", "5 6 0 600 400 a.jpg p1", "7 8 0 50 60 b.jpg p2",
              "9 9 0 9999 10 b.jpg p3", "1 2 0 10 10 other.jpg p5"]

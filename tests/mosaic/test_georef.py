@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from udh_cli import geometry
-from udh_cli.mosaic.georef import fit_similarity, georeference_part, utm_epsg, world_file_text
+from udh_cli.mosaic.georef.gps import fit_similarity, georeference_part, utm_epsg, world_file_text
 
 pyproj = pytest.importorskip("pyproj")
 
@@ -126,7 +126,7 @@ def test_the_simulator_writes_noisy_gps_and_the_map_lands_closer_than_one_fix(tm
     """`udh simulate --gps`: 2 m of noise on each fix; the fitted map, which averages the fixes, puts every
     frame centre within 1.5 m of its exact position (the truth records it)."""
     from udh_cli.mosaic import MosaicConfig, run_mosaic
-    from udh_cli.mosaic.metadata import read_metadata
+    from udh_cli.mosaic.inputs.metadata import read_metadata
     from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
 
     folder = tmp_path / "flight"
@@ -239,7 +239,7 @@ def test_an_earlier_runs_georeference_never_stays_beside_a_mosaic_without_one(tm
 
 def test_a_geotiff_too_large_is_a_warning_and_nothing_half_written(tmp_path, monkeypatch):
     pytest.importorskip("rasterio")
-    import udh_cli.mosaic.geotiff as geotiff
+    import udh_cli.mosaic.georef.geotiff as geotiff
     from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
     from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
 
@@ -265,7 +265,7 @@ def test_a_north_up_geotiff_drawn_strip_by_strip_equals_the_whole_warp(tmp_path,
     import cv2
 
     from conftest import textured_image
-    from udh_cli.mosaic import geotiff
+    from udh_cli.mosaic.georef import geotiff
 
     grey = textured_image(900, 700, seed=2)
     bgra = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGRA)
@@ -301,7 +301,7 @@ def test_the_cogs_overviews_are_area_averages_of_the_map_without_dark_edges(tmp_
     import cv2
 
     from conftest import textured_image
-    from udh_cli.mosaic import geotiff
+    from udh_cli.mosaic.georef import geotiff
 
     turn, pixel = math.radians(30.0), 0.05
     map_from_mosaic = np.array([[pixel * math.cos(turn), pixel * math.sin(turn), 500000.0],

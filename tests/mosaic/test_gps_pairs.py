@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from udh_cli import geometry
-from udh_cli.mosaic.gps_pairs import GroundScale, bridge_candidates, gps_disagreement_m, gps_limit_m, measure_ground_scale
+from udh_cli.mosaic.pairs.gps import GroundScale, bridge_candidates, gps_disagreement_m, gps_limit_m, measure_ground_scale
 
 pytest.importorskip("pyproj")
 

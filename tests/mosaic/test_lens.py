@@ -10,7 +10,7 @@ import pytest
 
 from udh_cli.errors import UdhError
 from udh_cli.mosaic import MosaicConfig, run_mosaic
-from udh_cli.mosaic.lens import Lens, read_cameras
+from udh_cli.mosaic.inputs.lens import Lens, read_cameras
 
 from mosaic_flights import SMALL, distort, make_flight
 
@@ -91,7 +91,7 @@ def test_a_distorted_flight_mosaics_to_its_truth_only_with_its_camera(tmp_path):
 
 
 def test_ground_control_pixels_are_undistorted_in_the_file_s_own_units():
-    from udh_cli.mosaic.gcp import GcpFile, Observation, undistorted_observations
+    from udh_cli.mosaic.georef.gcp import GcpFile, Observation, undistorted_observations
 
     lens = Lens(320, 240, 0.8, 0.8, k1=-0.15)
     seen = [Observation(0, 0, 0, 20.0, 15.0, "a.jpg", "p1", 2), Observation(0, 0, 0, 40.0, 30.0, "b.jpg", "p1", 3),

@@ -8,8 +8,8 @@ import pytest
 from udh_cli.errors import UdhError
 from udh_cli.images import to_gray_u8
 from udh_cli.mosaic import MosaicConfig, run_mosaic
-from udh_cli.mosaic.lens import Lens
-from udh_cli.mosaic.lens_fit import DEFAULT_FOCAL, fit_k1, focal_from_exif
+from udh_cli.mosaic.inputs.lens import Lens
+from udh_cli.mosaic.inputs.lens_fit import DEFAULT_FOCAL, fit_k1, focal_from_exif
 from udh_cli.simulate import FlightConfig
 
 from mosaic_flights import SMALL, distort, make_flight

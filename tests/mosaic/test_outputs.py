@@ -11,8 +11,8 @@ import pytest
 
 from udh_cli.errors import UdhError
 from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
-from udh_cli.mosaic import composite as compositing
-from udh_cli.mosaic.outputs import STALE_AFTER_S, StagedFiles, stale_part_files
+from udh_cli.mosaic.render import composite as compositing
+from udh_cli.mosaic.outputs.staging import STALE_AFTER_S, StagedFiles, stale_part_files
 
 from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
 
@@ -165,7 +165,7 @@ def test_the_pair_cache_is_written_only_when_asked_and_the_sidecar_paths_are_rel
 
 
 def test_a_live_quick_look_s_fresh_temporary_stays_until_it_is_stale(tmp_path):
-    from udh_cli.mosaic.outputs import remove_stale_staged
+    from udh_cli.mosaic.outputs.staging import remove_stale_staged
 
     staged, fresh_live, old_live = tmp_path / ".m.abcd.staged.png", tmp_path / ".m.live.jpg.x1y2.part", tmp_path / ".m.live.json.x9.part"
     for path in (staged, fresh_live, old_live):

@@ -11,7 +11,7 @@ import pytest
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.mosaic import MosaicConfig, run_mosaic
-from udh_cli.mosaic.composite import plan_canvas
+from udh_cli.mosaic.render.composite import plan_canvas
 from udh_cli.simulate import load_ground_truth
 
 from conftest import run_main
@@ -127,7 +127,7 @@ def test_too_big_canvas_is_refused_before_writing(small_flight, tmp_path):
 
 
 def test_learned_methods_search_for_large_motion_in_mosaics_unless_told_otherwise():
-    from udh_cli.mosaic.pipeline import MOSAIC_SEARCH, mosaic_method_options
+    from udh_cli.mosaic.config import MOSAIC_SEARCH, mosaic_method_options
 
     assert mosaic_method_options("unsupervised", {}) == {"search": MOSAIC_SEARCH}
     assert mosaic_method_options("auto", {"model": "m.onnx"}) == {"model": "m.onnx", "search": MOSAIC_SEARCH}
@@ -138,7 +138,7 @@ def test_learned_methods_search_for_large_motion_in_mosaics_unless_told_otherwis
 def test_the_pair_cache_knows_both_networks_of_a_cascade_inside_auto():
     from udh_cli.estimators import create_estimator
     from udh_cli.models_catalog import models_dir
-    from udh_cli.mosaic.pair_cache import estimator_identity
+    from udh_cli.mosaic.pairs.cache import estimator_identity
 
     if not (models_dir() / "udh-unsupervised-refine-int8.onnx").is_file():
         pytest.skip("shipped refinement model not built yet")
@@ -175,7 +175,7 @@ def test_options_reach_the_fallback_in_the_one_syntax(small_flight, tmp_path, mo
 @pytest.mark.filterwarnings("ignore:Dataset has no geotransform")  # the mosaic in reference-frame pixels has no CRS
 def test_a_tif_mosaic_streams_its_tiles_and_holds_the_png_run_s_pixels(small_flight, tmp_path, monkeypatch):
     rasterio = pytest.importorskip("rasterio")
-    from udh_cli.mosaic import composite as compositing
+    from udh_cli.mosaic.render import composite as compositing
 
     monkeypatch.setattr(compositing, "TILE_SIDE", 128)  # many tiles on the small flight's canvas
     config = MosaicConfig(method="sift", overlap_per_frame=1, blend="multiband")

@@ -9,9 +9,10 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.estimators import create_estimator
-from udh_cli.mosaic.follow import ends_whole
-from udh_cli.mosaic.pairs import Acceptance
-from udh_cli.mosaic.quicklook import FRAME_SIDE, QuickLook, live_picture_path, live_record_path
+from udh_cli.mosaic.live.follow import ends_whole
+from udh_cli.mosaic.pairs.types import Acceptance
+from udh_cli.mosaic.live.quicklook import FRAME_SIDE, QuickLook
+from udh_cli.mosaic.outputs.files import RunFiles
 from udh_cli.simulate import load_ground_truth
 
 from mosaic_flights import ACCURATE, make_flight
@@ -33,9 +34,9 @@ def test_the_quick_look_chains_a_flight_within_pixels_of_the_truth(tmp_path):
         errors.append(geometry.mace(np.asarray(record["ref_from_frame"]), expected, *ACCURATE.frame_size))
     assert max(errors) < 3.0  # a chain of SIFT pairs on 480x360 frames: drift of a few pixels at most
     # The picture shows every frame at about FRAME_SIDE px, and what it covers agrees with the truth's union.
-    picture = cv2.imread(str(live_picture_path(output)))
+    picture = cv2.imread(str(RunFiles(output).live_picture))
     assert picture is not None and FRAME_SIDE < max(picture.shape[:2]) < 10 * FRAME_SIDE
-    written = json.loads(live_record_path(output).read_text())
+    written = json.loads(RunFiles(output).live_record.read_text())
     assert written["format"].startswith("udh-mosaic") and written["frames_placed"] == len(frames)
     assert [f["name"] for f in written["frames"]] == [p.name for p in frames]
 
@@ -59,7 +60,7 @@ def test_a_frame_that_fails_is_left_out_and_the_next_one_goes_on_from_the_last_p
 
 
 def test_the_picture_grows_and_halves_to_hold_a_long_flight(tmp_path, monkeypatch):
-    import udh_cli.mosaic.quicklook as quicklook
+    import udh_cli.mosaic.live.quicklook as quicklook
 
     monkeypatch.setattr(quicklook, "MAX_SIDE", 700)
     folder = tmp_path / "flight"
@@ -70,7 +71,7 @@ def test_the_picture_grows_and_halves_to_hold_a_long_flight(tmp_path, monkeypatc
     assert max(look.picture.shape[:2]) <= 700
     shown = look.shown()
     assert (shown != quicklook.BACKGROUND).any(axis=2).mean() > 0.5  # cropped to the frames, all of them in it
-    written = cv2.imread(str(live_picture_path(tmp_path / "m.png")))
+    written = cv2.imread(str(RunFiles(tmp_path / "m.png").live_picture))
     assert written.shape == shown.shape
 
 

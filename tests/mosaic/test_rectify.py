@@ -1,4 +1,4 @@
-"""The plane of a part without anchors (udh_cli.mosaic.rectify) and the map-shape measure (udh_cli.mosaic.truth)."""
+"""The plane of a part without anchors (udh_cli.mosaic.solve.rectify) and the map-shape measure (udh_cli.mosaic.solve.truth)."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from udh_cli import geometry
-from udh_cli.mosaic.frames import Frame
-from udh_cli.mosaic.rectify import MIN_FRAMES, rectifying_homography
-from udh_cli.mosaic.truth import corner_errors_vs_truth, map_shape_errors
+from udh_cli.mosaic.inputs.frames import Frame
+from udh_cli.mosaic.solve.rectify import MIN_FRAMES, rectifying_homography
+from udh_cli.mosaic.solve.truth import corner_errors_vs_truth, map_shape_errors
 
 SIZE = (320, 240)
 

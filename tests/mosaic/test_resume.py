@@ -16,7 +16,8 @@ import pytest
 from udh_cli import cli
 from udh_cli.estimators import Estimator
 from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
-from udh_cli.mosaic.pair_cache import cache_path, estimator_identity
+from udh_cli.mosaic.outputs.files import RunFiles
+from udh_cli.mosaic.pairs.cache import estimator_identity
 
 from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
 
@@ -57,7 +58,7 @@ def uninterrupted(flight, tmp_path_factory):
 
 
 def cached_pairs(output) -> list[dict]:
-    return json.loads(cache_path(output).read_text())["pairs"]
+    return json.loads(RunFiles(output).pair_cache.read_text())["pairs"]
 
 
 def assert_same_geometry(report: dict, reference: dict) -> None:
@@ -140,7 +141,7 @@ def test_pairs_that_no_longer_match_are_estimated_again(flight, uninterrupted, t
     assert report["summary"]["pairs_from_cache"] >= 5
 
     # Other acceptance rules (a new revision of what makes a pair accepted) change every key too.
-    import udh_cli.mosaic.pair_cache as pair_cache
+    import udh_cli.mosaic.pairs.cache as pair_cache
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(pair_cache, "ACCEPTANCE_REVISION", pair_cache.ACCEPTANCE_REVISION + 1)

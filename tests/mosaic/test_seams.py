@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.seams import Seams, find_seams
-from udh_cli.mosaic.small import SmallPart
+from udh_cli.mosaic.render.seams import Seams, find_seams
+from udh_cli.mosaic.render.small import SmallPart
 
 from conftest import textured_image
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from udh_cli import geometry
-from udh_cli.mosaic.graph import chain_to_reference, connected_parts, overlap_candidates
-from udh_cli.mosaic.pairs import PairResult
-from udh_cli.mosaic.solve import pair_points, pair_rms_px, solve_part, solve_with_rejection
+from udh_cli.mosaic.solve.graph import chain_to_reference, connected_parts, overlap_candidates
+from udh_cli.mosaic.pairs.types import PairResult
+from udh_cli.mosaic.solve.homographies import pair_points, pair_rms_px, solve_part, solve_with_rejection
 
 SIZE = (320, 240)
 
@@ -105,7 +105,7 @@ def test_loop_pair_inputs_are_cropped_to_the_covered_window():
     """A pre-warped B is cut to a window that is at least 98 % real pixels, so no method sees its empty border."""
     import cv2
 
-    from udh_cli.mosaic.pairs import covered_window as _covered_window
+    from udh_cli.mosaic.pairs.types import covered_window as _covered_window
 
     covered = np.zeros((480, 640), np.uint8)
     quad = np.array([[200, 40], [630, 90], [600, 470], [150, 420]], np.int32)
@@ -119,7 +119,7 @@ def test_loop_pair_inputs_are_cropped_to_the_covered_window():
 
 def test_the_sparse_system_solves_as_its_dense_form_does(monkeypatch):
     """The sparse assembly and solve give what a dense solve of the same normal equations gives."""
-    import udh_cli.mosaic.solve as solve_module
+    import udh_cli.mosaic.solve.homographies as solve_module
 
     truth = _truth()
     sizes = [SIZE] * len(truth)
@@ -174,7 +174,7 @@ def test_gps_anchors_bound_the_drift_of_a_long_chain_without_loops():
     """A lawn-mower of 3 strips of 12 frames, every consecutive pair slightly off in perspective, no loop pairs:
     the chain drifts and the solve alone cannot see it. GPS fixes (1 px of noise, in metres) pull it back; with
     too few fixes the solve is the plain one."""
-    from udh_cli.mosaic.solve import Anchors
+    from udh_cli.mosaic.solve.homographies import Anchors
 
     per_strip, strips = 12, 3
     order = [(column if strip % 2 == 0 else per_strip - 1 - column, strip) for strip in range(strips) for column in range(per_strip)]

@@ -9,8 +9,8 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimator
 from udh_cli.mosaic import MosaicConfig, run_mosaic
-from udh_cli.mosaic.pairs import Acceptance
-from udh_cli.mosaic.workers import in_order, judge_opinions
+from udh_cli.mosaic.pairs.types import Acceptance
+from udh_cli.mosaic.pairs.workers import in_order, judge_opinions
 
 from conftest import textured_image
 
@@ -89,7 +89,7 @@ def test_each_opinion_is_asked_only_about_the_pairs_every_earlier_one_left_doubt
 
 def test_an_unreachable_or_malformed_scheduler_and_no_workers_are_clear_errors(flight, tmp_path):
     pytest.importorskip("distributed")
-    from udh_cli.mosaic.workers import DaskRunner, EstimatorSpec
+    from udh_cli.mosaic.pairs.workers import DaskRunner, EstimatorSpec
 
     for address in ("tcp://127.0.0.1:9", "http://:abc"):
         with pytest.raises(UdhError, match="cannot reach the Dask scheduler"):
@@ -124,7 +124,7 @@ def test_jobs_come_back_in_submission_order_even_when_a_later_one_finishes_first
 
 
 def test_workers_none_means_one_per_core_for_a_long_enough_flight(flight, local, tmp_path, monkeypatch):
-    import udh_cli.mosaic.workers as workers
+    import udh_cli.mosaic.pairs.workers as workers
 
     assert 1 <= workers.available_cores() <= (workers.os.cpu_count() or 1)
     monkeypatch.setattr(workers, "available_cores", lambda: 8)

@@ -16,7 +16,7 @@ import numpy as np
 
 from udh_cli.bench import metrics
 from udh_cli.bench.runner import MethodRun
-from udh_cli.mosaic.pairs import Acceptance
+from udh_cli.mosaic.pairs.types import Acceptance
 
 # udh_cli.api.is_verified's floor for answers their method does not judge: what udh would not build a map on.
 VERIFIED_CONFIDENCE = Acceptance.min_confidence

@@ -1,0 +1,1 @@
+"""Reading a flight: frames from a folder or video, their EXIF metadata, and the lens that undistorts them."""

@@ -1,0 +1,317 @@
+"""Mosaic input: a folder of frames or a video, read once into small grey working copies.
+
+Full-resolution pixels are not kept: compositing reads them again one frame at a time
+(:meth:`FrameSet.full_images`), so memory holds only the working copies, ``N * work_w * work_h`` bytes.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator, Sequence
+
+import cv2
+import numpy as np
+
+from udh_cli.errors import UdhError
+from udh_cli.images import IMAGE_SUFFIXES, _native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
+from udh_cli.mosaic.inputs.lens import Lens
+from udh_cli.mosaic.inputs.metadata import FrameMetadata, read_metadata
+from udh_cli.mosaic.outputs.staging import earlier_outputs
+from udh_cli.mosaic.report import Reporter
+
+ORDERS = ("name", "time")  # the --order choices
+# Files a frame folder may hold that are not frames: the simulator's ground truth, and live mode's end-of-flight
+# sentinel (FollowConfig.sentinel), which stays in the folder its final run reads.
+IGNORED_FILES = ("ground_truth.json", "DONE")
+
+
+@dataclass
+class Frame:
+    """One input frame.
+
+    Attributes:
+        index: position in the sequence, 0-based; pairs and the sidecar refer to frames by it.
+        name: the file name, or ``"video.mp4#120"`` for frame 120 of a video.
+        size: (width, height) at full resolution, after EXIF orientation.
+        work: (h', w') uint8 grey copy at the working size (the longest side at most ``work_size``).
+        path: the image file; ``None`` for video frames.
+        video_frame: the frame number in the video; ``None`` for image files.
+        capture_time: EXIF capture time, when ordering by time.
+        metadata: what the file's EXIF and XMP say (GPS, camera, DJI flight data); None for video frames.
+    """
+
+    index: int
+    name: str
+    size: tuple[int, int]
+    work: np.ndarray
+    path: Path | None = None
+    video_frame: int | None = None
+    capture_time: str | None = None
+    metadata: FrameMetadata | None = None
+
+    @property
+    def work_size(self) -> tuple[int, int]:
+        return (self.work.shape[1], self.work.shape[0])
+
+
+@dataclass
+class FrameSet:
+    """The frames of one run, in sequence order, and the files that were skipped (with why)."""
+
+    source: Path
+    frames: list[Frame]
+    skipped: list[dict] = field(default_factory=list)  # {"file": name, "reason": text}
+    # For 16-bit or float frames: the flight-wide (low, high) grey range, in units where the type's maximum
+    # is 1, that maps to 0-255 in the work copies and the mosaic. None for 8-bit frames, used as they are.
+    value_range: tuple[float, float] | None = None
+    lens: Lens | None = None  # every frame is undistorted by it as it is read (:mod:`.lens`)
+    lens_fit: dict | None = None  # how the lens was estimated from the flight (``--camera estimate``, :mod:`.lens_fit`)
+
+    @property
+    def is_video(self) -> bool:
+        return bool(self.frames) and self.frames[0].video_frame is not None
+
+    def full_images(self, indices: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(index, (H, W, 3) BGR uint8)`` at full resolution for ``indices``, in sequence order.
+
+        Image files are read again; a video is decoded again from the start, sequentially.
+        """
+        wanted = sorted(set(indices))
+        if not self.is_video:
+            for index in wanted:
+                yield index, display_u8(_undistorted(read_image(self.frames[index].path), self.lens), self.value_range)
+            return
+        by_video_frame = {self.frames[i].video_frame: i for i in wanted}
+        capture = _open_capture(self.source)
+        try:
+            number, last = 0, max(by_video_frame)
+            while number <= last:
+                ok, image = capture.read()
+                if not ok:
+                    raise UdhError(f"{self.source}: the video ended early on the second pass (frame {number}); extract its frames to a folder")
+                if number in by_video_frame:
+                    yield by_video_frame[number], _undistorted(image, self.lens)
+                number += 1
+        finally:
+            capture.release()
+
+
+def _undistorted(image: np.ndarray, lens: Lens | None) -> np.ndarray:
+    return image if lens is None else lens.undistort(image)
+
+
+def work_copy(image: np.ndarray, work_size: int) -> np.ndarray:
+    """(h', w') grey copy whose longest side is at most ``work_size`` pixels (never enlarged): uint8 for
+    8-bit frames, float32 in [0, 1] of the type's range otherwise (see :func:`stretch_work_copies`)."""
+    grey = to_gray_u8(image) if image.dtype == np.uint8 else to_gray_float(image)
+    h, w = grey.shape
+    scale = min(1.0, work_size / max(w, h))
+    if scale >= 1.0:
+        return grey
+    return cv2.resize(grey, scaled_size((w, h), scale), interpolation=cv2.INTER_AREA)
+
+
+DISPLAY_PERCENTILES = (0.1, 99.9)  # the grey range of 16-bit frames kept in 8 bits; outliers (hot pixels) clip
+
+
+def flight_value_range(works: list[np.ndarray]) -> tuple[float, float]:
+    """One (low, high) grey range for every frame of a 16-bit or float flight, from all their work copies.
+
+    Why one range: thermal and raw frames fill a sliver of their 16 bits (7000-8000 of 65535), so 8 bits of
+    the whole range hold a few grey levels; stretching each frame on its own would give neighbours different
+    greys for the same ground, and seams in the mosaic.
+    """
+    sample = np.concatenate([w[:: max(1, w.shape[0] // 200), :: max(1, w.shape[1] // 200)].ravel() for w in works])
+    low, high = (float(v) for v in np.percentile(sample, DISPLAY_PERCENTILES))
+    return (low, high) if high > low else (low, low + 1e-6)
+
+
+def to_display(grey_or_colour: np.ndarray, value_range: tuple[float, float]) -> np.ndarray:
+    """Float data in [0, 1] of its type's range -> uint8 with ``value_range`` mapped to 0-255."""
+    low, high = value_range
+    return np.clip((grey_or_colour - low) / (high - low) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def stretch_work_copies(frames: list[Frame]) -> tuple[float, float] | None:
+    """Turn float work copies (16-bit or float frames) into uint8 with one flight-wide range; returns the
+    range, or None when every frame is 8-bit already."""
+    floats = [f for f in frames if f.work.dtype != np.uint8]
+    if not floats:
+        return None
+    value_range = flight_value_range([f.work for f in floats])
+    for frame in floats:
+        frame.work = to_display(frame.work, value_range)
+    return value_range
+
+
+def display_u8(image: np.ndarray, value_range: tuple[float, float] | None) -> np.ndarray:
+    """A full-resolution frame as (H, W, 3) uint8 BGR for compositing, with the flight's range for 16-bit data."""
+    if image.dtype == np.uint8 or value_range is None:
+        return to_bgr_u8(image)
+    from udh_cli.images import _unit_float
+
+    return to_bgr_u8(to_display(_unit_float(image), value_range))
+
+
+def _natural_key(name: str) -> list:
+    """Sort key that puts frame_2 before frame_10."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+def open_frames(
+    source: str | Path,
+    work_size: int,
+    order: str = "name",
+    every: int = 1,
+    exclude: Iterable[Path] = (),
+    reporter: Reporter | None = None,
+    lens: Lens | None = None,
+) -> FrameSet:
+    """Read a folder of frames or a video into a :class:`FrameSet`.
+
+    Args:
+        source: a folder of JPEG/PNG/TIFF frames, or a video file.
+        work_size: longest side of the working copies, pixels.
+        order: ``"name"`` (natural sort of file names) or ``"time"`` (EXIF capture time, then name).
+        every: for a video, keep every N-th frame.
+        exclude: files to leave out (the run's own outputs, when they are written into the folder).
+        lens: a camera model: every frame is undistorted by it as it is read (:mod:`.lens`); frames of another
+            shape than its calibration are refused.
+
+    Corrupt frames and non-image files are skipped with a warning and listed in ``skipped``.
+    Raises :class:`UdhError` when fewer than two usable frames remain or the video cannot be decoded.
+    """
+    reporter = reporter or Reporter(quiet=True)
+    source = Path(source)
+    if order not in ORDERS:
+        raise UdhError(f"unknown order '{order}'; choose one of: {', '.join(ORDERS)}")
+    if every < 1:
+        raise UdhError(f"--every {every}: give a positive number of frames")
+    if not source.exists():
+        raise UdhError(f"{source}: no such folder or video; check the path")
+    frames = _open_video(source, work_size, every, reporter, lens) if source.is_file() else _open_folder(source, work_size, order, exclude, reporter, lens)
+    _check_sizes(frames, reporter)
+    frames.lens = lens
+    return frames
+
+
+def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Path], reporter: Reporter, lens: Lens | None) -> FrameSet:
+    excluded = {Path(p).resolve() for p in exclude}
+    try:
+        listing = list(folder.iterdir())
+    except OSError as exc:
+        raise UdhError(f"{folder}: cannot list the folder ({exc.strerror}); check its permissions") from None
+    entries = sorted((p for p in listing if p.is_file() and not p.name.startswith(".")), key=lambda p: _natural_key(p.name))
+    entries = [p for p in entries if p.resolve() not in excluded and p.name not in IGNORED_FILES]
+    skipped: list[dict] = []
+    candidates = []
+    earlier = earlier_outputs(entries)
+    for path in entries:
+        if path in earlier:
+            skipped.append({"file": path.name, "reason": f"an earlier udh mosaic's output (its sidecar: {earlier[path]})"})
+            reporter.warn(f"skipping {path.name}: an earlier udh mosaic's output ({earlier[path]})")
+        elif path.suffix.lower() in IMAGE_SUFFIXES:
+            candidates.append(path)
+        else:
+            skipped.append({"file": path.name, "reason": f"not an image file (suffix '{path.suffix}')"})
+            reporter.warn(f"skipping {path.name}: not an image file")
+    if not candidates:
+        raise UdhError(f"{folder}: no image files found (looked for {', '.join(IMAGE_SUFFIXES)}); point to a folder of frames or a video{_subfolder_hint(folder)}")
+    metadata = {p: read_metadata(p) for p in candidates}  # headers only: GPS and time for the sidecar and the order
+    if order == "time":
+        times = {p: metadata[p].capture_time for p in candidates}
+        missing = [p.name for p in candidates if times[p] is None]
+        if missing:
+            reporter.warn(f"{len(missing)} frames have no EXIF capture time and go last, by name: {', '.join(missing[:5])}{'...' if len(missing) > 5 else ''}")
+        candidates.sort(key=lambda p: (times[p] is None, times[p] or "", _natural_key(p.name)))
+    frames: list[Frame] = []
+    with reporter.stage("reading frames", len(candidates)) as advance:
+        for path in candidates:
+            try:
+                image = read_image(path)
+            except UdhError as exc:
+                skipped.append({"file": path.name, "reason": str(exc)})
+                # The reason read_image gives: unreadable (permissions), NaN pixels, not an image...
+                reporter.warn(f"skipping {path.name}: cannot be decoded ({str(exc).removeprefix(f'{path}: ')})")
+                advance(1)
+                continue
+            if lens is not None:
+                lens.check((image.shape[1], image.shape[0]), path.name)
+            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(_undistorted(image, lens), work_size), path, None,
+                                metadata[path].capture_time if order == "time" else None, metadata[path]))
+            advance(1)
+    if len(frames) < 2:
+        found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"
+        raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames{_subfolder_hint(folder)}")
+    return FrameSet(folder, frames, skipped, stretch_work_copies(frames))
+
+
+def _subfolder_hint(folder: Path) -> str:
+    """' (did you mean F/images?)' when a subfolder holds images: flight folders often keep them there."""
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir()):
+        try:
+            if any(f.suffix.lower() in IMAGE_SUFFIXES for f in sub.iterdir()):
+                return f" (did you mean {sub}?)"
+        except OSError:  # an unreadable subfolder is no hint; the error being reported is about the folder
+            continue
+    return ""
+
+
+def _open_capture(path: Path) -> cv2.VideoCapture:
+    """``cv2.VideoCapture(path)`` without FFmpeg's own lines on stderr ("moov atom not found"...): udh says
+    what is wrong in one line. FFmpeg's log level is also set to quiet for the decoding that follows, where
+    the process has not chosen one (OPENCV_FFMPEG_LOGLEVEL is read when the first video is opened)."""
+    if "OPENCV_FFMPEG_LOGLEVEL" not in os.environ and "OPENCV_FFMPEG_DEBUG" not in os.environ:
+        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "-8"  # AV_LOG_QUIET
+    with _native_messages_silenced():
+        capture = cv2.VideoCapture(str(path))
+        capture.isOpened()  # FFmpeg probes the file while opening; its complaints are muted with it
+    return capture
+
+
+def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens: Lens | None) -> FrameSet:
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        raise UdhError(f"{path}: is a single image; give a folder of frames or a video")
+    capture = _open_capture(path)
+    if not capture.isOpened():
+        raise UdhError(f"{path}: cannot open this as a video; give a folder of frames or a video OpenCV can decode (e.g. MP4/H.264)")
+    total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+    frames: list[Frame] = []
+    try:
+        with reporter.stage("reading video", total) as advance:
+            number = 0
+            while True:
+                ok, image = capture.read()
+                if not ok:
+                    break
+                if number % every == 0:
+                    if lens is not None:
+                        lens.check((image.shape[1], image.shape[0]), f"{path.name}#{number}")
+                    frames.append(Frame(len(frames), f"{path.name}#{number}", (image.shape[1], image.shape[0]),
+                                        work_copy(_undistorted(image, lens), work_size), None, number))
+                number += 1
+                advance(1)
+    finally:
+        capture.release()
+    if number == 0:
+        raise UdhError(f"{path}: no frame could be decoded from this video; check the file or extract its frames to a folder")
+    if len(frames) < 2:
+        raise UdhError(f"{path}: only {len(frames)} frame kept of {number} (--every {every}); a mosaic needs at least two")
+    return FrameSet(path, frames, value_range=stretch_work_copies(frames))
+
+
+def _check_sizes(frames: FrameSet, reporter: Reporter) -> None:
+    """Mixed sizes are handled (every homography is per frame), but they usually mean a stray file: say so."""
+    sizes = Counter(f.size for f in frames.frames)
+    if len(sizes) > 1:
+        listing = ", ".join(f"{w}x{h} ({n})" for (w, h), n in sizes.most_common())
+        reporter.warn(f"the frames come in {len(sizes)} sizes: {listing}; each frame is used at its own size")
+
+
+def gps_fixes(frames: Sequence[Frame]) -> dict[int, tuple[float, float]]:
+    """Frame index -> (latitude, longitude) of every frame whose EXIF carries GPS."""
+    return {f.index: (f.metadata.latitude, f.metadata.longitude) for f in frames if f.metadata is not None and f.metadata.has_gps}

@@ -1,0 +1,1 @@
+"""Live mode: following a folder as frames arrive, the quick look, and the refreshed mosaics."""

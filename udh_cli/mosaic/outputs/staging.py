@@ -1,0 +1,200 @@
+"""Writing the files of a mosaic run so that they appear together or not at all (their names: :mod:`.files`).
+
+A split run writes ``NAME.part1.png``, ``NAME.part2.png``... and a preview of each. Each is first written
+under a hidden temporary name (:class:`StagedFiles`); only when every part has been written are they
+renamed to their own names together with the sidecar, which comes last. A run that fails in its third part so
+leaves the outputs of the previous run as they were, not a mix of both. Part files of this output name
+that the new run does not produce (an earlier run had more parts) are removed (:func:`stale_part_files`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import secrets
+import time
+from pathlib import Path
+from typing import Iterable
+
+from udh_cli.errors import UdhError
+from udh_cli.images import IMAGE_SUFFIXES
+from udh_cli.mosaic.outputs.files import CAMERAS_SUFFIX, GEOREFERENCE_SUFFIXES, PREVIEW_SUFFIX, MosaicFiles, RunFiles
+from udh_cli.mosaic.report import Reporter
+
+SIDECAR_FORMAT = "udh-mosaic/1"  # the sidecar's "format", its first key
+
+
+def _is_udh_json(path: Path, formats: tuple[str, ...]) -> bool:
+    """Whether ``path`` is a JSON file udh wrote (its ``format`` starts with one of ``formats``)."""
+    try:
+        if path.stat().st_size > 256 * 2**20:  # no sidecar or pair cache of ours is this large: say so, not "not ours"
+            raise UdhError(f"{path}: {path.stat().st_size >> 20} MiB, larger than any sidecar or pair cache udh writes; "
+                           f"move it away or choose another output name")
+        text = path.read_text(errors="replace")
+    except OSError:
+        return False
+    try:
+        data = json.loads(text)
+    except (ValueError, RecursionError):
+        # Damaged further on (absurdly nested, cut short, edited): still ours if it opens as udh writes it.
+        opening = re.match(r'\s*\{\s*"format"\s*:\s*"([^"\\]*)"', text[:1000])
+        return opening is not None and opening.group(1).startswith(formats)
+    return isinstance(data, dict) and isinstance(data.get("format"), str) and data["format"].startswith(formats)
+
+
+def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: Path) -> None:
+    """Refuse, before any work, outputs that would replace a user's file rather than an earlier run's.
+
+    ``files`` names every file the run may write (``{"mosaic": path, "sidecar": path, ...}``). Refused: any
+    of them that is the input video or an existing frame of ``source`` (unless ``sidecar`` is an earlier
+    udh run's, which wrote it), and a ``.json`` of ours that exists and was not written by udh.
+    """
+    sources = {source.resolve()} if source.is_file() else set()
+    earlier_run = sidecar.is_file() and _is_udh_json(sidecar, ("udh-mosaic/",))
+    for role, path in files.items():
+        if not path.exists():
+            continue
+        resolved = path.resolve()
+        is_frame = source.is_dir() and resolved.parent == source.resolve() and path.suffix.lower() in IMAGE_SUFFIXES
+        if resolved in sources or (is_frame and not earlier_run):
+            raise UdhError(f"{path}: the {role} would replace an input file of {source}; choose another output name")
+        owned_by_run = path.name.lower().endswith(GEOREFERENCE_SUFFIXES + (CAMERAS_SUFFIX,))
+        if path.suffix.lower() == ".json" and not owned_by_run and not _is_udh_json(path, ("udh-mosaic",)):
+            raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
+        if owned_by_run and not earlier_run:  # in formats of their own (world files, OpenSfM's): only an earlier run of ours wrote these
+            raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
+
+
+STALE_AFTER_S = 60.0  # a live quick look's temporary younger than this may be at work beside the refresh
+
+
+def remove_stale_staged(output: Path, now: float | None = None) -> list[Path]:
+    """Hidden temporary files of ``output``'s names (``.staged`` and ``.part``) that a run killed while
+    writing left behind; removed. Only hidden files named after ``output``'s stem match. The live quick look's
+    (``.NAME.live.jpg...part``) are left while younger than :data:`STALE_AFTER_S`: the quick look writes them
+    beside the refresh that runs this."""
+    pattern = re.compile(rf"\.+{re.escape(output.stem)}\..*(\.staged\.[A-Za-z0-9]+|\.part)")
+    live = re.compile(rf"\.+{re.escape(output.stem)}\.live\.(jpg|json)\..*\.part")
+    now = time.time() if now is None else now
+    removed = []
+    try:
+        candidates = list(output.parent.iterdir())
+    except OSError:
+        return removed
+    for path in candidates:
+        if not (pattern.fullmatch(path.name) and path.is_file() and not path.is_symlink()):
+            continue
+        try:
+            if live.fullmatch(path.name) and now - path.stat().st_mtime < STALE_AFTER_S:
+                continue
+        except OSError:  # gone meanwhile: its writer renamed it
+            continue
+        path.unlink(missing_ok=True)
+        removed.append(path)
+    return removed
+
+
+def stale_part_files(output: Path, produced: list[Path]) -> list[Path]:
+    """Files named as parts of ``output`` (``stem.partK.suffix``, ``stem.partK.preview.jpg`` and a part's
+    world, ``.prj`` and ``.cog.tif`` files, K >= 1) that are not in ``produced``: what an earlier run with
+    more parts (or with previews) left behind.
+
+    Only those exact patterns match, with ``output``'s own stem and suffix; nothing else is returned.
+    """
+    part = rf"{re.escape(output.stem)}\.part[1-9][0-9]*"
+    georeference = "|".join(re.escape(s) for s in GEOREFERENCE_SUFFIXES)
+    pattern = re.compile(rf"{part}{re.escape(output.suffix)}|{part}{re.escape(PREVIEW_SUFFIX)}|{part}(?:{georeference})")
+    keep = {p.resolve() for p in produced}
+    try:
+        candidates = sorted(output.parent.iterdir())
+    except OSError:
+        return []
+    return [p for p in candidates if pattern.fullmatch(p.name) and p.is_file() and not p.is_symlink() and p.resolve() not in keep]
+
+
+class StagedFiles:
+    """Files written under hidden temporary names in their own folder, then renamed together.
+
+    ``path_for(final)`` gives the name to write to; :meth:`publish` renames every staged file to its
+    final name (keeping the permissions of the file it replaces); :meth:`discard` deletes what is left.
+    """
+
+    def __init__(self) -> None:
+        self.staged: list[tuple[Path, Path]] = []  # (temporary, final)
+
+    def path_for(self, final: Path) -> Path:
+        # Hidden (frames folders skip dot files) and with the final suffix, which picks the image encoder.
+        temporary = final.with_name(f".{final.stem}.{secrets.token_hex(4)}.staged{final.suffix}")
+        self.staged.append((temporary, final))
+        return temporary
+
+    def forget(self, final: Path) -> None:
+        """Drop ``final`` from the files to publish and delete what was staged for it (a write that failed)."""
+        for temporary, staged_final in [item for item in self.staged if item[1] == final]:
+            temporary.unlink(missing_ok=True)
+            self.staged.remove((temporary, staged_final))
+
+    def temporary_of(self, final: Path) -> Path | None:
+        """The temporary name ``final`` is staged under, or None."""
+        return next((temporary for temporary, staged_final in self.staged if staged_final == final), None)
+
+    def publish(self) -> list[Path]:
+        """Rename every staged file to its final name; returns the final names. Raises :class:`UdhError` if a
+        rename fails."""
+        published = [final for _, final in self.staged]
+        for temporary, final in self.staged:
+            try:
+                if final.exists():
+                    os.chmod(temporary, final.stat().st_mode & 0o7777)
+                os.replace(temporary, final)
+            except OSError as exc:
+                raise UdhError(f"{final}: cannot put the new file in place ({exc.strerror}); check the folder's permissions") from None
+        self.staged = []
+        return published
+
+    def discard(self) -> None:
+        """Delete the staged files that were not published (after a failure)."""
+        for temporary, _ in self.staged:
+            temporary.unlink(missing_ok=True)
+        self.staged = []
+
+
+def earlier_outputs(files: Iterable[Path]) -> dict[Path, str]:
+    """The images among ``files`` that an earlier ``udh mosaic`` wrote beside its sidecar (``NAME.json`` of
+    :data:`SIDECAR_FORMAT`): ``NAME.png``, ``NAME.preview.jpg``, ``NAME.part2.png``, ``NAME.cog.tif`` and the
+    like, each mapped to its sidecar's file name.
+
+    Why: a mosaic written into its frames' folder under another name than this run's would otherwise be stitched
+    in as a frame by the next run (its own outputs, :meth:`.files.RunFiles.own_files`, are left out by name)."""
+    files = list(files)
+    stems = [path.stem for path in files if path.suffix.lower() == ".json" and _is_sidecar(path)]
+    return {path: f"{stem}.json" for path in files for stem in stems
+            if path.suffix.lower() in IMAGE_SUFFIXES and path.name.startswith(f"{stem}.")}
+
+
+def _is_sidecar(path: Path) -> bool:
+    """Whether ``path`` begins as a udh mosaic sidecar does (its first 200 bytes are read)."""
+    try:
+        with open(path, "rb") as file:
+            head = file.read(200)
+    except OSError:
+        return False
+    return re.search(rb'"format"\s*:\s*"' + re.escape(SIDECAR_FORMAT.encode()) + rb'"', head) is not None
+
+
+def remove_stale_files(files: RunFiles, published: list[Path], mosaics: list[Path], reporter: Reporter) -> None:
+    """Remove part files of this output name (an earlier run with more parts) that this run did not write
+    (``published``), and the georeference files (world, .prj, GeoTIFF) beside ``mosaics`` that this run did not
+    write again: an old world file beside a new mosaic would put it on the map in the wrong place."""
+    produced = {f.resolve() for f in published}
+    stale = stale_part_files(files.output, published)
+    for mosaic in mosaics:
+        stale += [f for f in MosaicFiles(mosaic).georeference if f.is_file() and f.resolve() not in produced and f not in stale]
+    for path in stale:
+        try:
+            path.unlink()
+        except OSError as exc:
+            reporter.warn(f"{path.name} is left from an earlier run and could not be removed ({exc.strerror})")
+    if stale:
+        reporter.info(f"removed {len(stale)} part files of an earlier run: {', '.join(p.name for p in stale)}")

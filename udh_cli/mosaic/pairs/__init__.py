@@ -1,0 +1,1 @@
+"""Estimating pairs of frames: the pair records, batched estimation, worker pools, the pair cache and GPS pair planning."""

@@ -1,0 +1,1 @@
+"""Drawing each part: small copies, exposure gains, seams, and the tiled composite."""

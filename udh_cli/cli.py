@@ -210,7 +210,8 @@ def train(
 ) -> None:
     """Train the unsupervised or supervised network (needs the [bold]train[/bold] extra: torch)."""
     _require_torch()
-    from udh_cli.train.loop import TrainConfig, init_arch, train as run_training
+    from udh_cli.train.loop import TrainConfig, train as run_training
+    from udh_cli.train.warm_start import init_arch
 
     config = TrainConfig(
         mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, real_fraction=real_fraction, source_side=source_side, arch=arch or init_arch(init, mode), patch_size=patch_size, rho=rho, small_motion_fraction=small_motion,

@@ -17,7 +17,8 @@ from udh_cli.train.archs import create_model  # noqa: E402
 from udh_cli.train.checkpoint import load_checkpoint  # noqa: E402
 from udh_cli.train.data import match_view  # noqa: E402
 from udh_cli.train.export import export_onnx  # noqa: E402
-from udh_cli.train.loop import TrainConfig, Trainer, init_arch, train  # noqa: E402
+from udh_cli.train.loop import TrainConfig, Trainer, train  # noqa: E402
+from udh_cli.train.warm_start import init_arch  # noqa: E402
 
 
 def match_config(pool: Path, out: Path, **changes) -> TrainConfig:
@@ -50,7 +51,7 @@ def test_the_matching_loss_is_low_for_descriptors_that_identify_cells_and_follow
 def test_a_matcher_starts_from_a_trained_encoder_and_its_context_block_starts_as_the_identity():
     corr = create_model("corr", 128).eval()
     matcher = create_model("matcher").eval()
-    from udh_cli.train.loop import _load_encoder
+    from udh_cli.train.warm_start import load_encoder as _load_encoder
 
     _load_encoder(matcher, {"model": corr.state_dict(), "config": {"arch": "corr"}}, "test")
     images = torch.rand(2, 1, 64, 96)

@@ -289,7 +289,7 @@ def test_an_out_holding_a_run_needs_resume_or_overwrite_and_one_run_at_a_time(po
     with pytest.raises(UdhError, match="holds a run"):
         Trainer(tiny_config(pool, out, steps=5), progress=False)
     assert (out / "checkpoint.pt").read_bytes() == before  # refused before anything was touched
-    from udh_cli.train.loop import _lock_run_folder
+    from udh_cli.train.run_folder import lock_run_folder as _lock_run_folder
 
     held = _lock_run_folder(out)  # another process's run, as far as flock is concerned
     try:

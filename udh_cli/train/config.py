@@ -95,3 +95,12 @@ class TrainConfig:
 
     def learning_rate(self) -> float:
         return DEFAULT_LR[self.mode] if self.lr is None else self.lr
+
+
+def motion_config(config: TrainConfig) -> MotionConfig | None:
+    """The flight-motion distribution a run trains on, or None for the paper's corner perturbation."""
+    if config.motion == "paper":
+        return None
+    return MotionConfig(max_heading=config.max_heading, scale_range=(1.0 / config.max_scale, config.max_scale),
+                        max_shift=config.max_shift, perspective=config.rho,
+                        min_overlap=config.min_overlap, residual=config.residual)

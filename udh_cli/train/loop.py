@@ -18,16 +18,13 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.synthetic import PairConfig
 from udh_cli.train import losses
-from udh_cli.flight_motion import MotionConfig
 from udh_cli.train.archs import MATCHERS, create_model, widen_from
-from udh_cli.train.config import DEFAULT_ARCH, DEFAULT_LR, DEFAULT_STEPS, MOTIONS, PHOTOMETRIC_SPACES, TrainConfig
+from udh_cli.train.config import DEFAULT_LR, DEFAULT_STEPS, MOTIONS, PHOTOMETRIC_SPACES, TrainConfig, motion_config
 from udh_cli.train.checkpoint import load_checkpoint, save_checkpoint
 from udh_cli.train.data import Batch, MatchData, match_view, open_data
+from udh_cli.train.run_folder import check_fresh_out, lock_run_folder, logged_step
+from udh_cli.train.warm_start import ENCODER_INITS, WIDENINGS, load_encoder, load_weights, resolve_init
 
-# (from, to) architectures where --init widens the first regressor layer (new channels start at zero).
-WIDENINGS = {("corr", "corr-global")}
-# (from, to) architectures where --init takes the encoder only: a matcher starts from a trained network's encoder.
-ENCODER_INITS = {("corr", "matcher"), ("corr-global", "matcher")}
 
 
 def _distributed() -> tuple[int, int]:
@@ -57,26 +54,6 @@ def _standardise(patches: torch.Tensor, normalization: dict[str, float]) -> torc
     return (patches - normalization["mean"]) / normalization["std"]
 
 
-def init_arch(init: str | None, mode: str = "unsupervised") -> str:
-    """The architecture a run has when none is asked for: ``matcher`` for ``--mode match``; else the
-    checkpoint's own when fine-tuning from ``init`` (a checkpoint or shipped name), :data:`DEFAULT_ARCH` without."""
-    if mode == "match":
-        return "matcher"
-    if not init:
-        return DEFAULT_ARCH
-    return str(load_checkpoint(resolve_init(init))["config"]["arch"])
-
-
-def resolve_init(init: str) -> Path:
-    """A checkpoint path, or the name of a shipped model ("unsupervised", "supervised")."""
-    path = Path(init)
-    if path.exists() and not path.is_dir():  # a FIFO or device too: load_checkpoint refuses it by name
-        return path
-    from udh_cli.models_catalog import shipped_checkpoint
-
-    return shipped_checkpoint(init)
-
-
 class Trainer:
     """One training run. ``run()`` trains to ``config.steps``, resuming from ``out/checkpoint.pt`` if asked."""
 
@@ -94,7 +71,7 @@ class Trainer:
         saved = None
         self.notes: list[str] = []
         if not resume and self.rank == 0 and not overwrite:
-            _check_fresh_out(self.out, overwrite)  # refused at once; with --overwrite the old run goes only once this one can start
+            check_fresh_out(self.out, overwrite)  # refused at once; with --overwrite the old run goes only once this one can start
         if resume:
             if not self.checkpoint_path.is_file():
                 raise UdhError(f"--resume: no checkpoint at {self.checkpoint_path}; start without --resume or give the run's --out")
@@ -149,14 +126,14 @@ class Trainer:
             widening = (init["config"]["arch"], config.arch) in WIDENINGS
             encoder_only = (init["config"]["arch"], config.arch) in ENCODER_INITS
             if encoder_only:
-                _load_encoder(self.model, init, f"--init {config.init}")
+                load_encoder(self.model, init, f"--init {config.init}")
             elif (init["config"]["arch"] != config.arch and not widening) or int(init["config"]["patch_size"]) != config.patch_size:
                 raise UdhError(f"--init {config.init} is a {init['config']['arch']} network for {init['config']['patch_size']}px patches; "
                                f"pass --arch {init['config']['arch']}")
             elif widening:
                 widen_from(self.model, init["model"])
             else:
-                _load_weights(self.model, init, f"--init {config.init}")
+                load_weights(self.model, init, f"--init {config.init}")
             # The network's weights only make sense with the normalisation they were trained with.
             self.normalization = dict(init["normalization"])
             self.trained_before = {"init": str(config.init), "init_steps": int(init["step"]), "init_data": init["config"]["data"]}
@@ -169,7 +146,7 @@ class Trainer:
         self.validation = self.data.validation(config.val_pairs)
         self.real_validation = self.data.real_validation(config.val_pairs) if hasattr(self.data, "real_validation") else None
         if not resume and self.rank == 0 and overwrite:  # every setting, the data and --init checked: replace the old run
-            _check_fresh_out(self.out, overwrite)
+            check_fresh_out(self.out, overwrite)
 
     # ------------------------------------------------------------------------------------ state
 
@@ -184,7 +161,7 @@ class Trainer:
         if int(state["config"]["patch_size"]) != self.config.patch_size:
             raise UdhError(f"--teacher {name} works on {state['config']['patch_size']}px patches, this run on {self.config.patch_size}px")
         teacher = create_model(state["config"]["arch"], self.config.patch_size).to(self.device)
-        _load_weights(teacher, state, f"--teacher {name}")
+        load_weights(teacher, state, f"--teacher {name}")
         teacher.eval().requires_grad_(False)
         return teacher, dict(state["normalization"])
 
@@ -232,7 +209,7 @@ class Trainer:
         """Drop log lines written after the checkpoint we resume from: they will be written again."""
         if self.rank != 0 or not self.metrics_path.is_file():
             return
-        kept = [line for line in self.metrics_path.read_text(errors="replace").splitlines() if _logged_step(line) <= step]
+        kept = [line for line in self.metrics_path.read_text(errors="replace").splitlines() if logged_step(line) <= step]
         from udh_cli.images import atomic_write_bytes
 
         atomic_write_bytes(self.metrics_path, ("\n".join(kept) + "\n" if kept else "").encode())
@@ -326,7 +303,7 @@ class Trainer:
             self.out.mkdir(parents=True, exist_ok=True)
             from udh_cli.files import write_output
 
-            # Checked before the run starts (_check_fresh_out); recorded so that a later run knows it as udh's.
+            # Checked before the run starts (check_fresh_out); recorded so that a later run knows it as udh's.
             write_output(self.out / "config.json", json.dumps(asdict(c), indent=2).encode(), overwrite=True)
         # SIGTERM and Ctrl-C ask the loop to stop at the next step boundary, after that step's validation,
         # log line and a checkpoint: saving mid-step would record a half-done step and resume inexactly.
@@ -334,7 +311,7 @@ class Trainer:
         self._stop_requested = False
         previous = {sig: signal.signal(sig, self._request_stop) for sig in (signal.SIGTERM, signal.SIGINT)} if self.rank == 0 else {}
         last: dict[str, Any] = {}
-        lock = _lock_run_folder(self.out) if self.rank == 0 else None
+        lock = lock_run_folder(self.out) if self.rank == 0 else None
         try:
             if self.step == 0 and self.validation is not None:
                 last = {"step": 0, **self.evaluate(), "time_s": 0.0}
@@ -405,46 +382,6 @@ class Trainer:
                 "trained_before": self.trained_before, "data_description": self.data.description, "best_val": self.best_val}
 
 
-def _logged_step(line: str) -> float:
-    """The step of a metrics.jsonl line; infinity (dropped on resume) for a blank or damaged one, such as the
-    half-written last line of a killed run."""
-    try:
-        record = json.loads(line)
-        step = record.get("step", 0)
-        return float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) else math.inf
-    except (ValueError, RecursionError, AttributeError):
-        return math.inf
-
-
-def motion_config(config: TrainConfig) -> MotionConfig | None:
-    """The flight-motion distribution a run trains on, or None for the paper's corner perturbation."""
-    if config.motion == "paper":
-        return None
-    return MotionConfig(max_heading=config.max_heading, scale_range=(1.0 / config.max_scale, config.max_scale),
-                        max_shift=config.max_shift, perspective=config.rho,
-                        min_overlap=config.min_overlap, residual=config.residual)
-
-
-def _load_weights(model: torch.nn.Module, state: dict[str, Any], source: str) -> None:
-    """Load a checkpoint's weights into ``model``; weights that do not fit are a clear error, not a traceback."""
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as exc:
-        raise UdhError(f"{source}: its weights do not fit the {state['config']['arch']} network ({str(exc).splitlines()[0]})") from None
-
-
-def _load_encoder(model: torch.nn.Module, state: dict[str, Any], source: str) -> None:
-    """Load only the ``encoder.*`` weights of a checkpoint (a regressing network's) into ``model`` (a matcher)."""
-    encoder = {name: tensor for name, tensor in state["model"].items() if name.startswith("encoder.")}
-    try:
-        missing = [name for name in model.state_dict() if name.startswith("encoder.") and name not in encoder]
-        if missing:
-            raise RuntimeError(f"no weight for {missing[0]}")
-        model.load_state_dict(encoder, strict=False)
-    except RuntimeError as exc:
-        raise UdhError(f"{source}: its encoder does not fit the {type(model).__name__} ({str(exc).splitlines()[0]})") from None
-
-
 def _check_config(config: TrainConfig, out: Path) -> None:
     """Refuse settings that cannot train, and an output folder that cannot be written, before any work."""
     if (config.mode == "match") != (config.arch in MATCHERS):
@@ -489,46 +426,6 @@ def _check_config(config: TrainConfig, out: Path) -> None:
     existing = next(p for p in [out, *out.absolute().parents] if p.exists())
     if not existing.is_dir() or not os.access(existing, os.W_OK):
         raise UdhError(f"--out {out}: {existing} is not a writable folder; choose another path")
-
-
-def _check_fresh_out(out: Path, overwrite: bool) -> None:
-    """A new run never mixes into an earlier one: an ``--out`` that holds a run needs --resume or --overwrite,
-    and a ``config.json`` that udh did not write (a data folder given as --out) needs --overwrite."""
-    from udh_cli.files import check_replaceable
-
-    check_replaceable(out / "config.json", overwrite)
-    found = [name for name in ("checkpoint.pt", "best.pt", "metrics.jsonl") if (out / name).is_file()]
-    if not found:
-        return
-    if not overwrite:
-        raise UdhError(f"--out {out} holds a run ({', '.join(found)}); add --resume to continue it, --overwrite to replace it, "
-                       f"or choose another --out")
-    lock = _lock_run_folder(out)  # never delete a run that another process is writing
-    try:
-        for name in found:
-            (out / name).unlink()
-    finally:
-        lock.close()
-
-
-def _lock_run_folder(out: Path):
-    """An exclusive lock on ``out/.lock`` for this process; a second run into the same folder is refused.
-
-    The operating system drops the lock when the process ends, however it ends, so a killed run never
-    leaves a stale lock. Where ``fcntl`` does not exist (Windows) there is no lock.
-    """
-    out.mkdir(parents=True, exist_ok=True)
-    handle = open(out / ".lock", "a+")  # noqa: SIM115 - held open for the run's lifetime
-    try:
-        import fcntl
-    except ImportError:
-        return handle
-    try:
-        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        handle.close()
-        raise UdhError(f"--out {out}: another training is writing to this folder; wait for it or choose another --out") from None
-    return handle
 
 
 def train(config: TrainConfig, resume: bool = False, threads: int | None = None, progress: bool = True,

@@ -31,6 +31,7 @@ from udh_cli.mosaic.graph import NEAR_IN_SEQUENCE, chain_to_reference, connected
 from udh_cli.mosaic.outputs import (SIDECAR_FORMAT, StagedFiles, cameras_path, check_outputs_are_not_inputs, output_paths, preview_path, remove_stale_staged,
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
+from udh_cli.mosaic.gcp_scale import check_gcp_fit, infer_gcp_scale, residual_lines
 from udh_cli.mosaic.lens import read_cameras
 from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, frames_focal, undistort_by_fitted_lens
 from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
@@ -318,6 +319,9 @@ def run_mosaic(
             raise UdhError(f"{gcp}: none of the images it names is among the frames of {source} (e.g. {missing[0]})")
         if missing:
             reporter.warn(f"{gcp}: {len(missing)} image(s) it names are not among the frames, their observations are skipped: {', '.join(missing[:5])}")
+        gcp_scale = infer_gcp_scale(gcps, frames, gcp_image_width, str(gcp))
+        gcp_image_width = gcp_scale.image_width
+        reporter.info(f"{Path(gcp).name}: its pixels are {gcp_scale.reason}")
         if lens is not None:  # the points were measured on the distorted frames
             gcps = undistorted_observations(gcps, lens, {f.name: f.size for f in frames}, gcp_image_width)
     cache = PairCache.open(pair_cache_file, frames, opinions, acceptance(config), resume, reporter,
@@ -343,7 +347,7 @@ def run_mosaic(
         runner.close(abort=aborted)
     cache.save(prune=True)
     if resume:
-        reporter.info(f"{cache.hits} of {len(pairs)} pair estimates taken from {cache.path}")
+        reporter.info(f"{cache.hits} of {cache.requests} pair estimates taken from {cache.path}")
     loops = _solve(frameset, parts, pairs, config, reporter, solve_anchors(frameset, config, reporter, gcps, gcp_image_width))
     gains: dict[int, list[float]] = {}  # per placed frame, its mean gain per channel (B, G, R)
     _plan_canvases(frameset, parts, output, config)
@@ -503,9 +507,11 @@ def _georeference_by_gcps(frameset: FrameSet, parts: list[Part], report: dict[st
             by_number[part.number]["georeference"] = None
             reporter.warn(f"{part.file.name}: not georeferenced: {exc}")
             continue
+        check_gcp_fit(found, lambda width: fit_gcps(gcps, frames, width), gcp_image_width, frameset.frames)  # before any map
         by_number[part.number]["georeference"] = found.to_json()
         in_solve = report["config"].get("gcp_sigma_m", 0.0) > 0  # then a checkpoint left out of the fit was still in the solve
         by_number[part.number]["georeference"]["gcp_points_in_solve"] = in_solve
+        by_number[part.number]["georeference"]["gcp_image_width"] = gcp_image_width  # None: the frames' own pixels
         for name, point in found.points.items():
             if not point["used"]:
                 reporter.warn(f"{name}: contradicts the other ground-control points ({point['checkpoint_m']:.1f} m off when left out); "
@@ -517,6 +523,8 @@ def _georeference_by_gcps(frameset: FrameSet, parts: list[Part], report: dict[st
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} by {used} ground-control points, "
                       f"{found.checkpoint_rms_m:.2f} m RMS at checkpoints (each point left out of the fit in turn"
                       + ("; optimistic, as the points also anchor the solve)" if in_solve else ")"))
+        for line in residual_lines(found):
+            reporter.info(line)
 
 
 def _relative_to(path: Path, folder: Path) -> str:

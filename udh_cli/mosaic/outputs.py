@@ -118,14 +118,15 @@ def remove_stale_staged(output: Path, now: float | None = None) -> list[Path]:
 
 def stale_part_files(output: Path, produced: list[Path]) -> list[Path]:
     """Files named as parts of ``output`` (``stem.partK.suffix``, ``stem.partK.preview.jpg`` and a part's
-    world, ``.prj`` and ``.cog.tif`` files, K >= 1) that are not in ``produced``: what an earlier run with
+    world, ``.prj``, ``.cog.tif`` and GDAL ``.aux.xml`` files, K >= 1) that are not in ``produced``: what an earlier run with
     more parts (or with previews) left behind.
 
     Only those exact patterns match, with ``output``'s own stem and suffix; nothing else is returned.
     """
     part = rf"{re.escape(output.stem)}\.part[1-9][0-9]*"
     georeference = "|".join(re.escape(s) for s in GEOREFERENCE_SUFFIXES)
-    pattern = re.compile(rf"{part}{re.escape(output.suffix)}|{part}{re.escape(PREVIEW_SUFFIX)}|{part}(?:{georeference})")
+    pam = re.escape(output.suffix + ".aux.xml")  # map_files.PAM_SUFFIX
+    pattern = re.compile(rf"{part}{re.escape(output.suffix)}(?:{pam})?|{part}{re.escape(PREVIEW_SUFFIX)}|{part}(?:{georeference})")
     keep = {p.resolve() for p in produced}
     try:
         candidates = sorted(output.parent.iterdir())

@@ -32,6 +32,7 @@ from udh_cli.mosaic.outputs import (SIDECAR_FORMAT, StagedFiles, cameras_path, c
                                    sidecar_path, stale_part_files)
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.gcp_scale import check_gcp_fit, infer_gcp_scale, residual_lines
+from udh_cli.mosaic.map_files import georeference_mosaic_file, pam_path
 from udh_cli.mosaic.lens import read_cameras
 from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, frames_focal, undistort_by_fitted_lens
 from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
@@ -170,7 +171,7 @@ def longest_derived_name(output: Path) -> str:
     staged (``.NAME.partK.preview.xxxxxxxx.staged.jpg``) and written through a temporary file of
     :func:`udh_cli.images.atomic_write_bytes` (``.<that name>.xxxxxxxx.part``)."""
     part = output.with_name(f"{output.stem}.part{'9' * MAX_PART_DIGITS}{output.suffix}")
-    finals = [output, part, preview_path(output), preview_path(part), sidecar_path(output)]
+    finals = [output, part, preview_path(output), preview_path(part), sidecar_path(output), pam_path(part)]
     written = [f".{f.stem}.{'0' * 8}.staged{f.suffix}" for f in finals] + [cache_path(output).name]  # see StagedFiles.path_for
     return max((f".{name}.{'x' * 8}.part" for name in written), key=lambda name: len(os.fsencode(name)))
 
@@ -475,6 +476,7 @@ def _write_georeference(part: Part, found, staged: StagedFiles, entry: dict[str,
     """Stage a georeferenced part's world file, .prj and north-up COG (when rasterio is installed)."""
     atomic_write_bytes(staged.path_for(world_file_path(part.file)), world_file_text(found).encode())
     atomic_write_bytes(staged.path_for(part.file.with_suffix(".prj")), projection_text(found.epsg).encode())
+    georeference_mosaic_file(part.file, found.map_from_mosaic, found.epsg, staged)  # GDAL reads neither of the two above for a rotated PNG
     if not has_rasterio():
         reporter.warn("no north-up GeoTIFF: it needs rasterio (pip install rasterio; from the udh checkout: pip install '.[geo]')")
         return
@@ -894,13 +896,13 @@ def _remove_stale_parts(output: Path, parts: list[Part], reporter: Reporter, rep
     produced = [f for p in parts for f in (p.file, p.preview) if f is not None and p.canvas is not None]
     entries = {e["part"]: e for e in (report or {}).get("parts", [])}
     georeferenced = [p.file for p in parts if p.canvas is not None and (entries.get(p.number) or {}).get("georeference")]
-    produced += [f for mosaic in georeferenced for f in (world_file_path(mosaic), mosaic.with_suffix(".prj"))]
+    produced += [f for mosaic in georeferenced for f in (world_file_path(mosaic), mosaic.with_suffix(".prj"), pam_path(mosaic))]
     produced += [cog_path(mosaic) for mosaic in georeferenced if (entries.get(_part_number(parts, mosaic)) or {}).get("geotiff")]
     if (report or {}).get("map"):
         produced.append(cog_path(output))
     stale = stale_part_files(output, produced)
     for mosaic in [output, *(p.file for p in parts if p.file is not None)]:
-        stale += [f for f in (world_file_path(mosaic), mosaic.with_suffix(".prj"), cog_path(mosaic))
+        stale += [f for f in (world_file_path(mosaic), mosaic.with_suffix(".prj"), cog_path(mosaic), pam_path(mosaic))
                   if f.is_file() and f.resolve() not in {g.resolve() for g in produced} and f not in stale]
     for path in stale:
         try:

@@ -16,7 +16,7 @@ from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.follow import FollowConfig, check_followed_folder, follow_mosaic
 from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE
 from udh_cli.mosaic.pair_cache import cache_path
-from udh_cli.mosaic.pipeline import MosaicConfig, acceptance, check_config, check_output, mosaic_method_options, own_files, run_mosaic
+from udh_cli.mosaic.pipeline import MosaicConfig, _relative_to, acceptance, check_config, check_output, mosaic_method_options, own_files, run_mosaic
 from udh_cli.mosaic.outputs import check_outputs_are_not_inputs, sidecar_path
 from udh_cli.mosaic.quicklook import QuickLook, live_picture_path, live_record_path
 from udh_cli.mosaic.report import Reporter
@@ -78,6 +78,8 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     sidecar = Path(report["sidecar"])
     written = json.loads(sidecar.read_text())
     written["live"] = report["live"]
+    # A refresh that became the final mosaic read the frames through a staging folder, gone now: name the folder.
+    written["source"] = report["source"] = _relative_to(Path(folder), sidecar.parent)
     atomic_write_bytes(sidecar, (json.dumps(written, indent=1) + "\n").encode())
     return report
 

@@ -20,6 +20,7 @@ from udh_cli.mosaic.pipeline import MosaicConfig, _relative_to, acceptance, chec
 from udh_cli.mosaic.outputs import check_outputs_are_not_inputs, sidecar_path
 from udh_cli.mosaic.quicklook import QuickLook, live_picture_path, live_record_path
 from udh_cli.mosaic.report import Reporter
+from udh_cli.mosaic.workers import check_main_guard
 
 
 def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = MosaicConfig(), follow: FollowConfig = FollowConfig(),
@@ -39,6 +40,7 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     if config.workers is None:  # the quick look needs the other core; each refresh estimates its new pairs in one process
         config = replace(config, workers=1)
     check_followed_folder(Path(folder))  # before the networks load
+    check_main_guard("live mode's refresh")
     if str(options.get("camera")) == CAMERA_ESTIMATE:  # each refresh would fit another k1 and estimate every pair again
         raise UdhError("--camera estimate cannot follow a flight as it is written: fit the lens once on a finished flight "
                        "(it writes NAME.cameras.json) and give that file, or the camera's own cameras.json")

@@ -362,7 +362,8 @@ def run_mosaic(
             with reporter.stage("georeferencing", 1) as advance:  # world files and the north-up GeoTIFFs
                 _georeference(frameset, parts, report, staged, reporter, gcps, gcp_image_width, output)
                 advance(1)
-            report["timings_s"]["georeferencing"] = reporter.timings_s["georeferencing"]
+            if any(entry.get("georeference") for entry in report["parts"]):  # not timed where nothing was placed on the map
+                report["timings_s"]["georeferencing"] = reporter.timings_s["georeferencing"]
         report["pair_cache"] = _relative_to(cache.path, sidecar_path(output).parent) if cache.keep else None
         report["summary"]["pairs_from_cache"] = cache.hits
         report["timings_s"]["total"] = time.perf_counter() - started

@@ -33,6 +33,7 @@ from udh_cli.mosaic.outputs import (SIDECAR_FORMAT, StagedFiles, cameras_path, c
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.gcp_scale import check_gcp_fit, infer_gcp_scale, residual_lines
 from udh_cli.mosaic.map_files import georeference_mosaic_file, pam_path
+from udh_cli.mosaic.report_page import write_report_page
 from udh_cli.mosaic.lens import read_cameras
 from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, frames_focal, undistort_by_fitted_lens
 from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
@@ -372,6 +373,7 @@ def run_mosaic(
         if frameset.lens_fit is not None and frameset.lens is not None:  # the fitted lens, for the next run and for ODM
             atomic_write_bytes(staged.path_for(cameras_path(output)), (json.dumps(frameset.lens.to_cameras_json(), indent=1) + "\n").encode())
             report["camera"]["file"] = cameras_path(output).name
+        write_report_page(report, staged, output)  # NAME.report.html, from the same results as the sidecar
         atomic_write_bytes(staged.path_for(sidecar_path(output)), (json.dumps(report, indent=1) + "\n").encode())
         staged.publish()
     finally:

@@ -390,6 +390,8 @@ def _print_mosaic(report: dict) -> None:
         table.add_row("cameras", f"focal length {cameras[0]['focal_px']:.0f} px, held: {cameras[0]['focal_source']}; "
                                  f"tilt from straight down up to {max(tilts):.1f} degrees")
     table.add_row("sidecar", report["sidecar"])
+    if report.get("report_page"):
+        table.add_row("report", str(Path(report["sidecar"]).with_name(report["report_page"])))
     table.add_row("time (s)", ", ".join(f"{k} {v:.1f}" for k, v in report["timings_s"].items()))
     console.print(table)
 

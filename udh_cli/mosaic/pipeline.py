@@ -33,7 +33,7 @@ from udh_cli.mosaic.outputs import (SIDECAR_FORMAT, StagedFiles, cameras_path, c
 from udh_cli.mosaic.gcp import fit_gcps, gcp_anchors, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.gcp_scale import check_gcp_fit, infer_gcp_scale, residual_lines
 from udh_cli.mosaic.map_files import georeference_mosaic_file, pam_path
-from udh_cli.mosaic.report_page import write_report_page
+from udh_cli.mosaic.report_page import report_page_path, write_report_page
 from udh_cli.mosaic.lens import read_cameras
 from udh_cli.mosaic.lens_fit import CAMERA_ESTIMATE, frames_focal, undistort_by_fitted_lens
 from udh_cli.mosaic.geotiff import MosaicImage, cog_path, has_rasterio, write_cog, write_combined_cog, write_tiled_tiff
@@ -544,7 +544,8 @@ def _relative_to(path: Path, folder: Path) -> str:
 def own_files(output: Path) -> list[Path]:
     """Outputs of this run (or an earlier one), which must never be read back as frames."""
     return ([output, sidecar_path(output), preview_path(output), cache_path(output), cog_path(output), live_picture_path(output),
-             live_record_path(output), cameras_path(output)] + [p for p in output.parent.glob(f"{output.stem}.part*")])
+             live_record_path(output), cameras_path(output), report_page_path(output), pam_path(output)]
+            + [p for p in output.parent.glob(f"{output.stem}.part*")])
 
 
 def _load_truth(source: Path, ground_truth: str | Path | None) -> dict | None:

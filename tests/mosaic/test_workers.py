@@ -154,6 +154,9 @@ def test_a_script_without_the_main_guard_is_told_so_before_any_worker_starts(tmp
         assert unguarded_script() == expected
     monkeypatch.setitem(sys.modules, "__main__", types.SimpleNamespace())  # a notebook or an interactive session
     assert unguarded_script() is None
+    package_main = types.SimpleNamespace(__file__=str(bare), __spec__=types.SimpleNamespace(name="tool.__main__"))
+    monkeypatch.setitem(sys.modules, "__main__", package_main)  # `python -m tool`: multiprocessing does not import it again
+    assert unguarded_script() is None
     monkeypatch.setitem(sys.modules, "__main__", types.SimpleNamespace(__file__=str(bare)))
     with pytest.raises(UdhError, match=r"workers=2 starts worker processes, which import .*bare.py again: put the call under "
                                        r"'if __name__ == \"__main__\":'"):

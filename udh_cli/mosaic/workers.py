@@ -164,8 +164,9 @@ def unguarded_script() -> str | None:
     so each worker would start the mosaic once more and die while starting its own pool, which the pool only
     reports as a worker that died. Interactive sessions and notebooks have no script and need no guard.
     """
-    path = getattr(sys.modules.get("__main__"), "__file__", None)
-    if not path:
+    main = sys.modules.get("__main__")
+    path, spec = getattr(main, "__file__", None), getattr(main, "__spec__", None)
+    if not path or (spec is not None and spec.name.split(".")[-1] == "__main__"):  # `python -m package`: never run again there
         return None
     try:
         text = Path(path).read_text(errors="replace")

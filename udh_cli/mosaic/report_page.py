@@ -154,7 +154,8 @@ def _part_section(report: dict[str, Any], part: dict[str, Any], preview: bytes |
     outlines = {i: _outline(to_panel @ np.array(r["mosaic_from_frame"]), r["width"], r["height"]) for i, r in frames.items()}
     centres = {i: o.mean(axis=0) for i, o in outlines.items()}
     font = max(3.0, 0.09 * float(np.median([np.ptp(o[:, 0]) for o in outlines.values()]))) if outlines else 8.0
-    background = _image(preview, size) if preview is not None else f'<rect width="{size[0]}" height="{size[1]}" fill="#282828"/>'
+    preview_id = f"preview-{part['part']}"  # embedded once, under the mosaic, and reused under the pair graph
+    background = _image(preview, size, element_id=preview_id) if preview is not None else f'<rect width="{size[0]}" height="{size[1]}" fill="#282828"/>'
 
     shapes = "".join(f'<polygon points="{_points(o)}" class="outline"/>' for o in outlines.values())
     numbers = "".join(f'<text x="{c[0]:.1f}" y="{c[1]:.1f}" font-size="{font:.1f}">{i}</text>' for i, c in centres.items())
@@ -168,7 +169,7 @@ def _part_section(report: dict[str, Any], part: dict[str, Any], preview: bytes |
     for name in PAIR_STYLES:  # drawn in legend order: the failures on top
         colour, dash = PAIR_STYLES[name]
         lines += [_line(centres[p["a"]], centres[p["b"]], colour, dash) for p in pairs if pair_style(p) == name]
-    graph = _svg(size, background + '<rect width="100%" height="100%" fill="#000" opacity="0.45"/>' + "".join(lines)
+    graph = _svg(size, (f'<use href="#{preview_id}"/>' if preview is not None else background) + '<rect width="100%" height="100%" fill="#000" opacity="0.45"/>' + "".join(lines)
                  + "".join(f'<circle cx="{c[0]:.1f}" cy="{c[1]:.1f}" r="{font / 4:.1f}" fill="#fff"/>' for c in centres.values()))
 
     limit = float(report["config"].get("outlier_px") or 5.0)
@@ -293,9 +294,10 @@ def _svg(size: tuple[int, int], content: str) -> str:
             f'<path d="M0,0 L10,5 L0,10 z" fill="#ff5030"/></marker></defs>{content}</svg>')
 
 
-def _image(data: bytes, size: tuple[int, int], kind: str = "jpeg") -> str:
+def _image(data: bytes, size: tuple[int, int], kind: str = "jpeg", element_id: str | None = None) -> str:
     uri = f"data:image/{kind};base64,{base64.b64encode(data).decode('ascii')}"
-    return f'<image href="{uri}" width="{size[0]}" height="{size[1]}" preserveAspectRatio="none"/>'
+    named = f' id="{element_id}"' if element_id else ""
+    return f'<image{named} href="{uri}" width="{size[0]}" height="{size[1]}" preserveAspectRatio="none"/>'
 
 
 def _overlap_png(counts: np.ndarray) -> bytes:

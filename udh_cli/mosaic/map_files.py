@@ -1,8 +1,8 @@
 """The georeference carried by the mosaic file itself, so that GDAL (QGIS, rasterio) opens it on the map.
 
-A ``.tif`` mosaic written by rasterio gets its CRS and its affine transform inside, rotation included. A
-``.png`` or ``.jpg`` (or a ``.tif`` written without rasterio) gets a GDAL PAM sidecar, ``NAME.png.aux.xml``,
-with the CRS as WKT and the same transform. GDAL does not read the ESRI ``.prj`` beside a world file of a
+A ``.tif`` mosaic written by rasterio gets its CRS and its affine transform inside, rotation included. Every
+georeferenced mosaic (``.png``, ``.jpg``, ``.tif``) gets a GDAL PAM sidecar, ``NAME.png.aux.xml``, with the CRS as
+WKT and the same transform. GDAL does not read the ESRI ``.prj`` beside a world file of a
 rotated PNG ("failed to load SRS definition"), but it always reads the PAM file; the world file and the
 ``.prj`` are still written for the tools that read only those.
 """
@@ -64,12 +64,12 @@ def embed_georeference(tiff: Path, map_from_mosaic: np.ndarray, epsg: int) -> No
 
 def georeference_mosaic_file(mosaic_file: Path, map_from_mosaic: np.ndarray, epsg: int, staged) -> None:
     """Put the georeference where GDAL reads it for ``mosaic_file`` as staged in ``staged``
-    (:class:`.outputs.StagedFiles`): inside a TIFF rasterio wrote, else in its PAM file, staged beside it."""
+    (:class:`.outputs.StagedFiles`): in its PAM file, staged beside it, and inside a TIFF rasterio wrote."""
     from udh_cli.images import atomic_write_bytes
     from udh_cli.mosaic.geotiff import has_rasterio
 
     temporary = staged.temporary_of(mosaic_file)
     if mosaic_file.suffix.lower() in (".tif", ".tiff") and has_rasterio() and temporary is not None:
         embed_georeference(temporary, map_from_mosaic, epsg)
-    else:
-        atomic_write_bytes(staged.path_for(pam_path(mosaic_file)), pam_text(map_from_mosaic, epsg).encode())
+    # Beside a TIFF too: GDAL reads a PAM file before a TIFF's own tags, so one must never be left from an earlier run.
+    atomic_write_bytes(staged.path_for(pam_path(mosaic_file)), pam_text(map_from_mosaic, epsg).encode())

@@ -20,6 +20,7 @@ from udh_cli.mosaic.pipeline import MosaicConfig, _relative_to, acceptance, chec
 from udh_cli.mosaic.outputs import check_outputs_are_not_inputs, sidecar_path
 from udh_cli.mosaic.quicklook import QuickLook, live_picture_path, live_record_path
 from udh_cli.mosaic.report import Reporter
+from udh_cli.mosaic.report_page import rewrite_report_page
 from udh_cli.mosaic.workers import check_main_guard
 
 
@@ -83,6 +84,7 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     # A refresh that became the final mosaic read the frames through a staging folder, gone now: name the folder.
     written["source"] = report["source"] = _relative_to(Path(folder), sidecar.parent)
     atomic_write_bytes(sidecar, (json.dumps(written, indent=1) + "\n").encode())
+    rewrite_report_page(written, sidecar.parent)  # it too names the folder, and says how the flight went
     return report
 
 

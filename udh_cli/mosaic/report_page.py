@@ -105,6 +105,20 @@ def write_report_page(report: dict[str, Any], staged, output: Path) -> Path:
     return path
 
 
+def rewrite_report_page(report: dict[str, Any], folder: Path) -> None:
+    """Write the page of a published run again from ``report`` (its sidecar's dict, changed since), the previews
+    read from ``folder``, where the sidecar is; nothing when the run wrote no page."""
+    from udh_cli.images import atomic_write_bytes
+
+    if not report.get("report_page"):
+        return
+    previews = {}
+    for part in report["parts"]:
+        path = folder / part["preview"] if part.get("preview") else None
+        previews[part["part"]] = path.read_bytes() if path is not None and path.is_file() else None
+    atomic_write_bytes(folder / report["report_page"], build_report_page(report, previews).encode())
+
+
 # ------------------------------------------------------------------------------------------ sections
 
 
@@ -125,6 +139,10 @@ def _summary_table(report: dict[str, Any]) -> str:
     if "ground_truth_error" in report and report["ground_truth_error"]["solved"].get("frames"):
         solved = report["ground_truth_error"]["solved"]
         rows.append(("error vs ground truth (px)", f"{solved['mean_corner_px']:.3f} mean, {solved['max_corner_px']:.3f} max corner"))
+    if report.get("live"):
+        live = report["live"]
+        rows.append(("live mode", f"{live['frames']} frames, {live['refreshes']} refreshes, ended by {live['ended_by']}; "
+                                  f"the final mosaic is {live.get('final', 'a final run')}"))
     rows.append(("total time", f"{report['timings_s'].get('total', sum(report['timings_s'].values())):.1f} s"))
     return "<table class=\"summary\">" + "".join(f"<tr><th>{_e(k)}</th><td>{_e(v)}</td></tr>" for k, v in rows) + "</table>"
 

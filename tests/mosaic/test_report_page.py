@@ -78,6 +78,7 @@ def test_a_500_frame_flight_gives_a_page_of_bounded_lists():
     assert page.count("<li>") == MAX_ROWS + 1 and "and 860 more (see the sidecar)" in page  # warnings
     assert "and 80 more (see the sidecar)" in page  # unplaced frames: MAX_ROWS shown of 120
     assert "Unplaced frames: 120" in page
+    assert page.count('height="16" fill="#111"') == 120  # the sequence strip: one cell per frame, black where unplaced
     assert len(page) < 3_000_000
 
 

@@ -73,7 +73,7 @@ def build_report_page(report: dict[str, Any], previews: dict[int, bytes | None])
     JPEG bytes (None: the frames' outlines are drawn on a dark ground instead)."""
     summary = report["summary"]
     title = f"udh mosaic of {report['source']}"
-    body = [f"<h1>{_e(title)}</h1>", _summary_table(report)]
+    body = [f"<h1>{_e(title)}</h1>", _summary_table(report), _sequence_section(report)]
     for part in report["parts"]:
         body.append(_part_section(report, part, previews.get(part["part"])))
     body.append(_unplaced_section(report))
@@ -145,6 +145,30 @@ def _summary_table(report: dict[str, Any]) -> str:
                                   f"the final mosaic is {live.get('final', 'a final run')}"))
     rows.append(("total time", f"{report['timings_s'].get('total', sum(report['timings_s'].values())):.1f} s"))
     return "<table class=\"summary\">" + "".join(f"<tr><th>{_e(k)}</th><td>{_e(v)}</td></tr>" for k, v in rows) + "</table>"
+
+
+PART_COLOURS = ("#4e79a7", "#f28e2b", "#59a14f", "#b07aa1", "#76b7b2", "#edc948", "#ff9da7", "#9c755f", "#e15759", "#bab0ac")
+
+
+def _sequence_section(report: dict[str, Any]) -> str:
+    """The flight in sequence order: each frame a cell coloured by its part (grey: unplaced), and under each
+    link to the next frame the fate of that consecutive pair, so that where a flight broke shows at a glance."""
+    frames, step = report["frames"], 10
+    cells = []
+    for record in frames:
+        colour = PART_COLOURS[(record["part"] - 1) % len(PART_COLOURS)] if record["part"] else "#111"
+        tip = f"{record['index']}: {record['file']}, " + (f"part {record['part']}" if record["part"] else "unplaced")
+        cells.append(f'<rect x="{record["index"] * step}" y="0" width="{step - 1}" height="16" fill="{colour}"><title>{_e(tip)}</title></rect>')
+    for pair in report["pairs"]:
+        if pair["kind"] == "consecutive":
+            colour = PAIR_STYLES[pair_style(pair)][0]
+            cells.append(f'<rect x="{pair["a"] * step + step / 2}" y="20" width="{step}" height="8" fill="{colour}">'
+                         f'<title>{pair["a"]}-{pair["b"]}: {_e(pair["status"])}</title></rect>')
+    width = max(1, len(frames)) * step
+    svg = (f'<svg class="sequence" viewBox="0 0 {width} 30" preserveAspectRatio="none" xmlns="http://www.w3.org/2000/svg">'
+           f'{"".join(cells)}</svg>')
+    return _figure(svg, "The frames in sequence order, coloured by part (black: not placed); below, each consecutive pair: "
+                        + _pair_legend([p for p in report["pairs"] if p["kind"] == "consecutive"]))
 
 
 def _loops_text(loops: dict[str, Any]) -> str:
@@ -379,7 +403,7 @@ table.summary th{color:#555;font-weight:normal} table.list td,table.list th{bord
 .bar{height:10px;background:#3b8bd9}
 .grid{display:grid;grid-template-columns:repeat(auto-fit,minmax(420px,1fr));gap:1.2em}
 figure{margin:0;background:#fff;border:1px solid #ddd;padding:6px} svg{width:100%;height:auto;display:block;background:#1e1e1e}
-figcaption{font-size:.9em;color:#444;margin-top:4px}
+figcaption{font-size:.9em;color:#444;margin-top:4px} svg.sequence{height:48px;background:#fff}
 .outline{fill:none;stroke:#ffd24a;stroke-width:1} .outline.faint{stroke:#ffffff;stroke-opacity:.35}
 text{fill:#fff;paint-order:stroke;stroke:#000;stroke-width:2px;text-anchor:middle;dominant-baseline:middle;font-family:sans-serif}
 text.label{text-anchor:start;font-size:11px}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.outputs.files import GEOREFERENCE_SUFFIXES, MosaicFiles, RunFiles
+from udh_cli.mosaic.outputs.files import GEOREFERENCE_SUFFIXES, PAM_SUFFIX, MosaicFiles, RunFiles
 
 
 def test_every_file_of_a_run_is_named_beside_the_mosaic(tmp_path):
@@ -29,9 +29,9 @@ def test_parts_are_the_output_itself_or_numbered(tmp_path):
 def test_a_written_image_names_its_georeference_files(tmp_path, image, world):
     names = MosaicFiles(tmp_path / image)
     stem = image.rsplit(".", 1)[0]
-    assert [p.name for p in names.georeference] == [world, f"{stem}.prj", f"{stem}.cog.tif"]
+    assert [p.name for p in names.georeference] == [world, f"{stem}.prj", f"{stem}.cog.tif", f"{image}.aux.xml"]
     assert names.preview.name == f"{stem}.preview.jpg"
-    assert all(p.name.endswith(GEOREFERENCE_SUFFIXES) for p in names.georeference)
+    assert all(p.name.endswith(GEOREFERENCE_SUFFIXES + (PAM_SUFFIX,)) for p in names.georeference)
 
 
 def test_an_image_type_without_a_world_file_convention_is_refused(tmp_path):

@@ -61,7 +61,7 @@ def test_a_failing_later_part_leaves_the_earlier_run_whole(flight, tmp_path, mon
     out = tmp_path / "m.png"
     run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))
     before = snapshot(tmp_path)
-    assert sorted(before) == ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg"]
+    assert sorted(before) == ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg", "m.report.html"]
     fail_in_part(monkeypatch, 2)
     with pytest.raises(UdhError, match="made to fail"):  # another blend: part 1 would differ from the earlier one
         run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, blend="none"), estimator=split(prints), fallback=split(prints))
@@ -76,20 +76,20 @@ def test_stale_parts_of_an_earlier_run_are_removed_and_nothing_else(flight, tmp_
         (tmp_path / name).write_bytes(b"earlier")
     report = run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))
     assert report["summary"]["parts"] == 2
-    expected = ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg"]
+    expected = ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg", "m.report.html"]
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(expected + others)
 
     # Now in one part, without previews: every part file goes, and the single mosaic takes their place.
     reporter = Reporter(quiet=True)
     report = run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, preview=False), reporter, estimator=FailOn(prints, lambda a, b: False))
     assert report["summary"]["parts"] == 1
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", *others])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", "m.report.html", *others])
     assert json.loads((tmp_path / "m.json").read_text())["parts"][0]["file"] == out.name  # relative to the sidecar
 
     # Split again: the single mosaic of the run before is not a part file; it stays, with a warning.
     reporter = Reporter(quiet=True)
     run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, preview=False), reporter, estimator=split(prints), fallback=split(prints))
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", "m.part1.png", "m.part2.png", *others])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", "m.part1.png", "m.part2.png", "m.report.html", *others])
     assert any("m.png is left from an earlier run" in w for w in reporter.warnings)
 
 

@@ -12,7 +12,8 @@ import pytest
 from udh_cli.errors import UdhError
 from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
 from udh_cli.mosaic.render import composite as compositing
-from udh_cli.mosaic.outputs.staging import STALE_AFTER_S, StagedFiles, stale_part_files
+from udh_cli.mosaic.outputs.files import RunFiles
+from udh_cli.mosaic.outputs.staging import STALE_AFTER_S, StagedFiles, remove_stale_files, stale_part_files
 
 from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
 
@@ -101,6 +102,17 @@ def test_stale_part_files_matches_only_this_outputs_part_names(tmp_path):
     (tmp_path / "run.v2.part9.tif").mkdir()  # a folder is never removed
     stale = stale_part_files(out, [tmp_path / "run.v2.part1.tif"])
     assert [p.name for p in stale] == ["run.v2.part2.preview.jpg", "run.v2.part7.tif"]
+
+
+def test_gdal_files_this_run_did_not_write_are_removed_and_nothing_else(tmp_path):
+    """A stale NAME.png.aux.xml would put a new mosaic on the map where the old one lay: GDAL reads it first."""
+    names = ["m.png.aux.xml", "m.part1.png.aux.xml", "m.part3.png.aux.xml", "m.part3.png.aux.xml.bak", "m.part3.tif.aux.xml", "m.aux.xml"]
+    for name in names:
+        (tmp_path / name).write_bytes(b"x")
+    reporter = Reporter(quiet=True)
+    remove_stale_files(RunFiles(tmp_path / "m.png"), [tmp_path / "m.part1.png", tmp_path / "m.part1.png.aux.xml"],
+                       [tmp_path / "m.png", tmp_path / "m.part1.png"], reporter)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.aux.xml", "m.part1.png.aux.xml", "m.part3.png.aux.xml.bak", "m.part3.tif.aux.xml"]
 
 
 def test_staged_files_keep_the_permissions_of_the_file_they_replace(tmp_path):

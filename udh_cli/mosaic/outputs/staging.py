@@ -104,8 +104,7 @@ def stale_part_files(output: Path, produced: list[Path]) -> list[Path]:
     """
     part = rf"{re.escape(output.stem)}\.part[1-9][0-9]*"
     georeference = "|".join(re.escape(s) for s in GEOREFERENCE_SUFFIXES)
-    pam = re.escape(output.suffix + PAM_SUFFIX)
-    pattern = re.compile(rf"{part}{re.escape(output.suffix)}(?:{pam})?|{part}{re.escape(PREVIEW_SUFFIX)}|{part}(?:{georeference})")
+    pattern = re.compile(rf"{part}{re.escape(output.suffix)}(?:{re.escape(PAM_SUFFIX)})?|{part}{re.escape(PREVIEW_SUFFIX)}|{part}(?:{georeference})")
     keep = {p.resolve() for p in produced}
     try:
         candidates = sorted(output.parent.iterdir())

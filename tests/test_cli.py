@@ -297,6 +297,29 @@ def test_a_bad_option_still_prints_one_json_object(files):
     assert payload["ok"] is False and payload["exit_code"] == 1 and "iterations" in payload["failure"]
 
 
+def test_help_at_80_columns_shows_every_option_name_whole(monkeypatch):
+    """Rich shrinks the option-name column to fit the terminal; no command's option name may end in an ellipsis."""
+    import typer
+
+    def paths(command, path):
+        yield path
+        for name, sub in getattr(command, "commands", {}).items():
+            yield from paths(sub, path + [name])
+
+    for path in paths(typer.main.get_command(cli.app), []):
+        out = CliRunner().invoke(cli.app, [*path, "--help"], env={"COLUMNS": "80"}).output
+        assert max(len(line) for line in out.splitlines()) <= 80, path
+        names = [line.strip("│ ").split("  ")[0] for line in out.splitlines() if line.strip("│ ").startswith("-")]
+        assert names and not [n for n in names if "…" in n], (path, names)
+
+
+def test_the_map_shape_line_hints_at_the_ground_plane_only_when_it_is_off():
+    from udh_cli.cli_mosaic import _plane_hint
+
+    assert "--rectify or --solve camera" in _plane_hint(6.165, 0.041, {"rectify": False, "solve": "homography"})
+    assert _plane_hint(0.5, 0.041, {}) == "" and _plane_hint(6.0, 0.04, {"solve": "camera"}) == ""
+
+
 # ------------------------------------------------------------------------------------ start-up
 
 # Modules a command that needs none of them must not load: the networks' runtime, torch, SciPy (the solves), the

@@ -13,10 +13,11 @@ PACKAGE = Path(__file__).resolve().parents[1] / "udh_cli"
 # (errors, geometry, images, ...) form the base that every layer may use.
 LAYERS = ["estimators", "mosaic", "bench", "train", "api", "cli", "cli_mosaic"]
 # Inside udh_cli/mosaic/: the progress reporter, then the stage folders in this order (a folder may import its own
-# modules and the folders before it), then the run's own modules (config, sidecar, run), then live mode over them.
+# modules and the folders before it), then the run's own modules (config, sidecar, its report page, run, the arrays API),
+# then live mode over them.
 MOSAIC_BASE = ["report"]
 MOSAIC_STAGES = ["outputs", "inputs", "georef", "pairs", "solve", "render"]
-MOSAIC_RUN = ["config", "sidecar", "run"]
+MOSAIC_RUN = ["config", "sidecar", "report_page", "run", "arrays"]
 MOSAIC_TOP = ["live"]
 TORCH_FREE = ["estimators", "mosaic", "bench", "api", "geometry", "images", "onnx_model", "synthetic", "flight_motion"]
 

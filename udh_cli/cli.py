@@ -352,7 +352,7 @@ def bench_synthetic(
     mode: Annotated[str, typer.Option("--mode", help="What sift/orb/ecc see: patch (128x128), full (320x240 frames, as the paper) or both. Other methods always get patches.")] = "both",
     out: Annotated[Path, typer.Option("--out", help="Folder for results.md/.csv/.json, per_pair.csv and the two PNG plots.")] = Path("bench-results"),
     save_pairs: Annotated[Optional[Path], typer.Option("--save-pairs", help="Also save the generated pairs to this .npz.")] = None,
-    load_pairs: Annotated[Optional[Path], typer.Option("--load-pairs", help="Run on pairs saved with --save-pairs (replaces --images/--rho/--n/--seed).")] = None,
+    load_pairs: Annotated[Optional[Path], typer.Option("--load-pairs", help="Run on pairs saved with --save-pairs (replaces --images, --rho, --n and --seed).")] = None,
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Draw percentiles.png and speed_accuracy.png.", metavar="")] = True,
     motion: Annotated[str, typer.Option("--motion", help="paper (128x128 patches, corners moved by --rho) or flight (whole 320x240 frames with real flight motion: turns, scale, low overlap).")] = "paper",

@@ -32,21 +32,21 @@ SolveModel = _choices("SolveModel", _SOLVES)
 def mosaic(
     source: Annotated[Path, typer.Argument(metavar="SOURCE", help="Folder of JPEG/PNG/TIFF frames (consecutive frames overlap), or a video file.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Mosaic image (.png or .tif keep the alpha channel). Split runs write NAME.partK.png.")] = Path("mosaic.png"),
-    method: Annotated[Method, typer.Option("--method", "-m", case_sensitive=False, help=METHOD_HELP)] = Method(_MOSAIC.method),
+    method: Annotated[Method, typer.Option("--method", "-m", case_sensitive=False, metavar="NAME", help=METHOD_HELP)] = Method(_MOSAIC.method),
     fallback: Annotated[Optional[str], typer.Option("--fallback", help="Method for the pairs --method fails or doubts (e.g. sift).")] = _MOSAIC.fallback,
-    method_option: Annotated[Optional[list[str]], typer.Option("--option", "-O", "--method-option", help=OPTION_HELP)] = None,
+    method_option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
     work_size: Annotated[int, typer.Option("--work-size", help="Longest side, pixels, of the copies the estimators see; homographies are rescaled exactly.")] = _MOSAIC.work_size,
     order: Annotated[str, typer.Option("--order", help="Frame order in a folder: name or time (EXIF capture time).")] = _MOSAIC.order,
     every: Annotated[int, typer.Option("--every", help="Video: keep every N-th frame.")] = _MOSAIC.every,
     min_confidence: Annotated[float, typer.Option("--min-confidence", help="Estimates below this confidence count as failed.")] = _MOSAIC.min_confidence,
     min_verified: Annotated[float, typer.Option("--min-verified", help="Estimates whose alignment check (the lower of intensity and gradient NCC at 256 px) is below this count as failed; 0: no check.")] = _MOSAIC.min_verified,
-    blend: Annotated[Blend, typer.Option("--blend", case_sensitive=False, help="How overlapping frames are mixed.")] = Blend(_MOSAIC.blend),
+    blend: Annotated[Blend, typer.Option("--blend", case_sensitive=False, metavar="NAME", help=f"How overlapping frames are mixed: {', '.join(_BLENDS)}.")] = Blend(_MOSAIC.blend),
     max_size: Annotated[Optional[int], typer.Option("--max-size", help="Downscale the mosaic so its longest side is at most this many pixels.")] = _MOSAIC.max_size,
     max_frame_scale: Annotated[float, typer.Option("--max-frame-scale", help="Report (leave out) frames the solve draws more than this many times larger or smaller than the reference frame.")] = _MOSAIC.max_frame_scale,
-    solve: Annotated[SolveModel, typer.Option("--solve", case_sensitive=False, help="The global solve's model: homography (a free one per frame) or camera (a pinhole camera per frame over flat ground, one focal length: no projective drift on long surveys, the map drawn on the ground).")] = SolveModel(_MOSAIC.solve),
+    solve: Annotated[SolveModel, typer.Option("--solve", case_sensitive=False, metavar="NAME", help="The global solve's model: homography (a free one per frame) or camera (a pinhole camera per frame over flat ground, one focal length: no projective drift on long surveys, the map drawn on the ground).")] = SolveModel(_MOSAIC.solve),
     rectify: Annotated[bool, typer.Option("--rectify/--no-rectify", help="Without GPS or ground-control anchors, draw the map on the plane its frames look down on on average (nadir surveys) instead of in the reference frame's own view.")] = _MOSAIC.rectify,
-    exposure: Annotated[Exposure, typer.Option("--exposure", case_sensitive=False, help="Exposure compensation (OpenCV's): per-channel gain maps over blocks, per-channel gains, one gain, or none.")] = Exposure(_MOSAIC.exposure),
-    seams: Annotated[SeamFinder, typer.Option("--seams", case_sensitive=False, help="Seam finder (OpenCV's): dynamic programming or graph cut on colour, or central (each pixel from the frame that sees it nearest its centre).")] = SeamFinder(_MOSAIC.seams),
+    exposure: Annotated[Exposure, typer.Option("--exposure", case_sensitive=False, metavar="NAME", help="Exposure compensation (OpenCV's): per-channel gain maps over blocks, per-channel gains, one gain, or none (blocks, channels, gain, none).")] = Exposure(_MOSAIC.exposure),
+    seams: Annotated[SeamFinder, typer.Option("--seams", case_sensitive=False, metavar="NAME", help="Seam finder (OpenCV's): dynamic programming (dp) or graph cut (graphcut) on colour, or central (each pixel from the frame that sees it nearest its centre).")] = SeamFinder(_MOSAIC.seams),
     overlap_per_frame: Annotated[int, typer.Option("--overlap-pairs", help="Loop-closure pairs per frame at most (0: plain chaining).")] = _MOSAIC.overlap_per_frame,
     gcp_sigma: Annotated[float, typer.Option("--gcp-sigma", min=0.0, help="With --gcp: the points' error in metres, e.g. 0.05; their observations then anchor the global solve (0: they only place the finished mosaic).")] = _MOSAIC.gcp_sigma_m,
     gps_sigma: Annotated[float, typer.Option("--gps-sigma", min=0.0, help="With GPS in the frames: the fixes' error in metres, e.g. 3; they then anchor the global solve and bound long-chain drift (0: off).")] = _MOSAIC.gps_sigma_m,
@@ -99,7 +99,8 @@ def _print_mosaic(report: dict) -> None:
             table.add_row("error vs ground truth (px)", f"{solved['mean_corner_px']:.3f} mean, {solved['max_corner_px']:.3f} max corner (chained only: {chained['mean_corner_px']:.3f} / {chained['max_corner_px']:.3f})")
             shape = report["ground_truth_error"]["map_shape"]
             if shape["count"]:
-                table.add_row("map shape vs ground truth (px)", f"{shape['median_px']:.3f} median, {shape['max_px']:.3f} max (corners after the best similarity)")
+                table.add_row("map shape vs ground truth (px)", f"{shape['median_px']:.3f} median, {shape['max_px']:.3f} max (corners after the best similarity)"
+                              + _plane_hint(shape["median_px"], solved["mean_corner_px"], report["config"]))
         else:  # the truth names none of these frames (or not the reference): nothing to compare
             table.add_row("error vs ground truth (px)", "- (the ground truth names no placed frame with its reference)")
     for part in report["parts"]:
@@ -110,5 +111,14 @@ def _print_mosaic(report: dict) -> None:
         table.add_row("cameras", f"focal length {cameras[0]['focal_px']:.0f} px, held: {cameras[0]['focal_source']}; "
                                  f"tilt from straight down up to {max(tilts):.1f} degrees")
     table.add_row("sidecar", report["sidecar"])
+    if report.get("report_page"):
+        table.add_row("report", str(Path(report["sidecar"]).with_name(report["report_page"])))
     table.add_row("time (s)", ", ".join(f"{k} {v:.1f}" for k, v in report["timings_s"].items()))
     console.print(table)
+
+
+def _plane_hint(shape_px: float, corner_px: float, config: dict) -> str:
+    """A hint when the frames agree with each other but the map's plane is tilted (a run in the reference frame's view)."""
+    if shape_px <= max(1.0, 5 * corner_px) or config.get("rectify") or config.get("solve") == "camera":
+        return ""
+    return "; the frames agree but the map is drawn in the reference frame's tilted view: try --rectify or --solve camera"

@@ -61,7 +61,7 @@ def test_unbridgeable_gap_splits_the_sequence(flight, tmp_path):
     assert report["summary"]["parts"] == 2 and report["summary"]["placed"] == 8
     assert [f["part"] for f in report["frames"]] == [1, 1, 1, 1, 2, 2, 2, 2]
     assert sorted(p.name for p in tmp_path.iterdir()) == [
-        "m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg",
+        "m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg", "m.report.html",
     ]
     failed = [p for p in report["pairs"] if p["status"] == "failed"]
     assert {(p["a"], p["b"]) for p in failed} == {(3, 4), (2, 4), (3, 5)}

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.outputs.files import GEOREFERENCE_SUFFIXES, MosaicFiles, RunFiles
+from udh_cli.mosaic.outputs.files import GEOREFERENCE_SUFFIXES, PAM_SUFFIX, MosaicFiles, RunFiles
 
 
 def test_every_file_of_a_run_is_named_beside_the_mosaic(tmp_path):
@@ -29,9 +31,9 @@ def test_parts_are_the_output_itself_or_numbered(tmp_path):
 def test_a_written_image_names_its_georeference_files(tmp_path, image, world):
     names = MosaicFiles(tmp_path / image)
     stem = image.rsplit(".", 1)[0]
-    assert [p.name for p in names.georeference] == [world, f"{stem}.prj", f"{stem}.cog.tif"]
+    assert [p.name for p in names.georeference] == [world, f"{stem}.prj", f"{stem}.cog.tif", f"{image}.aux.xml"]
     assert names.preview.name == f"{stem}.preview.jpg"
-    assert all(p.name.endswith(GEOREFERENCE_SUFFIXES) for p in names.georeference)
+    assert all(p.name.endswith(GEOREFERENCE_SUFFIXES + (PAM_SUFFIX,)) for p in names.georeference)
 
 
 def test_an_image_type_without_a_world_file_convention_is_refused(tmp_path):
@@ -49,7 +51,8 @@ def test_own_files_include_every_part_file_there_is(tmp_path):
     for name in ("m.part1.png", "m.part2.preview.jpg", "other.part1.png"):
         (tmp_path / name).write_bytes(b"")
     own = {p.name for p in RunFiles(tmp_path / "m.png").own_files()}
-    assert {"m.png", "m.json", "m.preview.jpg", "m.part1.png", "m.part2.preview.jpg", "m.live.jpg", "m.cameras.json"} <= own
+    assert {"m.png", "m.json", "m.preview.jpg", "m.part1.png", "m.part2.preview.jpg", "m.live.jpg", "m.cameras.json", "m.report.html",
+            "m.png.aux.xml"} <= own
     assert "other.part1.png" not in own
 
 
@@ -65,3 +68,14 @@ def test_the_longest_name_is_a_hidden_temporary_of_a_far_part_s_preview(tmp_path
     longest = RunFiles(tmp_path / "m.png").longest_name()
     assert longest.startswith(".") and longest.endswith(".part")
     assert "m.part9999.preview" in longest
+
+
+def test_the_longest_name_counts_a_far_part_s_gdal_file_where_it_is_longer():
+    # "m.part9999.tiff.aux" is one byte longer than "m.part9999.preview": the staged .aux.xml sets the limit
+    assert ".m.part9999.tiff.aux." in RunFiles(Path("/x/m.tiff")).longest_name()
+
+
+def test_the_report_page_and_the_gdal_file_sit_beside_the_mosaic(tmp_path):
+    files = RunFiles(tmp_path / "m.part.png")
+    assert files.report_page == tmp_path / "m.part.report.html"
+    assert files.mosaic.pam == tmp_path / "m.part.png.aux.xml"

@@ -70,6 +70,8 @@ def test_a_flight_written_while_it_is_followed_gives_the_mosaic_of_the_whole_fol
     assert report["summary"]["pairs_from_cache"] > 0  # the final run reused the refreshes' pairs
     written = json.loads((tmp_path / "out" / "live.json").read_text())
     assert written["live"] == report["live"]  # the sidecar on disk says how the live run went
+    page = (tmp_path / "out" / "live.report.html").read_text()
+    assert "<title>udh mosaic of ../live</title>" in page and "refreshes, ended by sentinel" in page  # not the staging folder
     assert report["timings_s"]["total"] >= sum(v for k, v in report["timings_s"].items() if k != "total") - 1e-6  # the last run's own
     whole = run_mosaic(source, tmp_path / "whole.png", config)
     for frame, expected in zip(report["frames"], whole["frames"], strict=True):
@@ -127,16 +129,17 @@ def test_a_refresh_that_fails_or_whose_process_dies_does_not_end_the_flight(tmp_
 
     def run(folder):
         runs.append(folder)
-        return {"summary": {"placed": 1, "frames": 1}}
+        held = len(list(folder.glob("*.jpg")))
+        return {"summary": {"placed": held, "frames": held}}
 
     reporter = Reporter(quiet=True)
     report = follow_mosaic(live, tmp_path / "m.png", run, FollowConfig(refresh_every=4, poll_s=0.1, idle_timeout_s=60.0), reporter,
                            clock=lambda: now[0], sleep=sleep, start_refresh=start_refresh)
     assert any("RuntimeError: a bug in a refresh" in w for w in reporter.warnings)
     assert any("refresh process stopped" in w for w in reporter.warnings)
-    # After the process died, the third refresh ran here, and the final run came last, on the folder itself.
-    assert len(runs) == 2 and runs[0] != live and runs[-1] == live
-    assert report["live"] == {"refreshes": 1, "frames": 12, "ended_by": "sentinel"}
+    # After the process died, the third refresh ran here; it held all 12 frames, so no final run came after it.
+    assert len(runs) == 1 and runs[0] != live
+    assert report["live"] == {"refreshes": 1, "frames": 12, "ended_by": "sentinel", "final": "the last refresh"}
 
 
 def test_the_quick_look_s_failures_are_warnings_in_a_live_run(tmp_path, monkeypatch):
@@ -159,3 +162,38 @@ def test_the_quick_look_s_failures_are_warnings_in_a_live_run(tmp_path, monkeypa
     assert sum("could not be drawn in the quick look (OSError: disk full)" in w for w in reporter.warnings) == 8
     with pytest.raises(UdhError, match="cannot follow a flight"):
         run_live(folder, tmp_path / "out" / "m.png", MosaicConfig(method="sift"), camera="estimate")
+
+
+def test_the_final_run_comes_only_when_the_last_refresh_missed_frames(tmp_path):
+    """A refresh after 8 of 12 frames: the last 4 came after it, so a final run over the folder makes the map."""
+    import shutil
+
+    from mosaic_flights import make_flight
+    from udh_cli.mosaic.live.follow import follow_mosaic
+    from udh_cli.simulate import FlightConfig
+
+    source, live = tmp_path / "source", tmp_path / "live"
+    frames = make_flight(source, FlightConfig(frame_size=(160, 120), strips=2, frames_per_strip=6, focal_px=150.0), seed=1)
+    live.mkdir()
+    batches = [frames[:8], frames[8:]]
+    now, polls, runs = [0.0], [0], []
+
+    def sleep(seconds):
+        now[0] += seconds
+        polls[0] += 1
+        for path in (batches[polls[0]] if polls[0] < len(batches) else []):
+            shutil.copy(path, live / path.name)
+        if polls[0] == len(batches):
+            (live / "DONE").write_text("")
+
+    def run(folder):
+        runs.append(folder)
+        held = len(list(folder.glob("*.jpg")))
+        return {"summary": {"placed": held, "frames": held}}
+
+    for path in batches[0]:
+        shutil.copy(path, live / path.name)
+    report = follow_mosaic(live, tmp_path / "m.png", run, FollowConfig(refresh_every=8, poll_s=0.1, idle_timeout_s=60.0),
+                           clock=lambda: now[0], sleep=sleep)
+    assert len(runs) == 2 and runs[0] != live and runs[-1] == live
+    assert report["summary"]["frames"] == 12 and report["live"]["final"] == "a final run"

@@ -181,3 +181,19 @@ def test_metadata_of_a_real_dji_flight(shared_data):
     first = read_metadata(sorted(folder.iterdir())[0])
     assert first.has_gps and 46.8 < first.latitude < 46.9 and -92.1 < first.longitude < -91.9
     assert first.focal_length_mm == pytest.approx(3.61) and first.capture_time.startswith("2016:06:23")
+
+
+def test_the_camera_make_is_named_once_and_the_original_size_is_read(tmp_path):
+    from PIL import Image
+
+    from udh_cli.mosaic.inputs.metadata import camera_name
+
+    assert camera_name("Canon", "Canon PowerShot ELPH 300 HS") == "Canon PowerShot ELPH 300 HS"
+    assert camera_name("DJI", "FC300S") == "DJI FC300S" and camera_name(None, "FC300S") == "FC300S" and camera_name(None, None) is None
+    path = tmp_path / "canon.jpg"
+    exif = Image.Exif()
+    exif[0x010F], exif[0x0110] = "Canon", "Canon EOS DIGITAL REBEL XSi"
+    exif.get_ifd(0x8769).update({0xA002: 4272, 0xA003: 2848})  # the original's size, kept by a downscaled copy
+    Image.fromarray(textured_image(64, 48)).save(path, exif=exif)
+    found = read_metadata(path)
+    assert found.camera == "Canon EOS DIGITAL REBEL XSi" and (found.original_width, found.original_height) == (4272, 2848)

@@ -12,7 +12,8 @@ import pytest
 from udh_cli.errors import UdhError
 from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
 from udh_cli.mosaic.render import composite as compositing
-from udh_cli.mosaic.outputs.staging import STALE_AFTER_S, StagedFiles, stale_part_files
+from udh_cli.mosaic.outputs.files import RunFiles
+from udh_cli.mosaic.outputs.staging import STALE_AFTER_S, StagedFiles, remove_stale_files, stale_part_files
 
 from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
 
@@ -61,7 +62,7 @@ def test_a_failing_later_part_leaves_the_earlier_run_whole(flight, tmp_path, mon
     out = tmp_path / "m.png"
     run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))
     before = snapshot(tmp_path)
-    assert sorted(before) == ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg"]
+    assert sorted(before) == ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg", "m.report.html"]
     fail_in_part(monkeypatch, 2)
     with pytest.raises(UdhError, match="made to fail"):  # another blend: part 1 would differ from the earlier one
         run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, blend="none"), estimator=split(prints), fallback=split(prints))
@@ -76,20 +77,20 @@ def test_stale_parts_of_an_earlier_run_are_removed_and_nothing_else(flight, tmp_
         (tmp_path / name).write_bytes(b"earlier")
     report = run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))
     assert report["summary"]["parts"] == 2
-    expected = ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg"]
+    expected = ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg", "m.report.html"]
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(expected + others)
 
     # Now in one part, without previews: every part file goes, and the single mosaic takes their place.
     reporter = Reporter(quiet=True)
     report = run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, preview=False), reporter, estimator=FailOn(prints, lambda a, b: False))
     assert report["summary"]["parts"] == 1
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", *others])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", "m.report.html", *others])
     assert json.loads((tmp_path / "m.json").read_text())["parts"][0]["file"] == out.name  # relative to the sidecar
 
     # Split again: the single mosaic of the run before is not a part file; it stays, with a warning.
     reporter = Reporter(quiet=True)
     run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, preview=False), reporter, estimator=split(prints), fallback=split(prints))
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", "m.part1.png", "m.part2.png", *others])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", "m.part1.png", "m.part2.png", "m.report.html", *others])
     assert any("m.png is left from an earlier run" in w for w in reporter.warnings)
 
 
@@ -101,6 +102,17 @@ def test_stale_part_files_matches_only_this_outputs_part_names(tmp_path):
     (tmp_path / "run.v2.part9.tif").mkdir()  # a folder is never removed
     stale = stale_part_files(out, [tmp_path / "run.v2.part1.tif"])
     assert [p.name for p in stale] == ["run.v2.part2.preview.jpg", "run.v2.part7.tif"]
+
+
+def test_gdal_files_this_run_did_not_write_are_removed_and_nothing_else(tmp_path):
+    """A stale NAME.png.aux.xml would put a new mosaic on the map where the old one lay: GDAL reads it first."""
+    names = ["m.png.aux.xml", "m.part1.png.aux.xml", "m.part3.png.aux.xml", "m.part3.png.aux.xml.bak", "m.part3.tif.aux.xml", "m.aux.xml"]
+    for name in names:
+        (tmp_path / name).write_bytes(b"x")
+    reporter = Reporter(quiet=True)
+    remove_stale_files(RunFiles(tmp_path / "m.png"), [tmp_path / "m.part1.png", tmp_path / "m.part1.png.aux.xml"],
+                       [tmp_path / "m.png", tmp_path / "m.part1.png"], reporter)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.aux.xml", "m.part1.png.aux.xml", "m.part3.png.aux.xml.bak", "m.part3.tif.aux.xml"]
 
 
 def test_staged_files_keep_the_permissions_of_the_file_they_replace(tmp_path):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 
@@ -135,3 +137,27 @@ def test_workers_none_means_one_per_core_for_a_long_enough_flight(flight, local,
     report = run_mosaic(flight, tmp_path / "m.png", MosaicConfig(method="auto", batch_size=4, workers=None))
     assert report["config"]["workers"] == 1  # the test flight is short
     assert_same_pairs(report, local)
+
+
+def test_a_script_without_the_main_guard_is_told_so_before_any_worker_starts(tmp_path, monkeypatch):
+    """A spawned worker imports the main script again: without the guard it would run the mosaic once more and die,
+    which the pool can only call "a worker process died"; the run refuses first, naming the guard."""
+    import types
+
+    from udh_cli.mosaic.pairs.workers import EstimatorSpec, PoolRunner, unguarded_script
+
+    bare, guarded = tmp_path / "bare.py", tmp_path / "guarded.py"
+    bare.write_text("from udh_cli.mosaic import run_mosaic\nrun_mosaic('frames', 'm.png')\n")
+    guarded.write_text("def main():\n    pass\n\nif __name__ == '__main__':\n    main()\n")
+    for script, expected in ((bare, str(bare)), (guarded, None)):
+        monkeypatch.setitem(sys.modules, "__main__", types.SimpleNamespace(__file__=str(script)))
+        assert unguarded_script() == expected
+    monkeypatch.setitem(sys.modules, "__main__", types.SimpleNamespace())  # a notebook or an interactive session
+    assert unguarded_script() is None
+    package_main = types.SimpleNamespace(__file__=str(bare), __spec__=types.SimpleNamespace(name="tool.__main__"))
+    monkeypatch.setitem(sys.modules, "__main__", package_main)  # `python -m tool`: multiprocessing does not import it again
+    assert unguarded_script() is None
+    monkeypatch.setitem(sys.modules, "__main__", types.SimpleNamespace(__file__=str(bare)))
+    with pytest.raises(UdhError, match=r"workers=2 starts worker processes, which import .*bare.py again: put the call under "
+                                       r"'if __name__ == \"__main__\":'"):
+        PoolRunner(EstimatorSpec((("sift", {}),), None), 2)

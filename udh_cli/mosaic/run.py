@@ -16,6 +16,7 @@ from udh_cli.estimators import Estimator
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.config import MosaicConfig, acceptance, check_config, run_estimators, with_workers
 from udh_cli.mosaic.georef.gcp import GcpFile, read_gcp_file, undistorted_observations
+from udh_cli.mosaic.georef.gcp_scale import infer_gcp_scale
 from udh_cli.mosaic.georef.place import georeference
 from udh_cli.mosaic.inputs.frames import FrameSet, gps_fixes, open_frames
 from udh_cli.mosaic.inputs.lens import Lens, read_cameras
@@ -28,6 +29,7 @@ from udh_cli.mosaic.pairs.types import PairResult
 from udh_cli.mosaic.pairs.workers import open_runner
 from udh_cli.mosaic.render.canvases import CanvasPlan, DrawnPart, composite_part, on_canvas, plan_canvases, warn_about_earlier_output
 from udh_cli.mosaic.report import Reporter
+from udh_cli.mosaic.report_page import write_report_page
 from udh_cli.mosaic.sidecar import build_sidecar, relative_to
 from udh_cli.mosaic.solve.anchors import solve_anchors
 from udh_cli.mosaic.solve.bridges import bridge_by_gps
@@ -80,7 +82,7 @@ def run_mosaic(
     frameset = open_frames(source, config.work_size, config.order, config.every, exclude=files.own_files(), reporter=reporter, lens=lens)
     config = with_workers(config, len(frameset.frames))
     lens = _fit_lens(frameset, reporter) if camera is not None and str(camera) == CAMERA_ESTIMATE else lens
-    gcps = None if gcps is None else _gcps_on_frames(gcps, gcp, source, frameset, lens, gcp_image_width, reporter)
+    gcps, gcp_image_width = _gcps_on_frames(gcps, gcp, source, frameset, lens, gcp_image_width, reporter)
     cache = PairCache.open(files.pair_cache, frameset.frames, opinions, acceptance(config), resume, reporter, keep=resume or cache_dir is not None)
     pairs, parts = _pairs_and_parts(frameset, opinions, spec, config, reporter, cache, resume)
     anchors = solve_anchors(frameset, config.gcp_sigma_m, config.gps_sigma_m, reporter, gcps, gcp_image_width)
@@ -125,18 +127,24 @@ def _fit_lens(frameset: FrameSet, reporter: Reporter) -> Lens | None:
     return frameset.lens
 
 
-def _gcps_on_frames(gcps: GcpFile, gcp: str | Path, source: Path, frameset: FrameSet, lens: Lens | None, gcp_image_width: int | None,
-                    reporter: Reporter) -> GcpFile:
-    """The ground-control observations of the frames that were read, undistorted with them; none at all fails."""
+def _gcps_on_frames(gcps: GcpFile | None, gcp: str | Path | None, source: Path, frameset: FrameSet, lens: Lens | None,
+                    gcp_image_width: int | None, reporter: Reporter) -> tuple[GcpFile | None, int | None]:
+    """The ground-control observations of the frames that were read, undistorted with them, and the width of the
+    images the file's pixels refer to (given, or read from the frames; None: the frames' own); none at all fails."""
+    if gcps is None:
+        return None, gcp_image_width
     names = {f.name for f in frameset.frames}
     missing = sorted({o.image for o in gcps.observations} - names)
     if len(missing) == len({o.image for o in gcps.observations}):
         raise UdhError(f"{gcp}: none of the images it names is among the frames of {source} (e.g. {missing[0]})")
     if missing:
         reporter.warn(f"{gcp}: {len(missing)} image(s) it names are not among the frames, their observations are skipped: {', '.join(missing[:5])}")
+    gcp_scale = infer_gcp_scale(gcps, frameset.frames, gcp_image_width, str(gcp))
+    gcp_image_width = gcp_scale.image_width
+    reporter.info(f"{Path(gcp).name}: its pixels are {gcp_scale.reason}")
     if lens is not None:  # the points were measured on the distorted frames
         gcps = undistorted_observations(gcps, lens, {f.name: f.size for f in frameset.frames}, gcp_image_width)
-    return gcps
+    return gcps, gcp_image_width
 
 
 def _pairs_and_parts(frameset: FrameSet, opinions, spec, config: MosaicConfig, reporter: Reporter, cache: PairCache,
@@ -165,7 +173,7 @@ def _pairs_and_parts(frameset: FrameSet, opinions, spec, config: MosaicConfig, r
         runner.close(abort=aborted)
     cache.save(prune=True)
     if resume:
-        reporter.info(f"{cache.hits} of {len(pairs)} pair estimates taken from {cache.path}")
+        reporter.info(f"{cache.hits} of {cache.requests} pair estimates taken from {cache.path}")
     return pairs, parts
 
 
@@ -184,12 +192,14 @@ def _write_report(frameset: FrameSet, plan: CanvasPlan, drawn: list[DrawnPart], 
             entry.update(placement.parts.get(entry["part"], {}))
         if placement.map is not None:
             report["map"] = placement.map
-        report["timings_s"]["georeferencing"] = reporter.timings_s["georeferencing"]
+        if any(entry.get("georeference") for entry in report["parts"]):  # not timed where nothing was placed on the map
+            report["timings_s"]["georeferencing"] = reporter.timings_s["georeferencing"]
     report["pair_cache"] = relative_to(cache.path, files.sidecar.parent) if cache.keep else None
     report["summary"]["pairs_from_cache"] = cache.hits
     report["timings_s"]["total"] = time.perf_counter() - started
     if frameset.lens_fit is not None and frameset.lens is not None:  # the fitted lens, for the next run and for ODM
         atomic_write_bytes(staged.path_for(files.cameras), (json.dumps(frameset.lens.to_cameras_json(), indent=1) + "\n").encode())
         report["camera"]["file"] = files.cameras.name
+    write_report_page(report, staged, files)  # NAME.report.html, from the same results as the sidecar
     atomic_write_bytes(staged.path_for(files.sidecar), (json.dumps(report, indent=1) + "\n").encode())
     return report

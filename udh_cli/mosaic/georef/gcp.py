@@ -122,7 +122,8 @@ class GcpFit:
     Attributes:
         epsg: the CRS; map_from_mosaic: (3, 3) similarity, mosaic pixels to map metres.
         points: per point name: ``observations`` (frames seen in), ``spread_px`` (largest distance between its
-            observations in the mosaic), ``checkpoint_m`` (error when left out of the fit), ``used``.
+            observations in the mosaic), ``checkpoint_m`` (error when left out of the fit), ``used``,
+            ``mosaic_px`` (where it lies in the mosaic, pixels) and ``map_m`` (its map position, metres).
         checkpoint_rms_m: RMS of the used points' checkpoint errors (each point left out in turn).
         residual_rms_m: RMS residual of the used points in the fit with all of them.
         skipped: observations that could not be used, with why (frame not placed, pixel outside the frame).
@@ -203,7 +204,8 @@ def fit_gcps(gcps: GcpFile, frames: dict[str, tuple[tuple[int, int], np.ndarray 
     fit = fit_similarity(mosaic[used], ground[used])
     residuals = np.linalg.norm(geometry.transform_points(fit, mosaic) - ground, axis=1)
     points = {n: {"observations": len(seen[n]), "spread_px": spread[n], "checkpoint_m": float(checkpoint[k]),
-                  "residual_m": float(residuals[k]), "used": bool(used[k])} for k, n in enumerate(names)}
+                  "residual_m": float(residuals[k]), "used": bool(used[k]),
+                  "mosaic_px": mosaic[k].tolist(), "map_m": ground[k].tolist()} for k, n in enumerate(names)}
     return GcpFit(gcps.epsg, fit, points, float(np.sqrt(np.mean(checkpoint[used] ** 2))),
                   float(np.sqrt(np.mean(residuals[used] ** 2))), skipped)
 

@@ -14,8 +14,10 @@ import numpy as np
 from udh_cli.errors import UdhError
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.georef.gcp import GcpFile, fit_gcps
+from udh_cli.mosaic.georef.gcp_scale import check_gcp_fit, residual_lines
 from udh_cli.mosaic.georef.geotiff import MosaicImage, has_rasterio, streams_to_file, write_cog, write_combined_cog
 from udh_cli.mosaic.georef.gps import MIN_GPS_FRAMES, georeference_part, projection_text, world_file_text
+from udh_cli.mosaic.georef.map_files import georeference_mosaic_file
 from udh_cli.mosaic.inputs.frames import FrameSet
 from udh_cli.mosaic.outputs.files import MosaicFiles, RunFiles
 from udh_cli.mosaic.outputs.staging import StagedFiles
@@ -131,10 +133,11 @@ def _staged_bgra(staged: StagedFiles, part: PartOnCanvas) -> MosaicImage | None:
 
 
 def _write_georeference(part: PartOnCanvas, found, staged: StagedFiles, entry: dict[str, Any], reporter: Reporter) -> None:
-    """Stage a georeferenced part's world file, .prj and north-up COG (when rasterio is installed)."""
+    """Stage a georeferenced part's world file, .prj, GDAL PAM file and north-up COG (when rasterio is installed)."""
     names = MosaicFiles(part.file)
     atomic_write_bytes(staged.path_for(names.world_file), world_file_text(found).encode())
     atomic_write_bytes(staged.path_for(names.projection), projection_text(found.epsg).encode())
+    georeference_mosaic_file(names, found.map_from_mosaic, found.epsg, staged)  # GDAL reads neither of the two above for a rotated PNG
     if not has_rasterio():
         reporter.warn("no north-up GeoTIFF: it needs rasterio (pip install rasterio; from the udh checkout: pip install '.[geo]')")
         return
@@ -162,8 +165,10 @@ def _georeference_by_gcps(frameset: FrameSet, parts: list[PartOnCanvas], placeme
             entry["georeference"] = None
             reporter.warn(f"{part.file.name}: not georeferenced: {exc}")
             continue
+        check_gcp_fit(found, lambda width: fit_gcps(gcps, frames, width), gcp_image_width, frameset.frames)  # before any map
         entry["georeference"] = found.to_json()
         entry["georeference"]["gcp_points_in_solve"] = in_solve  # then a checkpoint left out of the fit was still in the solve
+        entry["georeference"]["gcp_image_width"] = gcp_image_width  # None: the frames' own pixels
         for name, point in found.points.items():
             if not point["used"]:
                 reporter.warn(f"{name}: contradicts the other ground-control points ({point['checkpoint_m']:.1f} m off when left out); "
@@ -175,3 +180,5 @@ def _georeference_by_gcps(frameset: FrameSet, parts: list[PartOnCanvas], placeme
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} by {used} ground-control points, "
                       f"{found.checkpoint_rms_m:.2f} m RMS at checkpoints (each point left out of the fit in turn"
                       + ("; optimistic, as the points also anchor the solve)" if in_solve else ")"))
+        for line in residual_lines(found):
+            reporter.info(line)

@@ -21,6 +21,7 @@ _DATE_TIME = 0x0132
 _FOCAL_LENGTH = 0x920A
 _FOCAL_35MM = 0xA405
 _MAKE, _MODEL = 0x010F, 0x0110
+_PIXEL_X, _PIXEL_Y = 0xA002, 0xA003  # the size the camera wrote; a downscaled copy often keeps the original's
 _DJI = re.compile(rb'drone-dji:(RelativeAltitude|AbsoluteAltitude|FlightYawDegree|GimbalYawDegree|GimbalPitchDegree)\s*=\s*"([^"]{1,32})"')
 _XMP_SCAN_BYTES = 256 * 1024  # DJI's XMP packet sits in the first APP1 segments of the JPEG
 
@@ -36,7 +37,10 @@ class FrameMetadata:
         relative_altitude_m: DJI's height above the take-off point, metres.
         flight_yaw_deg, gimbal_yaw_deg, gimbal_pitch_deg: DJI's aircraft and camera angles, degrees.
         focal_length_mm, focal_length_35mm: the lens, as EXIF gives it.
-        camera: make and model.
+        camera: make and model (the make once: "Canon PowerShot", not "Canon Canon PowerShot").
+        original_width, original_height: the image size EXIF records (PixelXDimension, PixelYDimension), pixels;
+            a copy downscaled after capture often keeps the original's, which tells what a ground-control file
+            measured on the originals refers to (:mod:`..georef.gcp_scale`).
     """
 
     capture_time: str | None = None
@@ -50,6 +54,8 @@ class FrameMetadata:
     focal_length_mm: float | None = None
     focal_length_35mm: float | None = None
     camera: str | None = None
+    original_width: int | None = None
+    original_height: int | None = None
 
     @property
     def has_gps(self) -> bool:
@@ -74,13 +80,26 @@ def read_metadata(path: str | Path) -> FrameMetadata:
                 values["capture_time"] = _text(sub.get(_DATE_TIME_ORIGINAL)) or _text(exif.get(_DATE_TIME))
                 values["focal_length_mm"] = _number(sub.get(_FOCAL_LENGTH))
                 values["focal_length_35mm"] = _number(sub.get(_FOCAL_35MM))
-                camera = " ".join(t for t in (_text(exif.get(_MAKE)), _text(exif.get(_MODEL))) if t)
-                values["camera"] = camera or None
+                values["camera"] = camera_name(_text(exif.get(_MAKE)), _text(exif.get(_MODEL)))
+                values["original_width"], values["original_height"] = _dimension(sub.get(_PIXEL_X)), _dimension(sub.get(_PIXEL_Y))
                 values.update(_gps(exif.get_ifd(_GPS_IFD)))
     except Exception:  # noqa: BLE001 - Pillow raises many types for damaged headers; metadata is optional
         pass
     values.update(_dji_xmp(path))
     return FrameMetadata(**{k: v for k, v in values.items() if v is not None})
+
+
+def camera_name(make: str | None, model: str | None) -> str | None:
+    """Make and model as one name, the make left out when the model already starts with it (Canon writes
+    make "Canon", model "Canon PowerShot ELPH 300 HS")."""
+    if make and model and model.lower().startswith(make.lower()):
+        return model
+    return " ".join(t for t in (make, model) if t) or None
+
+
+def _dimension(value) -> int | None:
+    number = _number(value)
+    return int(number) if number is not None and 0 < number < 1_000_000 and number == int(number) else None
 
 
 def capture_time(path: str | Path) -> str | None:

@@ -9,8 +9,9 @@ mosaic, its preview, sidecar and map files are rewritten from the frames so far.
 loop closures that changed) are estimated: the solve is redone in full each time, which costs little next to
 the pairs (1.3 s for 500 frames). A refresh can run in another process (``start_refresh``), so that new frames
 are not kept waiting behind it. The flight is over when a file named ``sentinel`` appears in the folder or no
-new frame has come for ``idle_timeout_s``; a last run over every frame then makes the final mosaic, with the
-folder itself as its source.
+new frame has come for ``idle_timeout_s``. When the last refresh already held every frame, its mosaic is the
+final one; otherwise a last run over every frame makes it, with the folder itself as its source (its pairs
+come from the cache, so it costs the solve and the compositing).
 
 Why polling and not inotify: it works the same on every OS and on network shares; at ``poll_s`` 0.1 a scan of a
 folder of 1,000 frames costs a few ms, and a frame is seen within a tenth of a second of its last byte.
@@ -136,10 +137,11 @@ def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], 
     watch = _Watch()
     refreshed_at, last_new, refreshes = 0, clock(), 0
     pending: Future | None = None
+    latest: dict[str, Any] | None = None  # the last refresh that was written
     staging = Path(tempfile.mkdtemp(prefix=".udh-follow-", dir=output.parent))
 
     def refreshed(outcome: Callable[[], dict[str, Any]], frames: int) -> None:
-        nonlocal refreshes, start_refresh
+        nonlocal refreshes, start_refresh, latest
         try:
             report = outcome()
         except UdhError as exc:  # a refresh that cannot be written (a canvas too large...) must not end the flight
@@ -151,6 +153,7 @@ def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], 
             reporter.warn(f"live: the mosaic of {frames} frames was not refreshed ({type(exc).__name__}: {exc})")
         else:
             refreshes += 1
+            latest = report
             reporter.info(f"live: mosaic refreshed with {report['summary']['placed']} of {report['summary']['frames']} frames placed")
 
     try:
@@ -184,9 +187,17 @@ def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], 
         _wait_until_settled(folder, watch, follow, exclude, clock, sleep)
         if len(watch.complete) < 2:
             raise UdhError(f"--follow {folder}: the flight ended with {len(watch.complete)} complete frame(s); a mosaic needs two")
-        report = run(folder)
-        report["live"] = {"refreshes": refreshes, "frames": len(watch.complete),
-                          "ended_by": "sentinel" if (folder / follow.sentinel).exists() else "idle timeout"}
+        ended_by = "sentinel" if (folder / follow.sentinel).exists() else "idle timeout"
+        cause = f"a {follow.sentinel} file" if ended_by == "sentinel" else f"no new frame for {follow.idle_timeout_s:g} s"
+        why = f"live: the flight ended ({cause}) with {len(watch.complete)} frames"
+        if latest is not None and latest["summary"]["frames"] == len(watch.complete):  # the staging folder holds complete frames only
+            reporter.info(f"{why}; the last refresh held all of them, so its mosaic is the final one")
+            report = latest
+        else:
+            reporter.info(f"{why}; making the final mosaic of all of them (the pairs already estimated are reused)")
+            report = run(folder)
+        report["live"] = {"refreshes": refreshes, "frames": len(watch.complete), "ended_by": ended_by,
+                          "final": "the last refresh" if report is latest else "a final run"}
         return report
     finally:
         if pending is not None and not pending.cancel():  # a refresh still reads the staging folder: let it end

@@ -21,6 +21,9 @@ from udh_cli.mosaic.run import run_mosaic
 from udh_cli.mosaic.outputs.staging import check_outputs_are_not_inputs
 from udh_cli.mosaic.live.quicklook import QuickLook
 from udh_cli.mosaic.report import Reporter
+from udh_cli.mosaic.pairs.workers import check_main_guard
+from udh_cli.mosaic.report_page import rewrite_report_page
+from udh_cli.mosaic.sidecar import relative_to
 
 
 def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = MosaicConfig(), follow: FollowConfig = FollowConfig(),
@@ -40,6 +43,7 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     if config.workers is None:  # the quick look needs the other core; each refresh estimates its new pairs in one process
         config = replace(config, workers=1)
     check_followed_folder(Path(folder))  # before the networks load
+    check_main_guard("live mode's refresh")
     if str(options.get("camera")) == CAMERA_ESTIMATE:  # each refresh would fit another k1 and estimate every pair again
         raise UdhError("--camera estimate cannot follow a flight as it is written: fit the lens once on a finished flight "
                        "(it writes NAME.cameras.json) and give that file, or the camera's own cameras.json")
@@ -79,7 +83,10 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     sidecar = Path(report["sidecar"])
     written = json.loads(sidecar.read_text())
     written["live"] = report["live"]
+    # A refresh that became the final mosaic read the frames through a staging folder, gone now: name the folder.
+    written["source"] = report["source"] = relative_to(Path(folder), sidecar.parent)
     atomic_write_bytes(sidecar, (json.dumps(written, indent=1) + "\n").encode())
+    rewrite_report_page(written, sidecar.parent)  # it too names the folder, and says how the flight went
     return report
 
 

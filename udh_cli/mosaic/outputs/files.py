@@ -23,6 +23,8 @@ PROJECTION_SUFFIX = ".prj"
 WORLD_FILE_SUFFIX = {".png": ".pgw", ".tif": ".tfw", ".tiff": ".tfw", ".jpg": ".jgw", ".jpeg": ".jgw"}
 LIVE_PICTURE_SUFFIX = ".live.jpg"
 LIVE_RECORD_SUFFIX = ".live.json"
+REPORT_PAGE_SUFFIX = ".report.html"  # the page to look at a run, beside the mosaic
+PAM_SUFFIX = ".aux.xml"  # GDAL's own metadata file, added to the image's whole name: NAME.png.aux.xml
 # world and projection files beside a georeferenced mosaic
 GEOREFERENCE_SUFFIXES = (*dict.fromkeys(WORLD_FILE_SUFFIX.values()), PROJECTION_SUFFIX, COG_SUFFIX)
 MAX_PART_DIGITS = 4  # the name check makes room for part numbers up to 9999
@@ -59,9 +61,14 @@ class MosaicFiles:
         return self._beside(COG_SUFFIX)
 
     @property
-    def georeference(self) -> tuple[Path, Path, Path]:
-        """World file, projection file and north-up GeoTIFF: what placing the image on the map writes."""
-        return self.world_file, self.projection, self.cog
+    def pam(self) -> Path:
+        """``NAME.png.aux.xml`` beside ``NAME.png``: where GDAL looks for the image's CRS and transform."""
+        return self.image.with_name(self.image.name + PAM_SUFFIX)
+
+    @property
+    def georeference(self) -> tuple[Path, Path, Path, Path]:
+        """World file, projection file, north-up GeoTIFF and GDAL PAM file: what placing the image on the map writes."""
+        return self.world_file, self.projection, self.cog, self.pam
 
 
 @dataclass(frozen=True)
@@ -104,6 +111,11 @@ class RunFiles:
         return self.mosaic.cog
 
     @property
+    def report_page(self) -> Path:
+        """``NAME.report.html`` beside the mosaic ``NAME.png`` (a split run's parts share it)."""
+        return self._beside(REPORT_PAGE_SUFFIX)
+
+    @property
     def live_picture(self) -> Path:
         return self._beside(LIVE_PICTURE_SUFFIX)
 
@@ -130,14 +142,14 @@ class RunFiles:
     def own_files(self) -> list[Path]:
         """Outputs of this run (or an earlier one), which must never be read back as frames."""
         return ([self.output, self.sidecar, self.preview, self._beside(PAIR_CACHE_SUFFIX), self.combined_map, self.live_picture,
-                 self.live_record, self.cameras] + [p for p in self.output.parent.glob(f"{self.output.stem}.part*")])
+                 self.live_record, self.cameras, self.report_page, self.mosaic.pam] + [p for p in self.output.parent.glob(f"{self.output.stem}.part*")])
 
     def longest_name(self) -> str:
         """The longest file name the run may create, temporary ones included: a part's preview, staged
         (``.NAME.partK.preview.xxxxxxxx.staged.jpg``) and written through a temporary file of
         :func:`udh_cli.images.atomic_write_bytes` (``.<that name>.xxxxxxxx.part``)."""
         part = self.output.with_name(f"{self.output.stem}.part{'9' * MAX_PART_DIGITS}{self.output.suffix}")
-        finals = [self.output, part, self.preview, MosaicFiles(part).preview, self.sidecar]
+        finals = [self.output, part, self.preview, MosaicFiles(part).preview, self.sidecar, MosaicFiles(part).pam]
         written = [f".{f.stem}.{'0' * 8}.staged{f.suffix}" for f in finals] + [self._beside(PAIR_CACHE_SUFFIX).name]  # see StagedFiles.path_for
         return max((f".{name}.{'x' * 8}.part" for name in written), key=lambda name: len(os.fsencode(name)))
 

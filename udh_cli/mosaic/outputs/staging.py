@@ -19,7 +19,7 @@ from typing import Iterable
 
 from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES
-from udh_cli.mosaic.outputs.files import CAMERAS_SUFFIX, GEOREFERENCE_SUFFIXES, PREVIEW_SUFFIX, MosaicFiles, RunFiles
+from udh_cli.mosaic.outputs.files import CAMERAS_SUFFIX, GEOREFERENCE_SUFFIXES, PAM_SUFFIX, PREVIEW_SUFFIX, MosaicFiles, RunFiles
 from udh_cli.mosaic.report import Reporter
 
 SIDECAR_FORMAT = "udh-mosaic/1"  # the sidecar's "format", its first key
@@ -97,14 +97,14 @@ def remove_stale_staged(output: Path, now: float | None = None) -> list[Path]:
 
 def stale_part_files(output: Path, produced: list[Path]) -> list[Path]:
     """Files named as parts of ``output`` (``stem.partK.suffix``, ``stem.partK.preview.jpg`` and a part's
-    world, ``.prj`` and ``.cog.tif`` files, K >= 1) that are not in ``produced``: what an earlier run with
-    more parts (or with previews) left behind.
+    world, ``.prj``, ``.cog.tif`` and GDAL ``.aux.xml`` files, K >= 1) that are not in ``produced``: what an
+    earlier run with more parts (or with previews) left behind.
 
     Only those exact patterns match, with ``output``'s own stem and suffix; nothing else is returned.
     """
     part = rf"{re.escape(output.stem)}\.part[1-9][0-9]*"
     georeference = "|".join(re.escape(s) for s in GEOREFERENCE_SUFFIXES)
-    pattern = re.compile(rf"{part}{re.escape(output.suffix)}|{part}{re.escape(PREVIEW_SUFFIX)}|{part}(?:{georeference})")
+    pattern = re.compile(rf"{part}{re.escape(output.suffix)}(?:{re.escape(PAM_SUFFIX)})?|{part}{re.escape(PREVIEW_SUFFIX)}|{part}(?:{georeference})")
     keep = {p.resolve() for p in produced}
     try:
         candidates = sorted(output.parent.iterdir())
@@ -185,7 +185,7 @@ def _is_sidecar(path: Path) -> bool:
 
 def remove_stale_files(files: RunFiles, published: list[Path], mosaics: list[Path], reporter: Reporter) -> None:
     """Remove part files of this output name (an earlier run with more parts) that this run did not write
-    (``published``), and the georeference files (world, .prj, GeoTIFF) beside ``mosaics`` that this run did not
+    (``published``), and the georeference files (world, .prj, GeoTIFF, .aux.xml) beside ``mosaics`` that this run did not
     write again: an old world file beside a new mosaic would put it on the map in the wrong place."""
     produced = {f.resolve() for f in published}
     stale = stale_part_files(files.output, published)

@@ -64,7 +64,9 @@ class PairCache:
 
     Attributes:
         path: the cache file.
-        hits: pairs taken from the previous run's file in this run.
+        hits: pair estimates taken from the previous run's file in this run.
+        requests: pair estimates asked for in this run, cached or not (a loop-closure pair asked again in a later
+            round counts again, so ``hits`` may exceed the number of distinct pairs but never ``requests``).
         entries: key -> cache record of every pair finished (or taken from the file) in this run.
     """
 
@@ -78,6 +80,7 @@ class PairCache:
         self.reporter = reporter
         self.entries: dict[str, dict] = {}
         self.hits = 0
+        self.requests = 0
         self.damaged = 0  # matching records that failed the checks and were estimated again
         self._frame_ids: dict[int, dict[str, Any]] = {}
 
@@ -122,6 +125,7 @@ class PairCache:
 
     def lookup(self, request: PairRequest) -> PairResult | None:
         """The previous run's result for ``request`` when its key matches, re-indexed to this run; else ``None``."""
+        self.requests += 1
         key = self.key(request)
         record = self.previous.get(key)
         if record is None:

@@ -15,11 +15,14 @@ no gain here.
 from __future__ import annotations
 
 import os
+import re
 import signal
+import sys
 import threading
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -151,12 +154,42 @@ class LocalRunner:
         pass
 
 
+_MAIN_GUARD = re.compile(r"""__name__\s*==\s*['"]__main__['"]|['"]__main__['"]\s*==\s*__name__""")
+
+
+def unguarded_script() -> str | None:
+    """The main script's path when it has no ``if __name__ == "__main__":`` guard, else None.
+
+    Why: a spawned worker imports the main script again, and one without the guard runs its top level there,
+    so each worker would start the mosaic once more and die while starting its own pool, which the pool only
+    reports as a worker that died. Interactive sessions and notebooks have no script and need no guard.
+    """
+    main = sys.modules.get("__main__")
+    path, spec = getattr(main, "__file__", None), getattr(main, "__spec__", None)
+    if not path or (spec is not None and spec.name.split(".")[-1] == "__main__"):  # `python -m package`: never run again there
+        return None
+    try:
+        text = Path(path).read_text(errors="replace")
+    except OSError:  # a frozen or vanished script: nothing to tell by
+        return None
+    return None if _MAIN_GUARD.search(text) else str(path)
+
+
+def check_main_guard(what: str) -> None:
+    """Refuse to start worker processes from a script without the ``__main__`` guard (:func:`unguarded_script`)."""
+    script = unguarded_script()
+    if script is not None:
+        raise UdhError(f"{what} starts worker processes, which import {script} again: put the call under "
+                       "'if __name__ == \"__main__\":' in that script, or use workers=1")
+
+
 class PoolRunner:
     """Runs jobs in ``workers`` local processes (one onnxruntime and OpenCV thread each)."""
 
     def __init__(self, spec: EstimatorSpec, workers: int):
         import multiprocessing
 
+        check_main_guard(f"workers={workers}")
         self.spec = _single_threaded(spec)
         self.window = 2 * workers  # a batch queued behind each running one keeps every worker busy
         # spawn, not fork: a forked onnxruntime or OpenCV thread pool can hang its child.

@@ -180,6 +180,14 @@ def foreign_json(out: Path, paths: dict) -> None:
     (out / "package.json").write_text('{"name": "my-app", "version": "1.0.0"}\n')
 
 
+def users_report_page(out: Path, paths: dict) -> None:
+    (out / "m.report.html").write_text("<html>my notes</html>\n")
+
+
+def users_gdal_metadata(out: Path, paths: dict) -> None:
+    (out / "m.png.aux.xml").write_text("<PAMDataset/>\n")
+
+
 def foreign_pair_cache(out: Path, paths: dict) -> None:
     (out / "m.pairs.json").write_text("[1, 2, 3]\n")
 
@@ -329,6 +337,10 @@ CASES = [
          forbid=("udh_cli.mosaic.run:open_frames",)),
     Case("mosaic-foreign-json-beside-output", ["mosaic", "{frames}", "-o", "{out}/package.png", "-m", "sift"], 1, "udh did not write",
          setup=foreign_json, forbid=("udh_cli.mosaic.run:open_frames",)),
+    Case("mosaic-over-a-users-report-page", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "sift"], 1, "report page would replace a file udh did not write",
+         setup=users_report_page, forbid=("udh_cli.mosaic.run:open_frames",)),
+    Case("mosaic-over-a-users-gdal-metadata", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "sift"], 1, "GDAL metadata file would replace a file udh did not write",
+         setup=users_gdal_metadata, forbid=("udh_cli.mosaic.run:open_frames",)),
     Case("mosaic-foreign-pair-cache", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "sift", "--resume"], 1, "udh did not write",
          setup=foreign_pair_cache),
     Case("mosaic-pair-cache-past-256-mb", ["mosaic", "{frames}", "-o", "{out}/m.png", "-m", "sift", "--resume"], 1,

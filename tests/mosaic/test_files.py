@@ -60,7 +60,8 @@ def test_roles_name_every_file_a_run_may_write_over(tmp_path):
     files = RunFiles(tmp_path / "m.png")
     assert {k: p.name for k, p in files.roles().items()} == {
         "mosaic": "m.png", "sidecar": "m.json", "preview": "m.preview.jpg", "pair cache": "m.pairs.json", "world file": "m.pgw",
-        "GeoTIFF": "m.cog.tif", "projection file": "m.prj", "camera file": "m.cameras.json"}
+        "GeoTIFF": "m.cog.tif", "projection file": "m.prj", "camera file": "m.cameras.json",
+        "report page": "m.report.html", "GDAL metadata file": "m.png.aux.xml"}
     assert {k: p.name for k, p in files.live_roles().items()} == {"live picture": "m.live.jpg", "live record": "m.live.json"}
 
 

@@ -133,7 +133,7 @@ class RunFiles:
         """Every file a run may write over, by what it is (for :func:`.staging.check_outputs_are_not_inputs`)."""
         return {"mosaic": self.output, "sidecar": self.sidecar, "preview": self.preview, "pair cache": self.pair_cache,
                 "world file": self.mosaic.world_file, "GeoTIFF": self.combined_map, "projection file": self.mosaic.projection,
-                "camera file": self.cameras}
+                "camera file": self.cameras, "report page": self.report_page, "GDAL metadata file": self.mosaic.pam}
 
     def live_roles(self) -> dict[str, Path]:
         """The files live mode adds, by what they are."""

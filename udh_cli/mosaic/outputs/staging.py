@@ -19,7 +19,7 @@ from typing import Iterable
 
 from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES
-from udh_cli.mosaic.outputs.files import CAMERAS_SUFFIX, GEOREFERENCE_SUFFIXES, PAM_SUFFIX, PREVIEW_SUFFIX, MosaicFiles, RunFiles
+from udh_cli.mosaic.outputs.files import CAMERAS_SUFFIX, GEOREFERENCE_SUFFIXES, PAM_SUFFIX, PREVIEW_SUFFIX, REPORT_PAGE_SUFFIX, MosaicFiles, RunFiles
 from udh_cli.mosaic.report import Reporter
 
 SIDECAR_FORMAT = "udh-mosaic/1"  # the sidecar's "format", its first key
@@ -59,7 +59,7 @@ def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: 
         is_frame = source.is_dir() and resolved.parent == source.resolve() and path.suffix.lower() in IMAGE_SUFFIXES
         if resolved in sources or (is_frame and not earlier_run):
             raise UdhError(f"{path}: the {role} would replace an input file of {source}; choose another output name")
-        owned_by_run = path.name.lower().endswith(GEOREFERENCE_SUFFIXES + (CAMERAS_SUFFIX,))
+        owned_by_run = path.name.lower().endswith(GEOREFERENCE_SUFFIXES + (CAMERAS_SUFFIX, REPORT_PAGE_SUFFIX, PAM_SUFFIX))
         if path.suffix.lower() == ".json" and not owned_by_run and not _is_udh_json(path, ("udh-mosaic",)):
             raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
         if owned_by_run and not earlier_run:  # in formats of their own (world files, OpenSfM's): only an earlier run of ours wrote these

@@ -18,7 +18,7 @@ from udh_cli.estimators.hypotheses import HEADING_COUNT, best_hypotheses, cascad
 from udh_cli.estimators.judge import judge_answers
 from udh_cli.estimators.tiles import TileRefinement, refine_pairs_with_tiles
 from udh_cli.estimators.pair import PreparedPair
-from udh_cli.onnx_model import OnnxHomographyModel, OnnxMatcher
+from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel, OnnxMatcher
 from udh_cli.estimators.matching import CONFIDENT_INLIERS, MATCH_REFINE_SIDE, MATCH_SIDE, MAX_MATCH_SIDE, global_match
 from udh_cli.estimators.verify import Verifier
 
@@ -100,7 +100,7 @@ class DeepEstimator(Estimator):
         tiles: refine the answer on 128x128 tiles at finer levels up to full resolution with the last
             network of the cascade (:mod:`udh_cli.estimators.tiles`): the network alone is then sub-pixel
             at any frame size. None: on when the cascade has a refinement stage.
-        batch_size: pairs per onnxruntime call in :meth:`estimate_many`.
+        batch_size: patches per onnxruntime call (:data:`~udh_cli.onnx_model.PASSES_PER_CALL`: larger runs cost more a pass).
         threads: onnxruntime intra-op threads (None: onnxruntime's default).
 
     Confidence is :meth:`score` (intensity and gradient NCC at S x S), halved when :mod:`~udh_cli.estimators.judge` doubts it.
@@ -126,7 +126,7 @@ class DeepEstimator(Estimator):
     match_side: int = MATCH_SIDE
     match_escalate_side: int | None = MAX_MATCH_SIDE
     match_refine_side: int | None = MATCH_REFINE_SIDE
-    batch_size: int = 64
+    batch_size: int = PASSES_PER_CALL
     threads: int | None = None
     network: OnnxHomographyModel = field(init=False, repr=False)
     stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)

@@ -178,7 +178,8 @@ def _cut_tiles(tile: int, level_a: np.ndarray, level_b: np.ndarray, b_from_a: np
 
 def _fit_tiles(cut: _LevelTiles, offsets: np.ndarray, tile: int, config: TileRefinement,
                max_move: float | None) -> tuple[np.ndarray, int, float, float] | None:
-    """A RANSAC fit over the tiles' answers ``offsets`` (N, 4, 2); see :func:`refine_level`."""
+    """A RANSAC fit over the tiles' answers ``offsets`` (N, 4, 2, pixels of a tile): ``(b_from_a, tiles, agreeing
+    share, median residual px)`` at the level, or None when too few tiles agreed or the fit moved too far."""
     a_from_b = np.linalg.inv(cut.b_from_a)
     corners = geometry.image_corners(tile, tile)
     shifts = np.array(cut.origins, np.float64)[:, None, :]
@@ -195,19 +196,6 @@ def _fit_tiles(cut: _LevelTiles, offsets: np.ndarray, tile: int, config: TileRef
         return None
     residual = np.linalg.norm(geometry.transform_points(fitted, points_a) - points_b, axis=1).reshape(-1, 4)[per_tile]
     return fitted / fitted[2, 2], len(cut.origins), float(per_tile.mean()), float(np.median(residual))
-
-
-def refine_level(network: OnnxHomographyModel, level_a: np.ndarray, level_b: np.ndarray, b_from_a: np.ndarray,
-                 config: TileRefinement, max_move: float | None = None) -> tuple[np.ndarray, int, float, float] | None:
-    """One level: tiles, one network pass each, a RANSAC fit. Images are (H, W) float32 grey in [0, 1].
-
-    Returns ``(b_from_a, tiles, agreeing share, median residual px)`` at this level, or None when too few
-    tiles could be used or agreed.
-    """
-    cut = _cut_tiles(network.input_size, level_a, level_b, b_from_a, config)
-    if cut is None:
-        return None
-    return _fit_tiles(cut, network.predict_offsets(cut.patches), network.input_size, config, max_move)
 
 
 def _as_prepared(image: ImageLike) -> PreparedImage:

@@ -385,7 +385,7 @@ class DeepEstimator(Estimator):
         return geometry.rescale_homography(small_h, (s, s), pair.a.size, (s, s), pair.b.size)
 
     def _tiles(self, pairs: Sequence[PreparedPair], small_h: Sequence[np.ndarray]) -> list:
-        """The tile stage (one call a level for every pair) from S x S answers; None where one is degenerate."""
+        """The tile stage (every pair's tiles of a level together) from S x S answers; None where one is degenerate."""
         fulls = [self._full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
         valid = [i for i, full in enumerate(fulls) if full is not None]
         found = refine_pairs_with_tiles(self.tile_network, [(pairs[i].a, pairs[i].b) for i in valid], [fulls[i] for i in valid],

@@ -243,7 +243,8 @@ def refine_pairs_with_tiles(network: OnnxHomographyModel, pairs: Sequence[tuple[
                             coarse_network: OnnxHomographyModel | None = None) -> list[TileResult]:
     """Refine each ``starts[i]`` (3x3 ``b_from_a``, pixels of pair i) on its pair ``(A, B)`` (prepared images, or
     (H, W) float32 grey in [0, 1]) level by level: ``coarse_network`` on tiles of a ``config.coarse_side`` level
-    first (when given), then ``network``. Every pair's tiles of a level go through one onnxruntime call.
+    first (when given), then ``network``. Every pair's tiles of a level go to the network together
+    (:meth:`~udh_cli.onnx_model.OnnxHomographyModel.predict_offsets`, in runs of its cache-friendly size).
 
     A level whose fit fails or moves too far leaves the estimate as it was; finer levels still run.
     """

@@ -82,6 +82,11 @@ def providers_for(device: str) -> list[str]:
     raise UdhError(f"unknown --device '{device}'; choose auto, cpu or cuda")
 
 
+# Patches per onnxruntime run: on a 2-core CPU a pass costs 15-40 % more in runs of 32-96 patches than of 4-16
+# (the activations outgrow the caches; docs/benchmarks.md), and a run's own overhead is about 0.1 ms.
+PASSES_PER_CALL = 8
+
+
 @functools.cache
 def _quiet_run():
     """Run options under which onnxruntime prints nothing itself: udh reports a failed run in one line."""
@@ -153,7 +158,7 @@ class OnnxHomographyModel(_UdhOnnxModel):
             raise UdhError(f"{path}: the graph's shapes do not fit its metadata (want (N,2,{size},{size}) -> (N,4,2))")
         return cls(path=path, session=session, mean=mean, std=std, metadata=metadata, identity=identity, input_size=size)
 
-    def predict_offsets(self, patches: np.ndarray, batch_size: int = 64) -> np.ndarray:
+    def predict_offsets(self, patches: np.ndarray, batch_size: int = PASSES_PER_CALL) -> np.ndarray:
         """``patches`` (N, 2, S, S) grey in [0, 1] -> (N, 4, 2) float64 offsets in pixels of the S x S input."""
         if patches.ndim != 4 or patches.shape[1:] != (2, self.input_size, self.input_size):
             raise UdhError(f"expected patches of shape (N, 2, {self.input_size}, {self.input_size}), got {patches.shape}")

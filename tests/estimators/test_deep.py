@@ -266,7 +266,7 @@ def test_an_answer_is_verified_only_when_enough_tile_levels_accept_it(monkeypatc
 
     truth = geometry.translation(8.0, -5.0)
     a, b = warped_pair(truth, 600, 400, seed=4)
-    monkeypatch.setattr(deep, "refine_with_tiles", lambda network, a, b, h, *args, **kwargs: TileResult(h, used, 0.8, 0.5, run))
+    monkeypatch.setattr(deep, "refine_pairs_with_tiles", lambda network, pairs, starts, *args, **kwargs: [TileResult(h, used, 0.8, 0.5, run) for h in starts])
     estimate = create_estimator("unsupervised", device="cpu", search=0, matcher_model="").estimate(a, b)
     assert estimate.ok and estimate.details["tile_levels"] == used
     assert estimate.verified is verified
@@ -279,7 +279,7 @@ def test_the_rounds_network_runs_the_whole_frame_rounds_and_the_tiles_keep_the_r
     assert estimator.tile_network.path == tiny_fine_onnx and estimator.tiles
     assert estimator.model_files() == sorted({str(tiny_onnx), str(tiny_fine_onnx)})
     used = []
-    monkeypatch.setattr(deep, "refine_with_tiles", lambda network, *args, **kwargs: used.append(network.path))
+    monkeypatch.setattr(deep, "refine_pairs_with_tiles", lambda network, pairs, *args, **kwargs: used.append(network.path) or [None] * len(pairs))
     a, b = warped_pair(np.eye(3), 320, 240, seed=1)
     estimator.estimate(a, b)
     assert used and set(used) == {tiny_fine_onnx}
@@ -296,7 +296,7 @@ def test_the_tiles_coarse_network_runs_only_the_tile_stage_coarse_level(tiny_onn
     assert [n.path for n in estimator.rounds()] == [tiny_onnx] * estimator.iterations + [tiny_fine_onnx] * estimator.refine_rounds
     assert estimator.model_files() == sorted({str(tiny_onnx), str(tiny_fine_onnx), str(tile_coarse)})
     used = []
-    monkeypatch.setattr(deep, "refine_with_tiles", lambda network, *args, coarse_network=None, **kwargs: used.append((network.path, coarse_network.path)))
+    monkeypatch.setattr(deep, "refine_pairs_with_tiles", lambda network, pairs, *args, coarse_network=None, **kwargs: used.append((network.path, coarse_network.path)) or [None] * len(pairs))
     a, b = warped_pair(np.eye(3), 320, 240, seed=1)
     estimator.estimate(a, b)
     assert used and set(used) == {(tiny_fine_onnx, tile_coarse)}
@@ -366,9 +366,9 @@ def test_a_confident_match_outranks_what_the_tiles_confirmed_and_is_kept_as_matc
 
     def tiles(*args, **kwargs):  # two levels accept the cascade's answer, 30 px off; none accepts anything else
         tile_calls.append(1)
-        return TileResult(moved, 2, 1.0, 0.5, 2) if len(tile_calls) == 1 else TileResult(args[3], 0, 0.0, float("nan"), 2)
+        return [TileResult(moved, 2, 1.0, 0.5, 2) if len(tile_calls) == 1 else TileResult(args[2][0], 0, 0.0, float("nan"), 2)]
 
-    monkeypatch.setattr(deep, "refine_with_tiles", tiles)
+    monkeypatch.setattr(deep, "refine_pairs_with_tiles", tiles)
     monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 400, 500, 0))
     matcher = str(models_dir() / f"{SHIPPED_MODELS['unsupervised-matcher']}.onnx")
     estimator = create_estimator("unsupervised", device="cpu", search=0, heading_search=0, search_below=1.0, matcher_model=matcher)

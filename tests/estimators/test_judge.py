@@ -74,7 +74,7 @@ def test_a_right_answer_passes_and_a_wrong_one_the_tiles_confirmed_is_caught(net
     assert right.verified and geometry.mace(right.homography, truth, 320, 240) < 2.0
     assert right.details["round_trip"] <= THRESHOLDS.max_round_trip and right.details["alignment"] >= THRESHOLDS.min_alignment
     moved = geometry.translation(60.0, 0.0) @ truth
-    monkeypatch.setattr(deep, "refine_with_tiles", lambda *args, **kwargs: TileResult(moved, 2, 1.0, 0.5, 2))
+    monkeypatch.setattr(deep, "refine_pairs_with_tiles", lambda network, pairs, *args, **kwargs: [TileResult(moved, 2, 1.0, 0.5, 2)] * len(pairs))
     wrong = network.estimate(a, b)
     assert geometry.mace(wrong.homography, moved, 320, 240) < 1e-6 and wrong.details["tile_levels"] == 2
     assert not wrong.verified and wrong.details["verdict_failed"] == ["alignment"] and wrong.details["alignment"] < 0.1

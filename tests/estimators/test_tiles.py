@@ -95,3 +95,42 @@ def test_the_paper_setting_runs_a_single_pass_without_tiles(big_pair):
     a, b = big_pair
     single = create_estimator("unsupervised", iterations=1, refine_rounds=0, headings=1, tiles=False).estimate(a, b)
     assert "tile_levels" not in single.details and single.details["iterations"] == 1
+
+
+def test_pairs_tiled_together_get_the_answers_they_get_one_by_one(refiner, big_pair):
+    """Every pair's tiles of a level go through one call; the answers are those of each pair alone."""
+    from udh_cli.estimators.tiles import refine_pairs_with_tiles
+
+    a, b = big_pair
+    other_a, other_b = warped_pair(geometry.translation(9.0, -6.0), 800, 600, seed=5)
+    pairs = [(to_gray_float(a), to_gray_float(b)), (to_gray_float(other_a), to_gray_float(other_b))]
+    starts = [_perturbed(TRUE, (1600, 1200), 10.0, 2), geometry.translation(4.0, -2.0)]
+    together = refine_pairs_with_tiles(refiner, pairs, starts)
+    for (image_a, image_b), start, found in zip(pairs, starts, together):
+        alone = refine_with_tiles(refiner, image_a, image_b, start)
+        np.testing.assert_allclose(found.b_from_a, alone.b_from_a, atol=1e-9)
+        assert (found.levels_used, found.levels_run) == (alone.levels_used, alone.levels_run) == (2, 2)
+    assert geometry.mace(together[1].b_from_a, geometry.translation(9.0, -6.0), 800, 600) < 1.0
+
+
+def test_a_prepared_frame_keeps_its_tile_levels_for_the_next_pair(refiner, big_pair):
+    """A frame that is B of one pair and A of the next is resized once, to the same pixels either way."""
+    from udh_cli.estimators.pair import PreparedImage
+
+    a, b = big_pair
+    frame_a, frame_b = PreparedImage.of(a), PreparedImage.of(b)
+    refine_with_tiles(refiner, frame_a, frame_b, TRUE)
+    levels = {key: value for key, value in frame_b._cache.items() if key[0] == "tile-level"}
+    assert [value.shape for value in levels.values()] == [(360, 480)]  # the 480-px level; full resolution is grey itself
+    refine_with_tiles(refiner, frame_b, frame_a, np.linalg.inv(TRUE))
+    assert all(frame_b._cache[key] is value for key, value in levels.items())
+    assert frame_b.grey.shape == (1200, 1600) and not frame_b.grey.flags.writeable
+
+
+def test_tile_texture_is_the_deviation_of_every_fourth_pixel_of_each_tile():
+    from udh_cli.estimators.tiles import _tile_texture
+
+    grey = np.random.default_rng(0).random((300, 400), dtype=np.float32)
+    origins = np.array([[0, 0], [17, 33], [272, 172]])
+    expected = [grey[y : y + 128 : 4, x : x + 128 : 4].std() for x, y in origins]
+    np.testing.assert_allclose(_tile_texture(grey, origins, 128), expected, rtol=1e-5)

@@ -16,9 +16,9 @@ from udh_cli.flight_motion import PREWARP_BORDER
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.hypotheses import HEADING_COUNT, best_hypotheses, cascade_headings, heading_angles, heading_hypotheses, shift_hypotheses
 from udh_cli.estimators.judge import judge_answers
-from udh_cli.estimators.tiles import TileRefinement, refine_with_tiles
+from udh_cli.estimators.tiles import TileRefinement, refine_pairs_with_tiles
 from udh_cli.estimators.pair import PreparedPair
-from udh_cli.onnx_model import OnnxHomographyModel, OnnxMatcher
+from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel, OnnxMatcher
 from udh_cli.estimators.matching import CONFIDENT_INLIERS, MATCH_REFINE_SIDE, MATCH_SIDE, MAX_MATCH_SIDE, global_match
 from udh_cli.estimators.verify import Verifier
 
@@ -100,7 +100,7 @@ class DeepEstimator(Estimator):
         tiles: refine the answer on 128x128 tiles at finer levels up to full resolution with the last
             network of the cascade (:mod:`udh_cli.estimators.tiles`): the network alone is then sub-pixel
             at any frame size. None: on when the cascade has a refinement stage.
-        batch_size: pairs per onnxruntime call in :meth:`estimate_many`.
+        batch_size: patches per onnxruntime call (:data:`~udh_cli.onnx_model.PASSES_PER_CALL`: larger runs cost more a pass).
         threads: onnxruntime intra-op threads (None: onnxruntime's default).
 
     Confidence is :meth:`score` (intensity and gradient NCC at S x S), halved when :mod:`~udh_cli.estimators.judge` doubts it.
@@ -126,7 +126,7 @@ class DeepEstimator(Estimator):
     match_side: int = MATCH_SIDE
     match_escalate_side: int | None = MAX_MATCH_SIDE
     match_refine_side: int | None = MATCH_REFINE_SIDE
-    batch_size: int = 64
+    batch_size: int = PASSES_PER_CALL
     threads: int | None = None
     network: OnnxHomographyModel = field(init=False, repr=False)
     stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)
@@ -276,13 +276,13 @@ class DeepEstimator(Estimator):
         prepared = time.perf_counter()
         small_h, scores = cascade_headings(self, small_a, small_b)
         coarse = time.perf_counter()
-        tiled = [self._tiles(pairs[i], small_h[i]) for i in range(len(pairs))] if self.tiles else [None] * len(pairs)
+        tiled = self._tiles(pairs, small_h) if self.tiles else [None] * len(pairs)
         tiles_done = time.perf_counter()
         searched, matched, turned, seen_match = [False] * len(pairs), [None] * len(pairs), [None] * len(pairs), [None] * len(pairs)
 
         def offer(i: int, h: np.ndarray, score: float) -> bool:
             # Kept when tile levels confirm it more, or as much with a better score.
-            retiled = self._tiles(pairs[i], h) if self.tiles else None
+            retiled = self._tiles([pairs[i]], [h])[0] if self.tiles else None
             confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
             if kept := (confirmed, score) > (was_confirmed, scores[i]):
                 small_h[i], scores[i], tiled[i], matched[i] = h, score, retiled, None
@@ -320,7 +320,7 @@ class DeepEstimator(Estimator):
                 # stage is less precise than it (flight-motion benchmark: one accepted coarse level moved 0.5-1.3 px
                 # matches to 6-23 px; consecutive pairs at 800 px against SIFT references, median: copr 0.91 px
                 # kept against 1.20 px tiled, where the tiles confirmed it).
-                retiled = self._tiles(pairs[i], h) if self.tiles and not confident else None
+                retiled = self._tiles([pairs[i]], [h])[0] if self.tiles and not confident else None
                 # A match many cells support first: a doubted cascade answer that one tile level accepted was
                 # 204 px off where 1,077 cells put the match 0.2 px from the truth (flight-motion benchmark).
                 # Then tile levels (they confirm precise answers), then the score.
@@ -384,13 +384,13 @@ class DeepEstimator(Estimator):
             return None
         return geometry.rescale_homography(small_h, (s, s), pair.a.size, (s, s), pair.b.size)
 
-    def _tiles(self, pair: PreparedPair, small_h: np.ndarray):
-        """The tile stage (:func:`refine_with_tiles`) from a whole-frame answer of the S x S images; None when
-        that answer is degenerate."""
-        full = self._full_resolution(small_h, pair)
-        if full is None:
-            return None
-        return refine_with_tiles(self.tile_network, pair.a.grey, pair.b.grey, full, coarse_network=self.tile_coarse_network)
+    def _tiles(self, pairs: Sequence[PreparedPair], small_h: Sequence[np.ndarray]) -> list:
+        """The tile stage (every pair's tiles of a level together) from S x S answers; None where one is degenerate."""
+        fulls = [self._full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
+        valid = [i for i, full in enumerate(fulls) if full is not None]
+        found = refine_pairs_with_tiles(self.tile_network, [(pairs[i].a, pairs[i].b) for i in valid], [fulls[i] for i in valid],
+                                        coarse_network=self.tile_coarse_network) if valid else []
+        return [dict(zip(valid, found)).get(i) for i in range(len(pairs))]
 
     def _search(self, pairs: Sequence[PreparedPair], small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
         """Large-motion search: for every pair, run the network from each translation hypothesis of a

@@ -109,10 +109,14 @@ def cascade_headings(estimator, small_a: np.ndarray, small_b: np.ndarray) -> tup
     later = estimator.rounds()[estimator.iterations:]  # the refinement rounds, shared by every candidate
     stacked_b = np.concatenate([view for view, _ in views])
     stacked_a = np.concatenate([small_a] * len(views))
-    candidates = []  # per coarse network and view: (N, 3, 3) answers in the unturned B
-    for coarse in estimator.first_stages:
-        answers = estimator.predict_small(stacked_a, stacked_b, [coarse] * estimator.iterations + later)
-        candidates += [undo @ answers[k * n : (k + 1) * n] for k, (_, undo) in enumerate(views)]
+    coarse_answers = np.concatenate([estimator.predict_small(stacked_a, stacked_b, [coarse] * estimator.iterations)
+                                     for coarse in estimator.first_stages])
+    # Every coarse network's answers share the refinement rounds: one call a round for all of them.
+    copies = len(estimator.first_stages)
+    answers = coarse_answers if not later else estimator.predict_small(
+        np.concatenate([stacked_a] * copies), np.concatenate([stacked_b] * copies), later, start=coarse_answers)
+    candidates = [undo @ answers[(c * len(views) + k) * n : (c * len(views) + k + 1) * n]  # per coarse network and view,
+                  for c in range(copies) for k, (_, undo) in enumerate(views)]  # (N, 3, 3) answers in the unturned B
     if len(candidates) == 1:
         found = candidates[0]
         return found, [estimator.score(sa, sb, h) for sa, sb, h in zip(small_a, small_b, found)]

@@ -11,11 +11,13 @@ give its support. No features and no ECC: only network passes, warps of small ti
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import cv2
 import numpy as np
 
 from udh_cli import geometry
+from udh_cli.estimators.pair import ImageLike, PreparedImage
 from udh_cli.images import scaled_size
 from udh_cli.onnx_model import OnnxHomographyModel
 
@@ -113,6 +115,15 @@ def _tile_origins(size_b: tuple[int, int], tile: int) -> list[tuple[int, int]]:
     return [(int(x), int(y)) for y in ys for x in xs]
 
 
+def _tile_texture(gray_b: np.ndarray, origins: np.ndarray, tile: int) -> np.ndarray:
+    """(T,) standard deviation of every 4th pixel of each tile of B at ``origins`` (T, 2), gathered at once:
+    enough to tell flat from textured (an integral image of a full-resolution level cost more)."""
+    steps = np.arange(0, tile, 4)
+    rows = origins[:, 1, None] + steps  # T, k
+    columns = origins[:, 0, None] + steps  # T, k
+    return gray_b[rows[:, :, None], columns[:, None, :]].std(axis=(1, 2), dtype=np.float64)
+
+
 def _choose_tiles(gray_b: np.ndarray, a_from_b: np.ndarray, size_a: tuple[int, int], tile: int, count: int) -> list[tuple[int, int]]:
     """Tiles of B wholly seen in A, textured, spread over the overlap: at most ``count``."""
     width_a, height_a = size_a
@@ -128,9 +139,7 @@ def _choose_tiles(gray_b: np.ndarray, a_from_b: np.ndarray, size_a: tuple[int, i
     if not inside.any():
         return []
     origins = origins[inside].astype(int)
-    # Texture: the standard deviation of every 4th pixel of each tile, enough to tell flat from textured
-    # (an integral image of a full-resolution level cost more than all the tiles' deviations).
-    texture = np.array([gray_b[y : y + tile : 4, x : x + tile : 4].std() for x, y in origins])
+    texture = _tile_texture(gray_b, origins, tile)
     # Flat tiles (water, bare sand, sky) give the network nothing to align; keep the better-textured ones.
     keep = texture >= max(0.01, 0.5 * float(np.median(texture)))
     kept = origins[keep]
@@ -139,14 +148,18 @@ def _choose_tiles(gray_b: np.ndarray, a_from_b: np.ndarray, size_a: tuple[int, i
     return [(int(x), int(y)) for x, y in kept]
 
 
-def refine_level(network: OnnxHomographyModel, level_a: np.ndarray, level_b: np.ndarray, b_from_a: np.ndarray,
-                 config: TileRefinement, max_move: float | None = None) -> tuple[np.ndarray, int, float, float] | None:
-    """One level: tiles, one network pass each, a RANSAC fit. Images are (H, W) float32 grey in [0, 1].
+@dataclass(frozen=True)
+class _LevelTiles:
+    """One pair's tiles at one level, ready for the network: ``patches`` (N, 2, S, S), the warped A over B's tile."""
 
-    Returns ``(b_from_a, tiles, agreeing share, median residual px)`` at this level, or None when too few
-    tiles could be used or agreed.
-    """
-    tile = network.input_size
+    origins: list[tuple[int, int]]
+    patches: np.ndarray
+    b_from_a: np.ndarray
+    size_a: tuple[int, int]
+
+
+def _cut_tiles(tile: int, level_a: np.ndarray, level_b: np.ndarray, b_from_a: np.ndarray, config: TileRefinement) -> _LevelTiles | None:
+    """The tiles of one level and A pre-warped onto each; None when too few tiles can be used."""
     if min(level_b.shape) < tile or min(level_a.shape) < tile:
         return None
     size_a = (level_a.shape[1], level_a.shape[0])
@@ -160,70 +173,121 @@ def refine_level(network: OnnxHomographyModel, level_a: np.ndarray, level_b: np.
         warped.append(cv2.warpPerspective(level_a, a_from_b @ geometry.translation(x0, y0), (tile, tile),
                                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE))
         seen_b.append(level_b[y0 : y0 + tile, x0 : x0 + tile])
-    offsets = network.predict_offsets(np.stack([np.stack(warped), np.stack(seen_b)], 1))  # N, 4, 2
+    return _LevelTiles(origins, np.stack([np.stack(warped), np.stack(seen_b)], 1), np.asarray(b_from_a, np.float64), size_a)
+
+
+def _fit_tiles(cut: _LevelTiles, offsets: np.ndarray, tile: int, config: TileRefinement,
+               max_move: float | None) -> tuple[np.ndarray, int, float, float] | None:
+    """A RANSAC fit over the tiles' answers ``offsets`` (N, 4, 2, pixels of a tile): ``(b_from_a, tiles, agreeing
+    share, median residual px)`` at the level, or None when too few tiles agreed or the fit moved too far."""
+    a_from_b = np.linalg.inv(cut.b_from_a)
     corners = geometry.image_corners(tile, tile)
-    shifts = np.array(origins, np.float64)[:, None, :]
+    shifts = np.array(cut.origins, np.float64)[:, None, :]
     points_b = (corners[None] + shifts + offsets).reshape(-1, 2)
     points_a = geometry.transform_points(a_from_b, (corners[None] + shifts).reshape(-1, 2))
     fitted, mask = cv2.findHomography(points_a, points_b, cv2.RANSAC, config.inlier_px, maxIters=500, confidence=0.999)
     if fitted is None or mask is None:
         return None
     per_tile = mask.reshape(-1, 4).sum(1) >= 3  # a tile agrees when three of its four corners do
-    if per_tile.sum() < max(config.min_tiles, config.min_share * len(origins)) or not geometry.is_valid_homography(fitted, *size_a):
+    if per_tile.sum() < max(config.min_tiles, config.min_share * len(cut.origins)) or not geometry.is_valid_homography(fitted, *cut.size_a):
         return None
-    move = geometry.corner_errors(fitted, b_from_a, *size_a).max()
+    move = geometry.corner_errors(fitted, cut.b_from_a, *cut.size_a).max()
     if not move <= (config.max_move if max_move is None else max_move):
         return None
     residual = np.linalg.norm(geometry.transform_points(fitted, points_a) - points_b, axis=1).reshape(-1, 4)[per_tile]
-    return fitted / fitted[2, 2], len(origins), float(per_tile.mean()), float(np.median(residual))
+    return fitted / fitted[2, 2], len(cut.origins), float(per_tile.mean()), float(np.median(residual))
 
 
-def _pyramid(gray_a: np.ndarray, gray_b: np.ndarray, sides: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+def _as_prepared(image: ImageLike) -> PreparedImage:
+    """A prepared image as it is; an (H, W) float32 grey array wrapped as one, without a copy."""
+    if isinstance(image, PreparedImage):
+        return image
+    return PreparedImage(np.asarray(image, np.float32), np.dtype(np.float32))
+
+
+def _pyramid(image_a: PreparedImage, image_b: PreparedImage, sides: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Both images at every level side (0: full resolution), each level resized from the next finer one
-    rather than from full resolution: the full-resolution image is read once."""
-    size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
+    rather than from full resolution, and kept on the prepared image: a frame in two pairs (A of one, B of the
+    next) and a pair tiled again (from a searched or matched answer) are resized once."""
+    size_a, size_b = image_a.size, image_b.size
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    finer_a, finer_b = gray_a, gray_b
+    finer_a, finer_b = image_a.grey, image_b.grey
     for side in sorted(set(sides), key=lambda v: -(v if v > 0 else 10**9)):  # finest first
         level_size_a, level_size_b = _level_sizes(size_a, size_b, side)
-        if level_size_a != (finer_a.shape[1], finer_a.shape[0]):
-            finer_a = cv2.resize(finer_a, level_size_a, interpolation=cv2.INTER_AREA)
-        if level_size_b != (finer_b.shape[1], finer_b.shape[0]):
-            finer_b = cv2.resize(finer_b, level_size_b, interpolation=cv2.INTER_AREA)
+        finer_a, finer_b = _smaller(image_a, finer_a, level_size_a), _smaller(image_b, finer_b, level_size_b)
         out[side] = (finer_a, finer_b)
     return out
 
 
-def refine_with_tiles(network: OnnxHomographyModel, gray_a: np.ndarray, gray_b: np.ndarray, b_from_a: np.ndarray,
-                      config: TileRefinement = TileRefinement(), coarse_network: OnnxHomographyModel | None = None) -> TileResult:
-    """Refine ``b_from_a`` (3x3, pixels of ``gray_a``/``gray_b``, (H, W) float32 in [0, 1]) level by level:
-    ``coarse_network`` on tiles of a ``config.coarse_side`` level first (when given), then ``network``.
+def _smaller(image: PreparedImage, finer: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``finer`` (a level of ``image``) area-resized to ``size`` (w, h), made once per image; ``finer`` at its size.
+    The key names the level it was made from, so the same level is the same pixels whichever pair made it."""
+    if size == (finer.shape[1], finer.shape[0]):
+        return finer
+    return image.derived(("tile-level", finer.shape, size), lambda: cv2.resize(finer, size, interpolation=cv2.INTER_AREA))
+
+
+@dataclass
+class _Progress:
+    """One pair's way through the levels."""
+
+    current: np.ndarray
+    used: int = 0
+    run: int = 0
+    agreeing: float = 0.0
+    residual: float = float("nan")
+
+
+def refine_pairs_with_tiles(network: OnnxHomographyModel, pairs: Sequence[tuple[ImageLike, ImageLike]], starts: Sequence[np.ndarray],
+                            config: TileRefinement = TileRefinement(),
+                            coarse_network: OnnxHomographyModel | None = None) -> list[TileResult]:
+    """Refine each ``starts[i]`` (3x3 ``b_from_a``, pixels of pair i) on its pair ``(A, B)`` (prepared images, or
+    (H, W) float32 grey in [0, 1]) level by level: ``coarse_network`` on tiles of a ``config.coarse_side`` level
+    first (when given), then ``network``. Every pair's tiles of a level go to the network together
+    (:meth:`~udh_cli.onnx_model.OnnxHomographyModel.predict_offsets`, in runs of its cache-friendly size).
 
     A level whose fit fails or moves too far leaves the estimate as it was; finer levels still run.
     """
-    size_a, size_b = (gray_a.shape[1], gray_a.shape[0]), (gray_b.shape[1], gray_b.shape[0])
-    current = np.asarray(b_from_a, np.float64)
-    used, run, agreeing, residual = 0, 0, 0.0, float("nan")
+    prepared = [(_as_prepared(a), _as_prepared(b)) for a, b in pairs]
+    progress = [_Progress(np.asarray(h, np.float64)) for h in starts]
     plan = [(side, network, config.max_move) for side in config.levels]
     if coarse_network is not None and config.coarse_side > 0:
         plan.insert(0, (config.coarse_side, coarse_network, config.coarse_move))
-    levels = _pyramid(gray_a, gray_b, [side for side, _, _ in plan])
-    done_sizes = set()
+    levels = [_pyramid(a, b, [side for side, _, _ in plan]) for a, b in prepared]
+    done_sizes: list[set] = [set() for _ in prepared]
     for side, level_network, max_move in plan:
-        level_a, level_b = levels[side]
-        level_size_a, level_size_b = (level_a.shape[1], level_a.shape[0]), (level_b.shape[1], level_b.shape[0])
-        # A level size once per network: on small images the coarse network's level is already full
-        # resolution, and the refinement network must still run there.
-        if (id(level_network), level_size_a, level_size_b) in done_sizes:
+        tile = level_network.input_size
+        cuts = []  # (pair index, level sizes, tiles)
+        for i, ((image_a, image_b), state) in enumerate(zip(prepared, progress)):
+            level_a, level_b = levels[i][side]
+            level_size_a, level_size_b = (level_a.shape[1], level_a.shape[0]), (level_b.shape[1], level_b.shape[0])
+            # A level size once per network: on small images the coarse network's level is already full
+            # resolution, and the refinement network must still run there.
+            if (id(level_network), level_size_a, level_size_b) in done_sizes[i]:
+                continue
+            done_sizes[i].add((id(level_network), level_size_a, level_size_b))
+            start = geometry.rescale_homography(state.current, image_a.size, level_size_a, image_b.size, level_size_b)
+            state.run += config.can_confirm(level_size_b, tile)  # a level with no room for tiles is no evidence
+            cut = _cut_tiles(tile, level_a, level_b, start, config)
+            if cut is not None:
+                cuts.append((i, level_size_a, level_size_b, cut))
+        if not cuts:
             continue
-        done_sizes.add((id(level_network), level_size_a, level_size_b))
-        start = geometry.rescale_homography(current, size_a, level_size_a, size_b, level_size_b)
-        run += config.can_confirm(level_size_b, level_network.input_size)  # a level with no room for tiles is no evidence
-        found = refine_level(level_network, level_a, level_b, start, config, max_move)
-        if found is None:
-            continue
-        fitted, _, agreeing, residual_level = found
-        current = geometry.rescale_homography(fitted, level_size_a, size_a, level_size_b, size_b)
-        residual = residual_level * size_b[0] / level_size_b[0]
-        used += 1
-    return TileResult(current / current[2, 2], used, agreeing, residual, run)
+        offsets = level_network.predict_offsets(np.concatenate([cut.patches for *_, cut in cuts]))
+        bounds = np.cumsum([0] + [len(cut.origins) for *_, cut in cuts])
+        for (i, level_size_a, level_size_b, cut), first, last in zip(cuts, bounds[:-1], bounds[1:]):
+            found = _fit_tiles(cut, offsets[first:last], tile, config, max_move)
+            if found is None:
+                continue
+            state, (image_a, image_b) = progress[i], prepared[i]
+            fitted, _, state.agreeing, residual_level = found
+            state.current = geometry.rescale_homography(fitted, level_size_a, image_a.size, level_size_b, image_b.size)
+            state.residual = residual_level * image_b.size[0] / level_size_b[0]
+            state.used += 1
+    return [TileResult(s.current / s.current[2, 2], s.used, s.agreeing, s.residual, s.run) for s in progress]
+
+
+def refine_with_tiles(network: OnnxHomographyModel, image_a: ImageLike, image_b: ImageLike, b_from_a: np.ndarray,
+                      config: TileRefinement = TileRefinement(), coarse_network: OnnxHomographyModel | None = None) -> TileResult:
+    """:func:`refine_pairs_with_tiles` of one pair."""
+    return refine_pairs_with_tiles(network, [(image_a, image_b)], [b_from_a], config, coarse_network)[0]

@@ -11,7 +11,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "udh_cli"
 
 # Each layer may import from the layers listed before it, never after. Top-level modules not named here
 # (errors, geometry, images, ...) form the base that every layer may use.
-LAYERS = ["estimators", "mosaic", "bench", "train", "api", "cli", "cli_mosaic"]
+LAYERS = ["estimators", "mosaic", "bench", "train", "api", "cli", "cli_mosaic", "cli_bench"]
 # Inside udh_cli/mosaic/: the progress reporter, then the stage folders in this order (a folder may import its own
 # modules and the folders before it), then the run's own modules (config, sidecar, its report page, run, the arrays API),
 # then live mode over them.

@@ -87,9 +87,7 @@ class SessionCache:
                 shutil.rmtree(built)
                 raise
             self.built[key] = built
-        folder.mkdir(parents=True, exist_ok=True)
-        for path in sorted(self.built[key].iterdir()):
-            shutil.copy(path, folder / path.name)
+        shutil.copytree(self.built[key], folder, copy_function=shutil.copy, dirs_exist_ok=True)
 
 
 _session_cache: SessionCache | None = None

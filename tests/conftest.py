@@ -1,4 +1,5 @@
-"""Shared test helpers: deterministic textured images, pairs warped by a known homography, real data."""
+"""Shared test helpers: deterministic textured images, pairs warped by a known homography, real data, and a
+per-run cache of expensive folders (tiny exported networks, simulated flights) handed out as copies."""
 
 from __future__ import annotations
 

@@ -1,9 +1,13 @@
-"""Shared test helpers: deterministic textured images, pairs warped by a known homography, real data."""
+"""Shared test helpers: deterministic textured images, pairs warped by a known homography, real data, and a
+per-run cache of expensive folders (tiny exported networks, simulated flights) handed out as copies."""
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Hashable
 
 import cv2
 import numpy as np
@@ -63,8 +67,51 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
-def export_tiny_network(folder: Path, arch: str, seed: int) -> Path:
-    """An untrained 32-pixel ``arch`` network, saved as a checkpoint and exported like a real one."""
+class SessionCache:
+    """Folders built once per test run and handed out as copies, so that a test may change its copy freely.
+
+    Keyed by anything hashable; ``build(folder)`` fills an empty folder. Copies get fresh modification times,
+    as if the files had just been written.
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.built: dict[Hashable, Path] = {}
+
+    def copy_into(self, folder: Path, key: Hashable, build: Callable[[Path], None]) -> None:
+        """Fill ``folder`` (created if missing) with the files ``build`` makes, building them only on first use."""
+        if key not in self.built:
+            built = Path(tempfile.mkdtemp(dir=self.root))
+            try:
+                build(built)
+            except BaseException:  # a skip or a failure leaves nothing half-built for the next caller
+                shutil.rmtree(built)
+                raise
+            self.built[key] = built
+        shutil.copytree(self.built[key], folder, copy_function=shutil.copy, dirs_exist_ok=True)
+
+
+_session_cache: SessionCache | None = None
+
+
+@pytest.fixture(scope="session", autouse=True)
+def session_cache(tmp_path_factory) -> SessionCache:
+    """The run's :class:`SessionCache`, reachable from plain helpers such as :func:`export_tiny_network`."""
+    global _session_cache
+    _session_cache = SessionCache(tmp_path_factory.mktemp("session-cache"))
+    return _session_cache
+
+
+def cached_copy(folder: Path, key: Hashable, build: Callable[[Path], None]) -> None:
+    """:meth:`SessionCache.copy_into` on the run's cache; builds straight into ``folder`` outside a pytest run."""
+    if _session_cache is None:
+        folder.mkdir(parents=True, exist_ok=True)
+        build(folder)
+    else:
+        _session_cache.copy_into(folder, key, build)
+
+
+def _export_tiny_network(folder: Path, arch: str, seed: int) -> None:
     torch = pytest.importorskip("torch")
     from udh_cli.train.archs import create_model
     from udh_cli.train.checkpoint import save_checkpoint
@@ -81,6 +128,16 @@ def export_tiny_network(folder: Path, arch: str, seed: int) -> Path:
     result = export_onnx(folder / f"{arch}.pt", folder / f"{arch}.onnx", check_inputs=real)
     assert result["max_abs_diff"] < 1e-4
     assert result["metadata"]["input_size"] == "32" and result["metadata"]["arch"] == arch
+
+
+def export_tiny_network(folder: Path, arch: str, seed: int) -> Path:
+    """An untrained 32-pixel ``arch`` network, saved as ``folder/<arch>.pt`` and exported like a real one to
+    ``folder/<arch>.onnx``; returns the latter.
+
+    The export (seconds of torch tracing) runs once per run for each ``(arch, seed)``; callers get copies.
+    """
+    pytest.importorskip("torch")
+    cached_copy(folder, ("tiny-network", arch, seed), lambda built: _export_tiny_network(built, arch, seed))
     return folder / f"{arch}.onnx"
 
 

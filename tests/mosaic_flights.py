@@ -8,6 +8,7 @@ from typing import Callable, ClassVar
 
 import numpy as np
 
+from conftest import cached_copy
 from udh_cli.errors import EstimationFailed
 from udh_cli.estimators import Estimator, create_estimator
 from udh_cli.estimators.pair import PreparedImage
@@ -20,8 +21,13 @@ ACCURATE = FlightConfig(frame_size=(480, 360), strips=2, frames_per_strip=5, foc
 
 
 def make_flight(folder: Path, config: FlightConfig = SMALL, seed: int = 3) -> list[Path]:
-    """Write a simulated flight into ``folder``; returns its frame paths in order."""
-    write_flight(folder, config, seed)
+    """Write a simulated flight into ``folder``; returns its frame paths in order.
+
+    Each ``(config, seed)`` is simulated once per run and copied; like the simulator, it refuses a used folder.
+    """
+    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+        write_flight(folder, config, seed)  # raises the simulator's own error
+    cached_copy(folder, ("flight", config, seed), lambda built: write_flight(built, config, seed))
     return sorted(folder.glob("frame_*.jpg"))
 
 

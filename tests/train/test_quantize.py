@@ -27,7 +27,7 @@ def tiny_float_and_int8(tmp_path_factory) -> tuple[Path, Path, dict]:
     from udh_cli.train.quantize import quantize_model
 
     folder = tmp_path_factory.mktemp("quantize")
-    source = export_tiny_network(folder, "corr", seed=3)
+    source = export_tiny_network(folder, "corr", seed=0)  # the seed the estimator and fuzz tests export too
     result = quantize_model(source, folder / "tiny-int8.onnx", _sources(), pairs_per_motion=8, seed=0)
     return source, folder / "tiny-int8.onnx", result
 

@@ -17,7 +17,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from conftest import textured_image  # noqa: E402
+from conftest import cached_copy, textured_image  # noqa: E402
 from udh_cli.errors import UdhError  # noqa: E402
 from udh_cli.train import losses  # noqa: E402
 from udh_cli.train.checkpoint import load_checkpoint  # noqa: E402
@@ -118,8 +118,9 @@ def test_contrast_loss_ignores_a_hot_spot_that_the_intensity_loss_follows(pool):
 def _interrupt_and_resume(pool: Path, tmp_path: Path, sig: int, slow_first_save: bool) -> None:
     """Train 60 steps straight; train the same run in a subprocess, send ``sig`` once its first checkpoint
     exists, resume it in this process: the weights, the Adam state and the log must equal the straight run's."""
-    straight = tmp_path / "straight"
-    train(tiny_config(pool, straight, steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False)
+    straight = tmp_path / "straight"  # the same straight run serves SIGKILL and SIGTERM: trained once per run
+    cached_copy(straight, ("straight-run", str(pool)),
+                lambda built: train(tiny_config(pool, built, steps=60, eval_every=20, checkpoint_every=20), threads=1, progress=False))
     interrupted = tmp_path / "interrupted"
     slow = ("import time, udh_cli.train.loop as loop; original = loop.Trainer.save\n"
             "def slow_save(self):\n    original(self); time.sleep(0.5 if self.step == 20 else 0)\n"

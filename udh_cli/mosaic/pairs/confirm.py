@@ -1,0 +1,62 @@
+"""Loop-closure pairs confirmed from the chain's prediction: one ECC level, then the photometric check.
+
+A loop pair's B arrives pre-warped into A's frame by the chained prediction (:func:`.types.work_inputs`), so the
+prediction is the identity between the two working images. When one ECC level started there aligns them as
+well as :data:`CONFIRM_MIN_SCORE` asks, that answer is the pair's; otherwise the pair goes to the mosaic's
+opinions (the whole cascade) as if it had never been tried. Why: the chain already puts a loop pair within a
+few pixels, and the cascade (network, tile levels, ECC pyramid) spent half as much again on them as on the
+consecutive pairs (docs/mosaic.md, "Loop-closure pairs from the chain's prediction").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+from udh_cli.errors import EstimationFailed
+from udh_cli.estimators import Estimator
+from udh_cli.estimators.pair import PreparedPair
+from udh_cli.estimators.refine import PyramidEcc
+from udh_cli.estimators.refined import Policy
+from udh_cli.estimators.verify import VERIFIER
+
+# The score auto's cascade asks of its own answers: stricter than the mosaic's min_verified, because nothing but
+# this check stands between a cheap answer and the map (the loop's disagreement test cannot, since the answer
+# starts at the prediction it is tested against).
+CONFIRM_MIN_SCORE = Policy().min_score
+# A confirmation refines a guess a few pixels off: a corner moved further than this share of A's diagonal means
+# ECC left the prediction's basin, and the cascade decides instead.
+CONFIRM_MAX_MOVE = 0.03
+
+
+def one_ecc_level() -> PyramidEcc:
+    """The refinement that confirms a prediction: the finest level of the cascade's ECC pyramid, with its robust pass."""
+    return PyramidEcc(levels=1, iterations=(15,), blur=(1,), max_move=CONFIRM_MAX_MOVE)
+
+
+@dataclass
+class PredictionCheck(Estimator):
+    """Confirms that a pre-warped pair's prediction (the identity between its images) is right, refining it by
+    ``refiner``; raises :class:`EstimationFailed` (the pair then runs the whole cascade) when ECC diverges or
+    the aligned images score below ``min_score`` (:data:`~udh_cli.estimators.verify.VERIFIER`).
+
+    Its answers are ``verified`` by "alignment" with the score as their confidence, so the mosaic's
+    :class:`~udh_cli.mosaic.pairs.types.Acceptance` still judges them as it judges any other."""
+
+    name: ClassVar[str] = "chain+ecc"
+    refiner: PyramidEcc = field(default_factory=one_ecc_level)
+    min_score: float = CONFIRM_MIN_SCORE
+
+    def _estimate(self, pair: PreparedPair) -> tuple[np.ndarray, float, dict]:
+        refined, correlation = self.refiner.refine(pair.a, pair.b, np.eye(3))
+        score = VERIFIER.score(pair.a, pair.b, refined)
+        if score < self.min_score:
+            raise EstimationFailed(f"the chained prediction did not confirm (alignment {score:.2f} < {self.min_score})")
+        details = {"correlation": correlation, "verification_score": score, "verified": True, "verified_by": "alignment",
+                   "stage": "prediction"}
+        return refined, score, details
+
+
+PREDICTION_CHECK = PredictionCheck()

@@ -46,11 +46,11 @@ def test_a_prediction_a_few_pixels_off_is_confirmed_and_refined_without_the_casc
     assert (estimate.method, estimate.stage, estimate.verified, estimate.verified_by) == ("chain+ecc", "prediction", True, "alignment")
     assert estimate.confidence >= CONFIRM_MIN_SCORE and verified >= Acceptance().min_verified
     assert geometry.mace(np.eye(3), truth, W, H) > 2.0  # the prediction itself was off
-    assert geometry.mace(estimate.homography, truth, W, H) < 0.2  # one ECC level brought it within a fifth of a pixel
+    assert geometry.mace(estimate.homography, truth, W, H) < 0.2  # ECC from the prediction brought it within a fifth of a pixel
 
 
 def test_a_wrong_prediction_falls_back_to_the_whole_cascade():
-    truth = residual(30.0, 22.0, 3.0)  # the chain put B far from where it is: outside one ECC level's reach
+    truth = residual(30.0, 22.0, 3.0)  # the chain put B far from where it is: further than a confirmation may move it
     image_a, image_b = warped_pair(truth, W, H, seed=12)
     cascade = Truth(truth)
     [attempts] = judge_opinions([cascade], Acceptance(), [(image_a, image_b)], [True])

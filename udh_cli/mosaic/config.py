@@ -40,7 +40,7 @@ class MosaicConfig:
         overlap_min: non-consecutive frames whose chained footprints overlap by this share of the smaller
             frame are estimated too (loop closure).
         overlap_per_frame: at most this many loop-closure partners per frame (bounds the work).
-        confirm_loops: each loop-closure pair is first confirmed from the chain's prediction by one ECC level and
+        confirm_loops: each loop-closure pair is first confirmed from the chain's prediction by ECC (the cascade's pyramid) and
             the photometric check (:mod:`.pairs.confirm`); only the pairs that fail it run ``method``'s whole
             cascade. False: every loop pair runs the cascade.
         gps_pairs: when the frames carry GPS and the run splits, at most this many pairs between each two

@@ -1,11 +1,13 @@
-"""Loop-closure pairs confirmed from the chain's prediction: one ECC level, then the photometric check.
+"""Loop-closure pairs confirmed from the chain's prediction: the cascade's ECC pyramid, then the photometric check.
 
 A loop pair's B arrives pre-warped into A's frame by the chained prediction (:func:`.types.work_inputs`), so the
-prediction is the identity between the two working images. When one ECC level started there aligns them as
-well as :data:`CONFIRM_MIN_SCORE` asks, that answer is the pair's; otherwise the pair goes to the mosaic's
-opinions (the whole cascade) as if it had never been tried. Why: the chain already puts a loop pair within a
-few pixels, and the cascade (network, tile levels, ECC pyramid) spent half as much again on them as on the
-consecutive pairs (docs/mosaic.md, "Loop-closure pairs from the chain's prediction").
+prediction is the identity between the two working images. When ECC started there aligns them as well as
+:data:`CONFIRM_MIN_SCORE` asks, that answer is the pair's; otherwise the pair goes to the mosaic's opinions (the
+whole cascade) as if it had never been tried. Why: the chain already puts a loop pair within a few pixels, and
+the cascade (network, tile levels, ECC pyramid) spent half as much again on loop pairs as on consecutive ones.
+The refinement is the cascade's own (``auto``'s :class:`~udh_cli.estimators.refine.PyramidEcc`): from the
+prediction it lands where the cascade lands, while one ECC level at 240-320 px, although 2-5x cheaper, ended
+0.5-1 px from it (docs/mosaic.md, "Loop-closure pairs from the chain's prediction").
 """
 
 from __future__ import annotations
@@ -31,9 +33,9 @@ CONFIRM_MIN_SCORE = Policy().min_score
 CONFIRM_MAX_MOVE = 0.03
 
 
-def one_ecc_level() -> PyramidEcc:
-    """The refinement that confirms a prediction: the finest level of the cascade's ECC pyramid, with its robust pass."""
-    return PyramidEcc(levels=1, iterations=(15,), blur=(1,), max_move=CONFIRM_MAX_MOVE)
+def cascade_ecc() -> PyramidEcc:
+    """The refinement that confirms a prediction: the cascade's ECC pyramid, held near its start."""
+    return PyramidEcc(max_move=CONFIRM_MAX_MOVE)
 
 
 @dataclass
@@ -46,7 +48,7 @@ class PredictionCheck(Estimator):
     :class:`~udh_cli.mosaic.pairs.types.Acceptance` still judges them as it judges any other."""
 
     name: ClassVar[str] = "chain+ecc"
-    refiner: PyramidEcc = field(default_factory=one_ecc_level)
+    refiner: PyramidEcc = field(default_factory=cascade_ecc)
     min_score: float = CONFIRM_MIN_SCORE
 
     def _estimate(self, pair: PreparedPair) -> tuple[np.ndarray, float, dict]:

@@ -29,7 +29,7 @@ class LoopClosure:
         max_disagreement: a loop pair moving the corners further than this share of the diagonal from the
             prediction is rejected.
         huber_px: the rounds' solves' Huber width, pixels.
-        from_prediction: each pair is first confirmed from its prediction by one ECC level
+        from_prediction: each pair is first confirmed from its prediction by ECC
             (:mod:`udh_cli.mosaic.pairs.confirm`), and only those that fail run the whole cascade.
     """
 

@@ -65,7 +65,7 @@ def test_unrelated_images_are_never_confirmed():
     image_a, _ = warped_pair(np.eye(3), W, H, seed=13)
     _, image_b = warped_pair(np.eye(3), W, H, seed=14)
     estimate = PREDICTION_CHECK.estimate(image_a, image_b)
-    assert not estimate.ok and ("did not confirm" in estimate.failure or "ECC" in estimate.failure)
+    assert not estimate.ok and "chained prediction aligns too little" in estimate.failure  # no ECC spent on it
 
 
 def test_only_the_marked_pairs_start_from_the_prediction():

@@ -28,6 +28,10 @@ from udh_cli.estimators.verify import VERIFIER
 # this check stands between a cheap answer and the map (the loop's disagreement test cannot, since the answer
 # starts at the prediction it is tested against).
 CONFIRM_MIN_SCORE = Policy().min_score
+# A prediction that aligns the images this badly before any refinement is not a few pixels off: the cascade decides
+# at once. On copr's and brighton-beach's first 43 loop pairs every prediction ECC went on to confirm started at
+# 0.24 or more, and 13 of the 23 it did not confirm started below 0.2 (docs/mosaic.md).
+CONFIRM_MIN_START = 0.2
 # A confirmation refines a guess a few pixels off: a corner moved further than this share of A's diagonal means
 # ECC left the prediction's basin, and the cascade decides instead.
 CONFIRM_MAX_MOVE = 0.03
@@ -41,8 +45,9 @@ def cascade_ecc() -> PyramidEcc:
 @dataclass
 class PredictionCheck(Estimator):
     """Confirms that a pre-warped pair's prediction (the identity between its images) is right, refining it by
-    ``refiner``; raises :class:`EstimationFailed` (the pair then runs the whole cascade) when ECC diverges or
-    the aligned images score below ``min_score`` (:data:`~udh_cli.estimators.verify.VERIFIER`).
+    ``refiner``; raises :class:`EstimationFailed` (the pair then runs the whole cascade) when the prediction
+    scores below ``min_start``, when ECC diverges, or when the aligned images score below ``min_score``
+    (:data:`~udh_cli.estimators.verify.VERIFIER`).
 
     Its answers are ``verified`` by "alignment" with the score as their confidence, so the mosaic's
     :class:`~udh_cli.mosaic.pairs.types.Acceptance` still judges them as it judges any other."""
@@ -50,8 +55,12 @@ class PredictionCheck(Estimator):
     name: ClassVar[str] = "chain+ecc"
     refiner: PyramidEcc = field(default_factory=cascade_ecc)
     min_score: float = CONFIRM_MIN_SCORE
+    min_start: float = CONFIRM_MIN_START
 
     def _estimate(self, pair: PreparedPair) -> tuple[np.ndarray, float, dict]:
+        start = VERIFIER.score(pair.a, pair.b, np.eye(3))
+        if start < self.min_start:
+            raise EstimationFailed(f"the chained prediction aligns too little to refine (alignment {start:.2f} < {self.min_start})")
         refined, correlation = self.refiner.refine(pair.a, pair.b, np.eye(3))
         score = VERIFIER.score(pair.a, pair.b, refined)
         if score < self.min_score:

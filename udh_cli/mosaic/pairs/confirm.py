@@ -3,11 +3,11 @@
 A loop pair's B arrives pre-warped into A's frame by the chained prediction (:func:`.types.work_inputs`), so the
 prediction is the identity between the two working images. When ECC started there aligns them as well as
 :data:`CONFIRM_MIN_SCORE` asks, that answer is the pair's; otherwise the pair goes to the mosaic's opinions (the
-whole cascade) as if it had never been tried. Why: the chain already puts a loop pair within a few pixels, and
-the cascade (network, tile levels, ECC pyramid) spent half as much again on loop pairs as on consecutive ones.
-The refinement is the cascade's own (``auto``'s :class:`~udh_cli.estimators.refine.PyramidEcc`): from the
-prediction it lands where the cascade lands, while one ECC level at 240-320 px, although 2-5x cheaper, ended
-0.5-1 px from it (docs/mosaic.md, "Loop-closure pairs from the chain's prediction").
+whole cascade) as if it had never been tried. Why: the chain already puts most loop pairs within a few pixels,
+where the cascade's network and tile stages add time and nothing else. The refinement is the cascade's own
+(``auto``'s :class:`~udh_cli.estimators.refine.PyramidEcc`): from the prediction it lands where the cascade
+lands, where cheaper single ECC levels loosened the loops (docs/mosaic.md, "Loop-closure pairs from the
+chain's prediction", has the measurements).
 """
 
 from __future__ import annotations
@@ -28,9 +28,8 @@ from udh_cli.estimators.verify import VERIFIER
 # this check stands between a cheap answer and the map (the loop's disagreement test cannot, since the answer
 # starts at the prediction it is tested against).
 CONFIRM_MIN_SCORE = Policy().min_score
-# A prediction that aligns the images this badly before any refinement is not a few pixels off: the cascade decides
-# at once. On copr's and brighton-beach's first 43 loop pairs every prediction ECC went on to confirm started at
-# 0.24 or more, and 13 of the 23 it did not confirm started below 0.2 (docs/mosaic.md).
+# A prediction that aligns the images this badly before any refinement is not a few pixels off, and ECC from it
+# fails after spending its budget: the cascade decides at once (docs/mosaic.md).
 CONFIRM_MIN_START = 0.2
 # A confirmation refines a guess a few pixels off: a corner moved further than this share of A's diagonal means
 # ECC left the prediction's basin, and the cascade decides instead.

@@ -35,7 +35,7 @@ def test_fallback_rescues_a_failed_pair(flight, tmp_path):
     assert [e["method"] for e in pair["estimates"]] == ["failing", "sift"]
     assert pair["estimates"][0]["failure"] == "made to fail by the test"
     others = [p for p in report["pairs"] if (p["a"], p["b"]) != (2, 3) and p["status"] == "ok"]
-    assert all(p["method"] == "failing" for p in others)  # the fallback only ran where it was needed
+    assert all(p["method"] in ("failing", "chain+ecc") for p in others)  # the fallback only ran where it was needed
     assert max(primary.batches) > 1  # pairs reach the estimator in batches
     assert report["ground_truth_error"]["solved"]["max_corner_px"] < 3
 

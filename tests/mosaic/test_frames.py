@@ -77,8 +77,9 @@ class ShiftLoops(Estimator):
 
 def test_loop_closures_that_contradict_the_chain_are_rejected(tmp_path):
     paths = make_flight(tmp_path / "f", SMALL, seed=4)
-    # min_verified=0: the alignment check would catch these first; this test is about the chain's check.
-    config = MosaicConfig(overlap_per_frame=1, min_verified=0)
+    # min_verified=0: the alignment check would catch these first; this test is about the chain's check of the
+    # estimator's answers, so none is confirmed from the prediction instead.
+    config = MosaicConfig(overlap_per_frame=1, min_verified=0, confirm_loops=False)
     report = run_mosaic(tmp_path / "f", tmp_path / "m.png", config, estimator=ShiftLoops(work_fingerprints(paths)))
     loops = [p for p in report["pairs"] if p["kind"] == "overlap"]
     # Rejected against the chain, tried again from a solve with the accepted loop pairs (none), rejected again.
@@ -89,7 +90,7 @@ def test_loop_closures_that_contradict_the_chain_are_rejected(tmp_path):
 
 def test_loop_closures_rejected_against_the_chain_are_tried_again_from_the_solve(tmp_path):
     paths = make_flight(tmp_path / "f", SMALL, seed=4)
-    config = MosaicConfig(overlap_per_frame=1, min_verified=0)
+    config = MosaicConfig(overlap_per_frame=1, min_verified=0, confirm_loops=False)  # the estimator answers every loop pair
     first = run_mosaic(tmp_path / "f", tmp_path / "m.png", config, estimator=ShiftLoops(work_fingerprints(paths)))
     first_round = {(p["a"], p["b"]) for p in first["pairs"] if p["kind"] == "overlap"}
     # The first round's answers are all wrong and rejected; the later rounds' are right and kept, and the solve

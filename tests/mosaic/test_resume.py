@@ -21,8 +21,9 @@ from udh_cli.mosaic.pairs.cache import estimator_identity
 
 from mosaic_flights import SMALL, FailOn, make_flight, work_fingerprints
 
-# Batches of 3: the 7 consecutive pairs go as 3 + 3 + 1, then the loop-closure pairs, 3 at a time.
-CONFIG = MosaicConfig(batch_size=3, overlap_per_frame=2)
+# Batches of 3: the 7 consecutive pairs go as 3 + 3 + 1, then the loop-closure pairs, 3 at a time. Every loop pair
+# runs the estimator (no confirming from the prediction), so that its calls count the pairs estimated.
+CONFIG = MosaicConfig(batch_size=3, overlap_per_frame=2, confirm_loops=False)
 
 
 class Interrupted(FailOn):
@@ -126,7 +127,7 @@ def test_pairs_that_no_longer_match_are_estimated_again(flight, uninterrupted, t
 
     # Another confidence threshold changes every key.
     counted = Interrupted(prints)
-    report = run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, min_confidence=0.25), estimator=counted, resume=True)
+    report = run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, confirm_loops=False, min_confidence=0.25), estimator=counted, resume=True)
     # Every pair is estimated (loop closure's later rounds may estimate a pair once more, or add one).
     assert report["summary"]["pairs_from_cache"] == 0 and len(counted.calls) >= len(report["pairs"]) >= len(uninterrupted["pairs"]) - 1
 
@@ -136,7 +137,7 @@ def test_pairs_that_no_longer_match_are_estimated_again(flight, uninterrupted, t
     new_prints = work_fingerprints(sorted(work.glob("frame_*.jpg")))
     assert new_prints[6] != prints[6] and new_prints[:6] == prints[:6]
     counted = Interrupted(new_prints)
-    report = run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, min_confidence=0.25), estimator=counted, resume=True)
+    report = run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, confirm_loops=False, min_confidence=0.25), estimator=counted, resume=True)
     assert [c for c in counted.calls if None not in c] == [(5, 6), (6, 7)]
     assert report["summary"]["pairs_from_cache"] >= 5
 
@@ -146,8 +147,27 @@ def test_pairs_that_no_longer_match_are_estimated_again(flight, uninterrupted, t
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(pair_cache, "ACCEPTANCE_REVISION", pair_cache.ACCEPTANCE_REVISION + 1)
         counted = Interrupted(new_prints)
-        report = run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, min_confidence=0.25), estimator=counted, resume=True)
+        report = run_mosaic(work, out, MosaicConfig(batch_size=3, overlap_per_frame=2, confirm_loops=False, min_confidence=0.25), estimator=counted, resume=True)
         assert report["summary"]["pairs_from_cache"] == 0 and len(counted.calls) >= len(report["pairs"])
+
+
+def test_resume_takes_the_loop_pairs_confirmed_from_the_prediction_as_they_were(flight, tmp_path):
+    """The cache records which path answered a loop pair: a resumed run takes the cheap answers as they were,
+    asks the estimator about nothing, and draws the same map."""
+    folder, prints = flight
+    out, config = tmp_path / "m.png", MosaicConfig(batch_size=3, overlap_per_frame=2)
+    first = Interrupted(prints)
+    report = run_mosaic(folder, out, config, estimator=first, resume=True)
+    loops = [p for p in report["pairs"] if p["kind"] == "overlap"]
+    confirmed = [p for p in loops if p["method"] == "chain+ecc"]
+    assert len(confirmed) >= len(loops) - 1 >= 5 and all(p["status"] == "ok" for p in confirmed)
+    assert len(first.calls) == len(report["pairs"]) - len(confirmed)  # the cascade ran only on the others
+    assert sum(record["method"] == "chain+ecc" for record in cached_pairs(out)) == len(confirmed)
+    again = Interrupted(prints)
+    resumed = run_mosaic(folder, out, config, estimator=again, resume=True)
+    assert again.calls == [] and resumed["summary"]["pairs_from_cache"] == len(report["pairs"])
+    assert_same_geometry(resumed, report)
+    assert [p["method"] for p in resumed["pairs"]] == [p["method"] for p in report["pairs"]]
 
 
 @dataclass

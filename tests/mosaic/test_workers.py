@@ -44,6 +44,8 @@ def assert_same_pairs(report: dict, reference: dict) -> None:
 def test_a_pool_of_two_processes_gives_the_same_homographies(flight, local, tmp_path):
     report = run_mosaic(flight, tmp_path / "m.png", MosaicConfig(method="auto", batch_size=4, workers=2))
     assert_same_pairs(report, local)
+    assert [p["method"] for p in report["pairs"]] == [p["method"] for p in local["pairs"]]
+    assert any(p["method"] == "chain+ecc" for p in local["pairs"])  # loop pairs confirmed from the prediction, in the workers too
     assert report["summary"]["placed"] == report["summary"]["frames"]
 
 
@@ -56,8 +58,9 @@ def test_a_dask_cluster_of_two_workers_gives_the_same_homographies(flight, local
 
 
 def test_a_pool_runs_the_fallback_inside_the_same_job_and_matches_this_process(flight, tmp_path):
-    """ORB with a strict confidence floor leaves pairs doubted; SIFT answers them in the worker, as here."""
-    config = MosaicConfig(method="orb", fallback="sift", min_confidence=0.6, batch_size=4, overlap_per_frame=1)
+    """ORB with a strict confidence floor leaves pairs doubted; SIFT answers them in the worker, as here (every loop
+    pair asks ORB, none is confirmed from its prediction)."""
+    config = MosaicConfig(method="orb", fallback="sift", min_confidence=0.6, batch_size=4, overlap_per_frame=1, confirm_loops=False)
     here = run_mosaic(flight, tmp_path / "here.png", config)
     pooled = run_mosaic(flight, tmp_path / "pool.png", MosaicConfig(**{**config.__dict__, "workers": 2}))
     assert sum(len(p["estimates"]) == 2 for p in here["pairs"]) >= 1  # the fallback ran

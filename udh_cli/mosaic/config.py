@@ -40,6 +40,9 @@ class MosaicConfig:
         overlap_min: non-consecutive frames whose chained footprints overlap by this share of the smaller
             frame are estimated too (loop closure).
         overlap_per_frame: at most this many loop-closure partners per frame (bounds the work).
+        confirm_loops: each loop-closure pair is first confirmed from the chain's prediction by ECC (the cascade's pyramid) and
+            the photometric check (:mod:`.pairs.confirm`); only the pairs that fail it run ``method``'s whole
+            cascade. False: every loop pair runs the cascade.
         gps_pairs: when the frames carry GPS and the run splits, at most this many pairs between each two
             parts that GPS puts close together are estimated (:mod:`.solve.bridges`); 0: off. Off by default:
             joining a long flight's parts can chain homographies further than one plane per frame holds
@@ -76,6 +79,7 @@ class MosaicConfig:
     min_verified: float = Acceptance.min_verified
     overlap_min: float = 0.3
     overlap_per_frame: int = 3
+    confirm_loops: bool = True
     gps_pairs: int = 0
     gps_sigma_m: float = 0.0
     gcp_sigma_m: float = 0.0
@@ -99,7 +103,7 @@ class MosaicConfig:
     solve: str = "homography"
 
     def loop_closure(self) -> LoopClosure:
-        return LoopClosure(self.overlap_min, self.overlap_per_frame, self.max_disagreement, self.huber_px)
+        return LoopClosure(self.overlap_min, self.overlap_per_frame, self.max_disagreement, self.huber_px, self.confirm_loops)
 
     def global_solve(self) -> GlobalSolve:
         return GlobalSolve(self.solve, self.huber_px, self.outlier_px, self.rectify, self.max_frame_scale)

@@ -11,7 +11,8 @@ A pair's key covers everything its estimate depends on:
 - the opinions (the method, then the fallback): registry name, settings and the size and modification time
   of any model file among them, so a retrained model is a different method;
 - the acceptance thresholds (they decide which estimates are accepted and when the next opinion is asked);
-- for pre-warped loop-closure pairs, the prior (the chained prediction B is warped with), exactly.
+- for pre-warped loop-closure pairs, the prior (the chained prediction B is warped with), exactly, and whether it
+  was first confirmed as it is (:mod:`.confirm`; the record's ``method`` then says which path answered).
 """
 
 from __future__ import annotations
@@ -120,7 +121,8 @@ class PairCache:
         prior = None
         if request.prior is not None:
             prior = hashlib.sha1(np.ascontiguousarray(request.prior, dtype=np.float64).tobytes()).hexdigest()
-        content = {**self.context, "a": self._frame(request.a), "b": self._frame(request.b), "prior": prior}
+        content = {**self.context, "a": self._frame(request.a), "b": self._frame(request.b), "prior": prior,
+                   "from_prediction": request.from_prediction}
         return hashlib.sha1(json.dumps(content, sort_keys=True).encode()).hexdigest()
 
     def lookup(self, request: PairRequest) -> PairResult | None:

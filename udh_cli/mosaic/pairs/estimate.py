@@ -61,7 +61,7 @@ def estimate_pairs(
             def submit():
                 for i in batch:
                     inputs[i] = work_inputs(requests[i], frames)
-                return runner.submit([inputs[i][:2] for i in batch])
+                return runner.submit([inputs[i][:2] for i in batch], [requests[i].from_prediction for i in batch])
             return submit
 
         for index, future in in_order([job(b) for b in batches], window=runner.window):

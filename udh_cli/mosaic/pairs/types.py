@@ -21,8 +21,9 @@ from udh_cli.mosaic.inputs.frames import Frame
 
 # The revision of what makes a pair accepted: these rules, and what an estimator calls confirmed (the tile
 # stage's CONFIRMING_LEVELS). A pair cache records it, so that --resume never reuses decisions made under other
-# rules. 2 (2026-11-25): answers their method marks unconfirmed are doubted, and two tile levels confirm.
-ACCEPTANCE_REVISION = 2
+# rules. 2: answers their method marks unconfirmed are doubted, and two tile levels confirm. 3: loop pairs are
+# first confirmed from the chain's prediction (confirm.py's settings).
+ACCEPTANCE_REVISION = 3
 
 
 @dataclass(frozen=True)
@@ -79,13 +80,15 @@ class PairRequest:
 
     ``prior`` is a full-resolution ``b_from_a`` predicted by chaining (overlap pairs): B is then warped
     into A's frame first and only the residual is estimated, so that methods with a small capture range
-    (the learned ones) can close loops between frames far apart in the sequence.
+    (the learned ones) can close loops between frames far apart in the sequence. With ``from_prediction`` the
+    prior is first confirmed and refined cheaply (:mod:`.confirm`), and the opinions run only if that fails.
     """
 
     a: int
     b: int
     kind: str
     prior: np.ndarray | None = None
+    from_prediction: bool = False
 
 
 @dataclass(frozen=True)

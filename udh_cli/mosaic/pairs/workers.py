@@ -62,14 +62,21 @@ def judge_batch(method: Estimator, acceptance, pairs: Sequence[PreparedPair]) ->
     return out
 
 
-def judge_opinions(opinions: Sequence[Estimator], acceptance, pairs: Sequence[ImagePair]) -> list[Attempts]:
+def judge_opinions(opinions: Sequence[Estimator], acceptance, pairs: Sequence[ImagePair],
+                   from_prediction: Sequence[bool] | None = None) -> list[Attempts]:
     """One job: the first opinion on every pair, then each next one on the pairs every earlier one left doubted.
     All in the same job, so that a doubted batch never waits in the queue behind other batches for its second
     opinion. Each pair is prepared once (:mod:`udh_cli.estimators.pair`) for every opinion and the acceptance
-    test."""
+    test. The pairs marked in ``from_prediction`` (pre-warped loop pairs) are first confirmed from the prediction
+    (:mod:`.confirm`), and ask the opinions only when that is doubted."""
+    from udh_cli.mosaic.pairs.confirm import PREDICTION_CHECK  # here: the cascade's modules load when a job runs, not on import
+
     pairs = [PreparedPair.of(a, b) for a, b in pairs]
     out: list[Attempts] = [[] for _ in pairs]
-    doubted = list(range(len(pairs)))
+    confirming = [i for i, marked in enumerate(from_prediction or []) if marked]
+    for i, judged in zip(confirming, judge_batch(PREDICTION_CHECK, acceptance, [pairs[i] for i in confirming])):
+        out[i].append(judged)
+    doubted = [i for i in range(len(pairs)) if not out[i] or out[i][-1][2] is not None]
     for opinion in opinions:
         if not doubted:
             break
@@ -124,9 +131,9 @@ def _worker_estimators(spec: EstimatorSpec) -> tuple[Estimator, ...]:
         return _WORKER_ESTIMATORS[key]
 
 
-def judge_on_worker(spec: EstimatorSpec, pairs: Sequence[ImagePair]) -> list[Attempts]:
+def judge_on_worker(spec: EstimatorSpec, pairs: Sequence[ImagePair], from_prediction: Sequence[bool] | None = None) -> list[Attempts]:
     """A worker's job: :func:`judge_opinions` with the spec's estimators."""
-    return judge_opinions(_worker_estimators(spec), spec.acceptance, list(pairs))
+    return judge_opinions(_worker_estimators(spec), spec.acceptance, list(pairs), from_prediction)
 
 
 def _ignore_interrupts() -> None:
@@ -142,9 +149,9 @@ class LocalRunner:
     def __init__(self, opinions: Sequence[Estimator], acceptance):
         self.opinions, self.acceptance = tuple(opinions), acceptance
 
-    def submit(self, pairs: Sequence[ImagePair]) -> Future:
+    def submit(self, pairs: Sequence[ImagePair], from_prediction: Sequence[bool] | None = None) -> Future:
         done: Future = Future()
-        done.set_result(judge_opinions(self.opinions, self.acceptance, pairs))
+        done.set_result(judge_opinions(self.opinions, self.acceptance, pairs, from_prediction))
         return done
 
     def result(self, future: Future) -> list[Attempts]:
@@ -195,8 +202,8 @@ class PoolRunner:
         # spawn, not fork: a forked onnxruntime or OpenCV thread pool can hang its child.
         self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_ignore_interrupts)
 
-    def submit(self, pairs: Sequence[ImagePair]) -> Future:
-        return self.pool.submit(judge_on_worker, self.spec, list(pairs))
+    def submit(self, pairs: Sequence[ImagePair], from_prediction: Sequence[bool] | None = None) -> Future:
+        return self.pool.submit(judge_on_worker, self.spec, list(pairs), from_prediction)
 
     def result(self, future: Future) -> list[Attempts]:
         from concurrent.futures.process import BrokenProcessPool
@@ -229,10 +236,10 @@ class DaskRunner:
         self.spec = _single_threaded(spec)
         self.window = 2 * max(1, sum(self.client.nthreads().values()))
 
-    def submit(self, pairs: Sequence[ImagePair]) -> Future:
+    def submit(self, pairs: Sequence[ImagePair], from_prediction: Sequence[bool] | None = None) -> Future:
         # The images go straight to a worker, not into the task graph through the scheduler.
         images = self.client.scatter(list(pairs), direct=True)
-        return self.client.submit(judge_on_worker, self.spec, images, pure=False)
+        return self.client.submit(judge_on_worker, self.spec, images, from_prediction, pure=False)
 
     def result(self, future: Future) -> list[Attempts]:
         try:

@@ -29,12 +29,15 @@ class LoopClosure:
         max_disagreement: a loop pair moving the corners further than this share of the diagonal from the
             prediction is rejected.
         huber_px: the rounds' solves' Huber width, pixels.
+        from_prediction: each pair is first confirmed from its prediction by ECC
+            (:mod:`udh_cli.mosaic.pairs.confirm`), and only those that fail run the whole cascade.
     """
 
     overlap_min: float
     overlap_per_frame: int
     max_disagreement: float
     huber_px: float
+    from_prediction: bool = True
 
 
 # Rounds of loop closure at most (fewer when a round accepts nothing new). After each, the pairs are solved
@@ -65,7 +68,7 @@ def close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], 
             for a, b in wanted.get(k, []):
                 requested.append((a, b))
                 prior = geometry.invert(part.solved[b]) @ part.solved[a]
-                requests.append(PairRequest(a, b, "overlap", prior / prior[2, 2]))
+                requests.append(PairRequest(a, b, "overlap", prior / prior[2, 2], settings.from_prediction))
         if not requests:
             break
         stage = "loop-closure pairs" if round_number == 0 else f"loop-closure pairs again, from the solve ({round_number + 1})"

@@ -41,6 +41,10 @@ TILE_SIDE = 2048  # canvas pixels per tile side; a canvas that fits in one tile 
 TILE_MARGIN = {"feather": 0, "none": 0, "multiband": 256}
 # A streamed canvas costs no memory, but one this large (64k x 64k) comes from a homography gone astray, not a survey.
 MAX_STREAMED_PIXELS = 2**32
+# Canvas pixels of a frame fed to the multiband blender beyond those it owns: its bands reach as far as a tile's
+# margin does, so the frame cut there blends as the whole frame does, within 1 grey level (tests/mosaic/test_composite.py).
+FEED_MARGIN = TILE_MARGIN["multiband"]
+TRUNCATE = 0.498  # subtracted before rounding, so that rounding truncates; under 0.5, so that whole values stay
 DECODED_CACHE_BYTES = 256 * 2**20  # decoded full-resolution frames kept for the next tiles that need them
 
 
@@ -268,8 +272,8 @@ def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int,
             if seams is not None:  # the seam mask first; centrality (weights below 1) only where no mask holds the pixel
                 weight += 2.0 * seams.in_box(i, boxes[i]) * (weight > 0)
             better = weight > best[y0:y1, x0:x1]
-            best[y0:y1, x0:x1][better] = weight[better]
-            labels[y0:y1, x0:x1][better] = i
+            np.copyto(best[y0:y1, x0:x1], weight, where=better)  # copyto: no copies of the selected pixels
+            np.copyto(labels[y0:y1, x0:x1], i, where=better)
         del best
     if blend == "feather":
         total = np.zeros((height, width, 3), np.float32)
@@ -283,6 +287,10 @@ def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int,
     for i, image in decoded.get(list(local)):
         box = local[i]
         x0, y0, x1, y1 = box
+        if blend == "multiband":
+            fed += _feed(blender, image, to_region[i], box, labels[y0:y1, x0:x1] == i, gains[i] if gains is not None else None)
+            advance(1)
+            continue
         # Warped as uint8, then made float: a quarter of the memory traffic of converting the whole frame first.
         warped = _warp(image, to_region[i], box).astype(np.float32)
         if gains is not None:
@@ -293,12 +301,8 @@ def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int,
             weight_sum[y0:y1, x0:x1] += weight
         else:
             owned = labels[y0:y1, x0:x1] == i
-            if blend == "none":
-                out[y0:y1, x0:x1, :3][owned] = np.clip(warped[owned] + 0.5, 0, 255).astype(np.uint8)
-                out[y0:y1, x0:x1, 3][owned] = 255
-            elif owned.any():
-                blender.feed(np.clip(warped, 0, 255).astype(np.int16), owned.astype(np.uint8) * 255, (x0, y0))
-                fed += 1
+            out[y0:y1, x0:x1, :3][owned] = np.clip(warped[owned] + 0.5, 0, 255).astype(np.uint8)
+            out[y0:y1, x0:x1, 3][owned] = 255
         advance(1)
     if blend == "feather":
         out = np.zeros((height, width, 4), np.uint8)
@@ -317,6 +321,40 @@ def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int,
             out[..., :3] = np.clip(result, 0, 255).astype(np.uint8)
             out[..., 3] = np.where(mask > 0, 255, 0).astype(np.uint8)
     return out
+
+
+def _feed(blender, image: np.ndarray, region_from_frame: np.ndarray, box: tuple[int, int, int, int], owned: np.ndarray,
+          gain: np.ndarray | None) -> int:
+    """Feed the part of a frame that matters to the multiband ``blender``: the bounding box of the pixels it owns
+    (``owned``, (h, w) bool over its region ``box``) widened by :data:`FEED_MARGIN`, warped from ``image``
+    (H, W, 3) BGR uint8 by ``region_from_frame`` (3, 3) and scaled by its ``gain`` (:mod:`.gains`). Returns 1 if
+    fed, 0 when it owns nothing. (Feeding a slanted strip in pieces was tried: the margins overlap, so it fed more
+    pixels, and the blender's int16 sums round once per piece.)"""
+    owned_u8 = owned.view(np.uint8)
+    left, top, width, height = cv2.boundingRect(owned_u8)
+    if width == 0:
+        return 0
+    bx0, by0, bx1, by1 = box
+    # Box-relative corners of what is fed.
+    fx0, fy0 = max(0, left - FEED_MARGIN), max(0, top - FEED_MARGIN)
+    fx1, fy1 = min(bx1 - bx0, left + width + FEED_MARGIN), min(by1 - by0, top + height + FEED_MARGIN)
+    fed_box = (bx0 + fx0, by0 + fy0, bx0 + fx1, by0 + fy1)
+    scaled = _scaled(_warp(image, region_from_frame, fed_box), gain, box, (fx0, fy0, fx1, fy1))
+    blender.feed(scaled, owned_u8[fy0:fy1, fx0:fx1] * np.uint8(255), fed_box[:2])
+    return 1
+
+
+def _scaled(warped: np.ndarray, gain: np.ndarray | None, box: tuple[int, int, int, int], cut: tuple[int, int, int, int]) -> np.ndarray:
+    """(h, w, 3) uint8 warped pixels times their ``gain`` as the blender takes them: int16 in 0-255, truncated as
+    :func:`.gains.apply_gain` followed by a cast truncates. A gain map is stretched over the frame's whole canvas
+    ``box`` (x0, y0, x1, y1), then ``cut`` to the box-relative (x0, y0, x1, y1) of ``warped``."""
+    if gain is None:
+        return warped.astype(np.int16)
+    if gain.ndim == 1:  # cv2.transform rounds and saturates at 255: rounding x - TRUNCATE truncates x
+        return cv2.transform(warped, np.hstack([np.diag(gain), np.full((3, 1), -TRUNCATE)])).astype(np.int16)
+    x0, y0, x1, y1 = cut
+    gain_map = cv2.resize(gain.astype(np.float32), (box[2] - box[0], box[3] - box[1]), interpolation=cv2.INTER_LINEAR)[y0:y1, x0:x1]
+    return np.clip(warped * gain_map, 0, 255).astype(np.int16)
 
 
 PREVIEW_SIDE = 1200  # longest side of a mosaic's preview, pixels

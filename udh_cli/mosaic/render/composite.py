@@ -265,12 +265,12 @@ def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int,
     labels = None
     if blend != "feather":  # seams: the frame with the highest weight owns the pixel
         best = np.zeros((height, width), np.float32)
-        labels = np.full((height, width), -1, np.int32)
+        labels = np.full((height, width), -1, np.int16 if max(local, default=0) < 2**15 else np.int32)  # int16: half the traffic
         for i, box in local.items():
             x0, y0, x1, y1 = box
             weight = _warp(weights[sizes[i]], to_region[i], box)
             if seams is not None:  # the seam mask first; centrality (weights below 1) only where no mask holds the pixel
-                weight += 2.0 * seams.in_box(i, boxes[i]) * (weight > 0)
+                np.add(weight, 2.0, out=weight, where=seams.in_box(i, boxes[i]) & (weight > 0))
             better = weight > best[y0:y1, x0:x1]
             np.copyto(best[y0:y1, x0:x1], weight, where=better)  # copyto: no copies of the selected pixels
             np.copyto(labels[y0:y1, x0:x1], i, where=better)

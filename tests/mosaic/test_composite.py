@@ -58,11 +58,18 @@ def test_tiles_blended_in_threads_are_the_same_tiles_in_the_same_order(small_fli
     import udh_cli.mosaic.render.composite as composite_module
 
     one = list(composite_tiles(frames, to_ground, size, blend, Reporter(quiet=True), tile_side=96))
-    threads = set()
+    threads, caches = set(), set()
     real = composite_module._blend_region
-    monkeypatch.setattr(composite_module, "_blend_region", lambda *args: threads.add(threading.current_thread().name) or real(*args))
+
+    def blend_region(decoded, *args):
+        threads.add(threading.current_thread().name)
+        caches.add(id(decoded))
+        return real(decoded, *args)
+
+    monkeypatch.setattr(composite_module, "_blend_region", blend_region)
     three = list(composite_tiles(frames, to_ground, size, blend, Reporter(quiet=True), tile_side=96, workers=3))
     assert len(threads) == 3 and all(name.startswith("udh-composite") for name in threads)
+    assert len(caches) == 1  # one decoded-frame cache for all threads: a frame two tiles need is decoded once
     assert len(three) == len(one) > 20
     assert [box for box, _ in three] == [box for box, _ in one]
     assert all((a == b).all() for (_, a), (_, b) in zip(one, three))

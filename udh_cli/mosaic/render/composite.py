@@ -171,16 +171,14 @@ def composite_tiles(
         region = (max(0, tx0 - margin), max(0, ty0 - margin), min(width, tx1 + margin), min(height, ty1 + margin))
         plan.append(((tx0, ty0, tx1, ty1), region, {i: box for i, roi in rois.items() if (box := _intersect(roi, region)) is not None}))
     workers = max(1, min(workers, len(plan)))
-    own_frames = threading.local()  # a decoded-frame cache per thread: it is not shared between them
+    decoded = _DecodedFrames(frames)  # shared by the threads: neighbouring tiles, blended at once, need the same frames
 
     # The progress counts frames blended into tiles, so that a canvas of one tile still shows its progress.
     with reporter.stage("compositing", sum(len(inside) for _, _, inside in plan), label) as advance:
 
         def blend_tile(step):
             (tx0, ty0, tx1, ty1), region, inside = step
-            if not hasattr(own_frames, "decoded"):
-                own_frames.decoded = _DecodedFrames(frames, DECODED_CACHE_BYTES // workers)
-            blended = _blend_region(own_frames.decoded, inside, mosaic_from_frame, region, blend, weights, sizes, gains, seams, advance)
+            blended = _blend_region(decoded, inside, mosaic_from_frame, region, blend, weights, sizes, gains, seams, advance)
             rx0, ry0 = region[:2]
             return (tx0, ty0, tx1, ty1), np.ascontiguousarray(blended[ty0 - ry0 : ty1 - ry0, tx0 - rx0 : tx1 - rx0])
 
@@ -215,18 +213,21 @@ def assemble(tiles: Iterable[tuple[tuple[int, int, int, int], np.ndarray]], canv
 
 class _DecodedFrames:
     """Full-resolution frames as :meth:`FrameSet.full_images` gives them, the most recently used kept up to
-    ``budget_bytes`` (0: :data:`DECODED_CACHE_BYTES`): a frame reaching several tiles is mostly decoded once."""
+    ``budget_bytes`` (0: :data:`DECODED_CACHE_BYTES`): a frame reaching several tiles is mostly decoded once.
+    Threads may share it: the frames are decoded outside its lock, so two threads may rarely decode one frame."""
 
     def __init__(self, frames: FrameSet, budget_bytes: int = 0) -> None:
         self.frames = frames
         self.budget_bytes = budget_bytes or DECODED_CACHE_BYTES
         self.kept: OrderedDict[int, np.ndarray] = OrderedDict()
         self.kept_bytes = 0
+        self.lock = threading.Lock()
 
     def get(self, indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
         """``(index, (H, W, 3) BGR uint8)`` for ``indices``, in sequence order; the frames not kept are decoded one
         at a time as they are reached."""
-        kept = {i: self.kept[i] for i in set(indices) if i in self.kept}  # decided once: the loop below evicts
+        with self.lock:  # decided once: the loop below evicts
+            kept = {i: self.kept[i] for i in set(indices) if i in self.kept}
         fresh = self.frames.full_images(sorted(set(indices) - set(kept)))  # yields in sequence order too
         for i in sorted(set(indices)):
             if i in kept:
@@ -235,12 +236,13 @@ class _DecodedFrames:
                 index, image = next(fresh)
                 if index != i:
                     raise UdhError(f"frame {i} was expected from the reader, frame {index} came; this is a bug in udh, please report it")
-            if i not in self.kept:
-                self.kept_bytes += image.nbytes
-            self.kept[i] = image
-            self.kept.move_to_end(i)
-            while len(self.kept) > 1 and self.kept_bytes > self.budget_bytes:
-                self.kept_bytes -= self.kept.popitem(last=False)[1].nbytes
+            with self.lock:
+                if i not in self.kept:
+                    self.kept_bytes += image.nbytes
+                    self.kept[i] = image
+                self.kept.move_to_end(i)
+                while len(self.kept) > 1 and self.kept_bytes > self.budget_bytes:
+                    self.kept_bytes -= self.kept.popitem(last=False)[1].nbytes
             yield i, image
 
 

@@ -76,11 +76,11 @@ def test_tiles_blended_in_threads_are_the_same_tiles_in_the_same_order(small_fli
 
 
 def test_frames_evicted_from_the_decoded_cache_are_read_again(small_flight, monkeypatch):
-    import udh_cli.mosaic.render.composite as composite_module
+    import udh_cli.mosaic.render.decoded as decoded_module
 
     frames, to_ground, size = _true_placement(small_flight)
     whole = composite(frames, to_ground, size, "feather", Reporter(quiet=True))
-    monkeypatch.setattr(composite_module, "DECODED_CACHE_BYTES", 320 * 240 * 3 * 2)  # two frames: evictions mid-tile
+    monkeypatch.setattr(decoded_module, "DECODED_CACHE_BYTES", 320 * 240 * 3 * 2)  # two frames: evictions mid-tile
     tiled = composite(frames, to_ground, size, "feather", Reporter(quiet=True), tile_side=96)
     assert np.abs(tiled.astype(int) - whole.astype(int)).max() <= 1
 

@@ -10,8 +10,7 @@ map's area: :func:`composite_tiles` yields the tiles for a writer that streams t
 from __future__ import annotations
 
 import math
-import threading
-from collections import OrderedDict, deque
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Iterable, Iterator, Sequence
@@ -22,6 +21,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.mosaic.inputs.frames import FrameSet
+from udh_cli.mosaic.render.decoded import DecodedFrames
 from udh_cli.mosaic.render.gains import apply_gain
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.render.seams import Seams
@@ -45,7 +45,6 @@ MAX_STREAMED_PIXELS = 2**32
 # margin does, so the frame cut there blends as the whole frame does, within 1 grey level (tests/mosaic/test_composite.py).
 FEED_MARGIN = TILE_MARGIN["multiband"]
 TRUNCATE = 0.498  # subtracted before rounding, so that rounding truncates; under 0.5, so that whole values stay
-DECODED_CACHE_BYTES = 256 * 2**20  # decoded full-resolution frames kept for the next tiles that need them
 
 
 @dataclass(frozen=True)
@@ -136,6 +135,7 @@ def composite_tiles(
     seams: Seams | None = None,
     tile_side: int | None = None,
     workers: int = 1,
+    decoded: DecodedFrames | None = None,
 ) -> Iterator[tuple[tuple[int, int, int, int], np.ndarray]]:
     """Warp and blend the frames of one part, tile by tile: yields ``((x0, y0, x1, y1), (h, w, 4) BGRA uint8)``
     per canvas tile in row-major order; alpha 255 where covered.
@@ -148,7 +148,8 @@ def composite_tiles(
     centre. Every rule is per pixel except multiband's, which each tile blends with :data:`TILE_MARGIN` more
     canvas around it. ``label`` names the progress bar (the time adds up under "compositing"); ``tile_side``:
     canvas pixels per tile side (None: :data:`TILE_SIDE`); ``workers``: tiles blended at once, in threads
-    (OpenCV's warps and blender release the GIL), at most that many held beyond the one yielded.
+    (OpenCV's warps and blender release the GIL), at most that many held beyond the one yielded; ``decoded``:
+    full-resolution frames already decoded (:mod:`.decoded`, e.g. by :func:`.small.draw_small`; none: a new cache).
     """
     if blend not in BLENDS:
         raise UdhError(f"unknown blend '{blend}'; choose one of: {', '.join(BLENDS)}")
@@ -171,7 +172,7 @@ def composite_tiles(
         region = (max(0, tx0 - margin), max(0, ty0 - margin), min(width, tx1 + margin), min(height, ty1 + margin))
         plan.append(((tx0, ty0, tx1, ty1), region, {i: box for i, roi in rois.items() if (box := _intersect(roi, region)) is not None}))
     workers = max(1, min(workers, len(plan)))
-    decoded = _DecodedFrames(frames)  # shared by the threads: neighbouring tiles, blended at once, need the same frames
+    decoded = decoded or DecodedFrames(frames)  # shared by the threads: neighbouring tiles, blended at once, need the same frames
 
     # The progress counts frames blended into tiles, so that a canvas of one tile still shows its progress.
     with reporter.stage("compositing", sum(len(inside) for _, _, inside in plan), label) as advance:
@@ -211,47 +212,12 @@ def assemble(tiles: Iterable[tuple[tuple[int, int, int, int], np.ndarray]], canv
     return out
 
 
-class _DecodedFrames:
-    """Full-resolution frames as :meth:`FrameSet.full_images` gives them, the most recently used kept up to
-    ``budget_bytes`` (0: :data:`DECODED_CACHE_BYTES`): a frame reaching several tiles is mostly decoded once.
-    Threads may share it: the frames are decoded outside its lock, so two threads may rarely decode one frame."""
-
-    def __init__(self, frames: FrameSet, budget_bytes: int = 0) -> None:
-        self.frames = frames
-        self.budget_bytes = budget_bytes or DECODED_CACHE_BYTES
-        self.kept: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.kept_bytes = 0
-        self.lock = threading.Lock()
-
-    def get(self, indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
-        """``(index, (H, W, 3) BGR uint8)`` for ``indices``, in sequence order; the frames not kept are decoded one
-        at a time as they are reached."""
-        with self.lock:  # decided once: the loop below evicts
-            kept = {i: self.kept[i] for i in set(indices) if i in self.kept}
-        fresh = self.frames.full_images(sorted(set(indices) - set(kept)))  # yields in sequence order too
-        for i in sorted(set(indices)):
-            if i in kept:
-                image = kept[i]
-            else:
-                index, image = next(fresh)
-                if index != i:
-                    raise UdhError(f"frame {i} was expected from the reader, frame {index} came; this is a bug in udh, please report it")
-            with self.lock:
-                if i not in self.kept:
-                    self.kept_bytes += image.nbytes
-                    self.kept[i] = image
-                self.kept.move_to_end(i)
-                while len(self.kept) > 1 and self.kept_bytes > self.budget_bytes:
-                    self.kept_bytes -= self.kept.popitem(last=False)[1].nbytes
-            yield i, image
-
-
 def _intersect(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int] | None:
     x0, y0, x1, y1 = max(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), min(a[3], b[3])
     return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
 
 
-def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int, int]], mosaic_from_frame: dict[int, np.ndarray],
+def _blend_region(decoded: DecodedFrames, boxes: dict[int, tuple[int, int, int, int]], mosaic_from_frame: dict[int, np.ndarray],
                   region: tuple[int, int, int, int], blend: str, weights: dict[tuple[int, int], np.ndarray],
                   sizes: dict[int, tuple[int, int]], gains: dict[int, np.ndarray] | None, seams: Seams | None,
                   advance=lambda n=1: None) -> np.ndarray:

@@ -172,7 +172,7 @@ def composite_tiles(
         region = (max(0, tx0 - margin), max(0, ty0 - margin), min(width, tx1 + margin), min(height, ty1 + margin))
         plan.append(((tx0, ty0, tx1, ty1), region, {i: box for i, roi in rois.items() if (box := _intersect(roi, region)) is not None}))
     workers = max(1, min(workers, len(plan)))
-    decoded = decoded or DecodedFrames(frames)  # shared by the threads: neighbouring tiles, blended at once, need the same frames
+    decoded = DecodedFrames(frames) if decoded is None else decoded  # shared by the threads: neighbouring tiles, blended at once, need the same frames
 
     # The progress counts frames blended into tiles, so that a canvas of one tile still shows its progress.
     with reporter.stage("compositing", sum(len(inside) for _, _, inside in plan), label) as advance:

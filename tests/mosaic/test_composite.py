@@ -58,22 +58,29 @@ def test_tiles_blended_in_threads_are_the_same_tiles_in_the_same_order(small_fli
     import udh_cli.mosaic.render.composite as composite_module
 
     one = list(composite_tiles(frames, to_ground, size, blend, Reporter(quiet=True), tile_side=96))
-    threads = set()
+    threads, caches = set(), set()
     real = composite_module._blend_region
-    monkeypatch.setattr(composite_module, "_blend_region", lambda *args: threads.add(threading.current_thread().name) or real(*args))
+
+    def blend_region(decoded, *args):
+        threads.add(threading.current_thread().name)
+        caches.add(id(decoded))
+        return real(decoded, *args)
+
+    monkeypatch.setattr(composite_module, "_blend_region", blend_region)
     three = list(composite_tiles(frames, to_ground, size, blend, Reporter(quiet=True), tile_side=96, workers=3))
     assert len(threads) == 3 and all(name.startswith("udh-composite") for name in threads)
+    assert len(caches) == 1  # one decoded-frame cache for all threads: a frame two tiles need is decoded once
     assert len(three) == len(one) > 20
     assert [box for box, _ in three] == [box for box, _ in one]
     assert all((a == b).all() for (_, a), (_, b) in zip(one, three))
 
 
 def test_frames_evicted_from_the_decoded_cache_are_read_again(small_flight, monkeypatch):
-    import udh_cli.mosaic.render.composite as composite_module
+    import udh_cli.mosaic.render.decoded as decoded_module
 
     frames, to_ground, size = _true_placement(small_flight)
     whole = composite(frames, to_ground, size, "feather", Reporter(quiet=True))
-    monkeypatch.setattr(composite_module, "DECODED_CACHE_BYTES", 320 * 240 * 3 * 2)  # two frames: evictions mid-tile
+    monkeypatch.setattr(decoded_module, "DECODED_CACHE_BYTES", 320 * 240 * 3 * 2)  # two frames: evictions mid-tile
     tiled = composite(frames, to_ground, size, "feather", Reporter(quiet=True), tile_side=96)
     assert np.abs(tiled.astype(int) - whole.astype(int)).max() <= 1
 
@@ -162,3 +169,48 @@ def test_every_blend_reproduces_the_ground_with_true_homographies(small_flight, 
     kernel = np.ones((5, 5), np.uint8)
     assert (out[..., 3][cv2.erode(union, kernel) > 0] == 255).all()
     assert (out[..., 3][cv2.dilate(union, kernel) == 0] == 0).all()
+
+
+def _seams_and_gains(frames, to_ground, exposure):
+    from udh_cli.mosaic.render.gains import exposure_gains
+    from udh_cli.mosaic.render.seams import find_seams
+    from udh_cli.mosaic.render.small import draw_small
+
+    small = draw_small(frames, to_ground, 1.0, Reporter(quiet=True))
+    return exposure_gains(exposure, small), find_seams("dp", small)
+
+
+@pytest.mark.parametrize("exposure", ["channels", "blocks"])
+def test_a_frame_cut_to_what_it_owns_blends_as_the_whole_frame(small_flight, exposure, monkeypatch):
+    import udh_cli.mosaic.render.composite as composite_module
+
+    frames, to_ground, size = _true_placement(small_flight)
+    gains, seams = _seams_and_gains(frames, to_ground, exposure)
+    fed = []
+    real = composite_module._warp
+    monkeypatch.setattr(composite_module, "_warp", lambda image, h, box, *a: (image.ndim == 3 and fed.append(box)) or real(image, h, box, *a))
+    monkeypatch.setattr(composite_module, "FEED_MARGIN", 10**6)
+    whole = composite(frames, to_ground, size, "multiband", Reporter(quiet=True), gains=gains, seams=seams)
+    whole_area = sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in fed)
+    fed.clear()
+    monkeypatch.setattr(composite_module, "FEED_MARGIN", 64)  # under the 320x240 frames' size on the canvas, so frames are cut
+    cut = composite(frames, to_ground, size, "multiband", Reporter(quiet=True), gains=gains, seams=seams)
+    cut_area = sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in fed)
+    assert cut_area < 0.9 * whole_area  # the frames were cut
+    assert (cut[..., 3] == whole[..., 3]).all()
+    difference = np.abs(cut.astype(np.int16) - whole.astype(np.int16))[..., :3]
+    # At a quarter of FEED_MARGIN (5 bands reach about 128 px) nearly every pixel is still within 1 grey level.
+    assert difference.max() <= 2 and (difference <= 1).mean() > 0.9999 and (difference == 0).mean() > 0.99
+
+
+@pytest.mark.parametrize("gain", [np.array([0.8, 1.0, 1.37]), np.full((3, 4, 3), 1.2) * np.linspace(0.7, 1.3, 4)[None, :, None]])
+def test_gains_scale_the_fed_pixels_as_the_float_path_truncates(gain):
+    from udh_cli.mosaic.render.composite import _scaled
+    from udh_cli.mosaic.render.gains import apply_gain
+
+    warped = np.random.default_rng(0).integers(0, 256, (40, 60, 3), np.uint8)
+    expected = np.clip(apply_gain(warped.astype(np.float32), gain), 0, 255).astype(np.int16)
+    scaled = _scaled(warped, gain, (10, 20, 70, 60), (0, 0, 60, 40))
+    assert scaled.dtype == np.int16 and scaled.min() >= 0 and scaled.max() == 255
+    assert np.abs(scaled - expected).max() <= 1 and (scaled == expected).mean() > 0.999
+    assert (_scaled(warped, None, (0, 0, 60, 40), (0, 0, 60, 40)) == warped).all()

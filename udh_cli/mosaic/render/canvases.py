@@ -17,6 +17,7 @@ from udh_cli.mosaic.inputs.frames import FrameSet
 from udh_cli.mosaic.outputs.files import MosaicFiles, RunFiles
 from udh_cli.mosaic.outputs.staging import StagedFiles
 from udh_cli.mosaic.render import composite as compositing
+from udh_cli.mosaic.render.decoded import DecodedFrames
 from udh_cli.mosaic.render.gains import exposure_gains, mean_gain
 from udh_cli.mosaic.render.seams import find_seams
 from udh_cli.mosaic.render.small import draw_small
@@ -112,15 +113,16 @@ def composite_part(frameset: FrameSet, plan: PlannedPart, settings: Drawing, rep
     to_mosaic = {i: plan.mosaic_from_frame(i) for i in plan.frames}
     suffix = "" if plan.number == 1 else f" part {plan.number}"
     gains, seams = None, None
+    decoded = DecodedFrames(frameset)  # the small copies' decoded frames, kept for the first tiles
     want_seams = settings.seams != "central" and settings.blend != "feather"
     if settings.exposure != "none" or want_seams:
-        small = draw_small(frameset, to_mosaic, plan.canvas.scale, reporter, f"small copies{suffix}")
+        small = draw_small(frameset, to_mosaic, plan.canvas.scale, reporter, f"small copies{suffix}", decoded)
         with reporter.stage("colour and seams", 1, f"colour and seams{suffix}") as advance:
             gains = exposure_gains(settings.exposure, small)
             seams = find_seams(settings.seams, small) if want_seams else None
             advance(1)
     tiles = compositing.composite_tiles(frameset, to_mosaic, plan.canvas.size, settings.blend, reporter, f"compositing{suffix}", gains, seams,
-                                        workers=settings.workers)
+                                        workers=settings.workers, decoded=decoded)
     drawer = compositing.PreviewDrawer(plan.canvas.size)
     if streams_to_file(plan.file):  # blended and written tile by tile: the map's area costs no memory
         write_tiled_tiff(staged.path_for(plan.file), plan.canvas.size, _drawn(tiles, drawer))

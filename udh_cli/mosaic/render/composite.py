@@ -10,8 +10,7 @@ map's area: :func:`composite_tiles` yields the tiles for a writer that streams t
 from __future__ import annotations
 
 import math
-import threading
-from collections import OrderedDict, deque
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Iterable, Iterator, Sequence
@@ -22,6 +21,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.mosaic.inputs.frames import FrameSet
+from udh_cli.mosaic.render.decoded import DecodedFrames
 from udh_cli.mosaic.render.gains import apply_gain
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.render.seams import Seams
@@ -41,7 +41,10 @@ TILE_SIDE = 2048  # canvas pixels per tile side; a canvas that fits in one tile 
 TILE_MARGIN = {"feather": 0, "none": 0, "multiband": 256}
 # A streamed canvas costs no memory, but one this large (64k x 64k) comes from a homography gone astray, not a survey.
 MAX_STREAMED_PIXELS = 2**32
-DECODED_CACHE_BYTES = 256 * 2**20  # decoded full-resolution frames kept for the next tiles that need them
+# Canvas pixels of a frame fed to the multiband blender beyond those it owns: its bands reach as far as a tile's
+# margin does, so the frame cut there blends as the whole frame does, within 1 grey level (tests/mosaic/test_composite.py).
+FEED_MARGIN = TILE_MARGIN["multiband"]
+TRUNCATE = 0.498  # subtracted before rounding, so that rounding truncates; under 0.5, so that whole values stay
 
 
 @dataclass(frozen=True)
@@ -132,6 +135,7 @@ def composite_tiles(
     seams: Seams | None = None,
     tile_side: int | None = None,
     workers: int = 1,
+    decoded: DecodedFrames | None = None,
 ) -> Iterator[tuple[tuple[int, int, int, int], np.ndarray]]:
     """Warp and blend the frames of one part, tile by tile: yields ``((x0, y0, x1, y1), (h, w, 4) BGRA uint8)``
     per canvas tile in row-major order; alpha 255 where covered.
@@ -144,7 +148,8 @@ def composite_tiles(
     centre. Every rule is per pixel except multiband's, which each tile blends with :data:`TILE_MARGIN` more
     canvas around it. ``label`` names the progress bar (the time adds up under "compositing"); ``tile_side``:
     canvas pixels per tile side (None: :data:`TILE_SIDE`); ``workers``: tiles blended at once, in threads
-    (OpenCV's warps and blender release the GIL), at most that many held beyond the one yielded.
+    (OpenCV's warps and blender release the GIL), at most that many held beyond the one yielded; ``decoded``:
+    full-resolution frames already decoded (:mod:`.decoded`, e.g. by :func:`.small.draw_small`; none: a new cache).
     """
     if blend not in BLENDS:
         raise UdhError(f"unknown blend '{blend}'; choose one of: {', '.join(BLENDS)}")
@@ -167,16 +172,14 @@ def composite_tiles(
         region = (max(0, tx0 - margin), max(0, ty0 - margin), min(width, tx1 + margin), min(height, ty1 + margin))
         plan.append(((tx0, ty0, tx1, ty1), region, {i: box for i, roi in rois.items() if (box := _intersect(roi, region)) is not None}))
     workers = max(1, min(workers, len(plan)))
-    own_frames = threading.local()  # a decoded-frame cache per thread: it is not shared between them
+    decoded = DecodedFrames(frames) if decoded is None else decoded  # shared by the threads: neighbouring tiles, blended at once, need the same frames
 
     # The progress counts frames blended into tiles, so that a canvas of one tile still shows its progress.
     with reporter.stage("compositing", sum(len(inside) for _, _, inside in plan), label) as advance:
 
         def blend_tile(step):
             (tx0, ty0, tx1, ty1), region, inside = step
-            if not hasattr(own_frames, "decoded"):
-                own_frames.decoded = _DecodedFrames(frames, DECODED_CACHE_BYTES // workers)
-            blended = _blend_region(own_frames.decoded, inside, mosaic_from_frame, region, blend, weights, sizes, gains, seams, advance)
+            blended = _blend_region(decoded, inside, mosaic_from_frame, region, blend, weights, sizes, gains, seams, advance)
             rx0, ry0 = region[:2]
             return (tx0, ty0, tx1, ty1), np.ascontiguousarray(blended[ty0 - ry0 : ty1 - ry0, tx0 - rx0 : tx1 - rx0])
 
@@ -209,43 +212,12 @@ def assemble(tiles: Iterable[tuple[tuple[int, int, int, int], np.ndarray]], canv
     return out
 
 
-class _DecodedFrames:
-    """Full-resolution frames as :meth:`FrameSet.full_images` gives them, the most recently used kept up to
-    ``budget_bytes`` (0: :data:`DECODED_CACHE_BYTES`): a frame reaching several tiles is mostly decoded once."""
-
-    def __init__(self, frames: FrameSet, budget_bytes: int = 0) -> None:
-        self.frames = frames
-        self.budget_bytes = budget_bytes or DECODED_CACHE_BYTES
-        self.kept: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.kept_bytes = 0
-
-    def get(self, indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
-        """``(index, (H, W, 3) BGR uint8)`` for ``indices``, in sequence order; the frames not kept are decoded one
-        at a time as they are reached."""
-        kept = {i: self.kept[i] for i in set(indices) if i in self.kept}  # decided once: the loop below evicts
-        fresh = self.frames.full_images(sorted(set(indices) - set(kept)))  # yields in sequence order too
-        for i in sorted(set(indices)):
-            if i in kept:
-                image = kept[i]
-            else:
-                index, image = next(fresh)
-                if index != i:
-                    raise UdhError(f"frame {i} was expected from the reader, frame {index} came; this is a bug in udh, please report it")
-            if i not in self.kept:
-                self.kept_bytes += image.nbytes
-            self.kept[i] = image
-            self.kept.move_to_end(i)
-            while len(self.kept) > 1 and self.kept_bytes > self.budget_bytes:
-                self.kept_bytes -= self.kept.popitem(last=False)[1].nbytes
-            yield i, image
-
-
 def _intersect(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int] | None:
     x0, y0, x1, y1 = max(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), min(a[3], b[3])
     return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
 
 
-def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int, int]], mosaic_from_frame: dict[int, np.ndarray],
+def _blend_region(decoded: DecodedFrames, boxes: dict[int, tuple[int, int, int, int]], mosaic_from_frame: dict[int, np.ndarray],
                   region: tuple[int, int, int, int], blend: str, weights: dict[tuple[int, int], np.ndarray],
                   sizes: dict[int, tuple[int, int]], gains: dict[int, np.ndarray] | None, seams: Seams | None,
                   advance=lambda n=1: None) -> np.ndarray:
@@ -261,15 +233,15 @@ def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int,
     labels = None
     if blend != "feather":  # seams: the frame with the highest weight owns the pixel
         best = np.zeros((height, width), np.float32)
-        labels = np.full((height, width), -1, np.int32)
+        labels = np.full((height, width), -1, np.int16 if max(local, default=0) < 2**15 else np.int32)  # int16: half the traffic
         for i, box in local.items():
             x0, y0, x1, y1 = box
             weight = _warp(weights[sizes[i]], to_region[i], box)
             if seams is not None:  # the seam mask first; centrality (weights below 1) only where no mask holds the pixel
-                weight += 2.0 * seams.in_box(i, boxes[i]) * (weight > 0)
+                np.add(weight, 2.0, out=weight, where=seams.in_box(i, boxes[i]) & (weight > 0))
             better = weight > best[y0:y1, x0:x1]
-            best[y0:y1, x0:x1][better] = weight[better]
-            labels[y0:y1, x0:x1][better] = i
+            np.copyto(best[y0:y1, x0:x1], weight, where=better)  # copyto: no copies of the selected pixels
+            np.copyto(labels[y0:y1, x0:x1], i, where=better)
         del best
     if blend == "feather":
         total = np.zeros((height, width, 3), np.float32)
@@ -283,6 +255,10 @@ def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int,
     for i, image in decoded.get(list(local)):
         box = local[i]
         x0, y0, x1, y1 = box
+        if blend == "multiband":
+            fed += _feed(blender, image, to_region[i], box, labels[y0:y1, x0:x1] == i, gains[i] if gains is not None else None)
+            advance(1)
+            continue
         # Warped as uint8, then made float: a quarter of the memory traffic of converting the whole frame first.
         warped = _warp(image, to_region[i], box).astype(np.float32)
         if gains is not None:
@@ -293,12 +269,8 @@ def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int,
             weight_sum[y0:y1, x0:x1] += weight
         else:
             owned = labels[y0:y1, x0:x1] == i
-            if blend == "none":
-                out[y0:y1, x0:x1, :3][owned] = np.clip(warped[owned] + 0.5, 0, 255).astype(np.uint8)
-                out[y0:y1, x0:x1, 3][owned] = 255
-            elif owned.any():
-                blender.feed(np.clip(warped, 0, 255).astype(np.int16), owned.astype(np.uint8) * 255, (x0, y0))
-                fed += 1
+            out[y0:y1, x0:x1, :3][owned] = np.clip(warped[owned] + 0.5, 0, 255).astype(np.uint8)
+            out[y0:y1, x0:x1, 3][owned] = 255
         advance(1)
     if blend == "feather":
         out = np.zeros((height, width, 4), np.uint8)
@@ -317,6 +289,40 @@ def _blend_region(decoded: _DecodedFrames, boxes: dict[int, tuple[int, int, int,
             out[..., :3] = np.clip(result, 0, 255).astype(np.uint8)
             out[..., 3] = np.where(mask > 0, 255, 0).astype(np.uint8)
     return out
+
+
+def _feed(blender, image: np.ndarray, region_from_frame: np.ndarray, box: tuple[int, int, int, int], owned: np.ndarray,
+          gain: np.ndarray | None) -> int:
+    """Feed the part of a frame that matters to the multiband ``blender``: the bounding box of the pixels it owns
+    (``owned``, (h, w) bool over its region ``box``) widened by :data:`FEED_MARGIN`, warped from ``image``
+    (H, W, 3) BGR uint8 by ``region_from_frame`` (3, 3) and scaled by its ``gain`` (:mod:`.gains`). Returns 1 if
+    fed, 0 when it owns nothing. (Feeding a slanted strip in pieces was tried: the margins overlap, so it fed more
+    pixels, and the blender's int16 sums round once per piece.)"""
+    owned_u8 = owned.view(np.uint8)
+    left, top, width, height = cv2.boundingRect(owned_u8)
+    if width == 0:
+        return 0
+    bx0, by0, bx1, by1 = box
+    # Box-relative corners of what is fed.
+    fx0, fy0 = max(0, left - FEED_MARGIN), max(0, top - FEED_MARGIN)
+    fx1, fy1 = min(bx1 - bx0, left + width + FEED_MARGIN), min(by1 - by0, top + height + FEED_MARGIN)
+    fed_box = (bx0 + fx0, by0 + fy0, bx0 + fx1, by0 + fy1)
+    scaled = _scaled(_warp(image, region_from_frame, fed_box), gain, box, (fx0, fy0, fx1, fy1))
+    blender.feed(scaled, owned_u8[fy0:fy1, fx0:fx1] * np.uint8(255), fed_box[:2])
+    return 1
+
+
+def _scaled(warped: np.ndarray, gain: np.ndarray | None, box: tuple[int, int, int, int], cut: tuple[int, int, int, int]) -> np.ndarray:
+    """(h, w, 3) uint8 warped pixels times their ``gain`` as the blender takes them: int16 in 0-255, truncated as
+    :func:`.gains.apply_gain` followed by a cast truncates. A gain map is stretched over the frame's whole canvas
+    ``box`` (x0, y0, x1, y1), then ``cut`` to the box-relative (x0, y0, x1, y1) of ``warped``."""
+    if gain is None:
+        return warped.astype(np.int16)
+    if gain.ndim == 1:  # cv2.transform rounds and saturates at 255: rounding x - TRUNCATE truncates x
+        return cv2.transform(warped, np.hstack([np.diag(gain), np.full((3, 1), -TRUNCATE)])).astype(np.int16)
+    x0, y0, x1, y1 = cut
+    gain_map = cv2.resize(gain.astype(np.float32), (box[2] - box[0], box[3] - box[1]), interpolation=cv2.INTER_LINEAR)[y0:y1, x0:x1]
+    return np.clip(warped * gain_map, 0, 255).astype(np.int16)
 
 
 PREVIEW_SIDE = 1200  # longest side of a mosaic's preview, pixels

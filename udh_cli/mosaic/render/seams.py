@@ -27,14 +27,14 @@ class Seams:
     scale: float
 
     def in_box(self, index: int, box: tuple[int, int, int, int]) -> np.ndarray:
-        """Frame ``index``'s seam mask drawn over the canvas box ``(x0, y0, x1, y1)``: (h, w) float32, 1 inside."""
+        """Frame ``index``'s seam mask drawn over the canvas box ``(x0, y0, x1, y1)``: (h, w) bool, True inside."""
         x0, y0, x1, y1 = box
         cx, cy = self.corners[index]
         # canvas pixel (x, y) is small-canvas pixel (scale x, scale y), i.e. pixel (scale x - cx, scale y - cy) of the mask
         mask_from_box = np.array([[self.scale, 0.0, self.scale * x0 - cx], [0.0, self.scale, self.scale * y0 - cy]])
         drawn = cv2.warpAffine(self.masks[index], mask_from_box, (x1 - x0, y1 - y0), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return (drawn > 0).astype(np.float32)
+        return drawn > 0
 
 
 def find_seams(kind: str, small: SmallPart) -> Seams | None:

@@ -16,6 +16,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.mosaic.inputs.frames import FrameSet
+from udh_cli.mosaic.render.decoded import DecodedFrames
 from udh_cli.mosaic.report import Reporter
 
 # Per frame, as in OpenCV's stitching sample (seam_megapix 0.1): enough for brightness and seams, small enough
@@ -54,14 +55,15 @@ def small_scale(frame_sizes: Sequence[tuple[int, int]], canvas_scale: float) -> 
 
 
 def draw_small(frameset: FrameSet, mosaic_from_frame: dict[int, np.ndarray], canvas_scale: float, reporter: Reporter,
-               label: str = "small copies") -> SmallPart:
-    """Every frame of a part warped into a small copy of its canvas (the full images are read once more)."""
+               label: str = "small copies", decoded: DecodedFrames | None = None) -> SmallPart:
+    """Every frame of a part warped into a small copy of its canvas. The full images are read once more, through
+    ``decoded`` when given, which then keeps them for compositing (:mod:`.decoded`)."""
     sizes = [frameset.frames[i].size for i in mosaic_from_frame]
     scale = small_scale(sizes, canvas_scale)
     small = SmallPart(scale, [], [], [], [])
     shrink = np.diag([scale, scale, 1.0])
     with reporter.stage("small copies", len(mosaic_from_frame), label) as advance:
-        for i, image in frameset.full_images(mosaic_from_frame):
+        for i, image in (decoded.get(list(mosaic_from_frame)) if decoded is not None else frameset.full_images(mosaic_from_frame)):
             height, width = image.shape[:2]
             small_from_frame = shrink @ mosaic_from_frame[i]
             quad = geometry.transform_points(small_from_frame, geometry.image_corners(width, height))

@@ -63,6 +63,7 @@ class Figure:
         values: the measured numbers, in the order the README cell gives them; empty when not run.
         compared: one tolerance per value, ``None`` for a number only reported (wall times, ratios of times).
         text: the measured cell as the README would read.
+        details: more of the run for the docs' longer tables (e.g. loop consistency before and after), never compared.
     """
 
     group: str
@@ -74,6 +75,7 @@ class Figure:
     status: str = "not run"
     readme: str | None = None
     note: str = ""
+    details: dict = field(default_factory=dict)
 
 
 # ---- the README, read by row label ----
@@ -235,8 +237,10 @@ def real_flight_figures(settings: Settings) -> list[Figure]:
                 summary, after = report["summary"], report["loop_consistency"]["loops_after"]
                 parts = f"{summary['parts']} part{'s' if summary['parts'] != 1 else ''}"
                 loops = f"{after['mean_px']:.2f} px" if after["count"] else "no loops"
+                details = {"frames": summary["frames"], "pairs_rejected": summary["pairs_rejected"],
+                           "loops_before": report["loop_consistency"]["loops_before"], "loops_after": after}
                 return Figure("b", name, method, [summary["placed"], summary["parts"], after["mean_px"], wall], (COUNT, COUNT, PIXELS, None),
-                              f"{summary['placed']} placed, {parts}, {loops}, {wall:.0f} s")
+                              f"{summary['placed']} placed, {parts}, {loops}, {wall:.0f} s", details=details)
             figures.append(_attempt("b", name, method, measure))
     return figures
 

@@ -164,8 +164,9 @@ def judge(figure: Figure, readme: str | None) -> Figure:
         i >= len(expected) or figure.values[i] is None or not tolerance.holds(figure.values[i], expected[i]))]
     figure.status = "differs" if off else "reproduced"
     if off:
-        figure.note = "; ".join(f"number {i + 1}: measured {_number(figure.values[i])}, README "
+        differences = "; ".join(f"number {i + 1}: measured {_number(figure.values[i])}, README "
                                 f"{_number(expected[i]) if i < len(expected) else 'none'}" for i in off)
+        figure.note = f"{figure.note}; {differences}" if figure.note else differences
     return figure
 
 
@@ -288,7 +289,7 @@ def speed_figures(settings: Settings) -> list[Figure]:
                           f"{result.wall_s:.1f} s, {result.wall_s / ref.seconds:.2f} x the reference")]
         figures += [Figure("e", f"stage: {stage.name}", "x reference", [stage.ratio], (None,), f"{stage.seconds:.2f} s, {stage.ratio:.2f} x")
                     for stage in result.stages]
-        figures += [Figure("e", f"pair: {pair.name}", "ms", [pair.median_ms, pair.sift_ratio], (None, None),
+        figures += [Figure("e", f"pair: {pair.method}", "ms", [pair.median_ms, pair.sift_ratio], (None, None),
                            f"{pair.median_ms:.0f} ms" + ("" if pair.sift_ratio is None else f", {pair.sift_ratio:.2f} x SIFT"))
                     for pair in result.pairs]
         return figures

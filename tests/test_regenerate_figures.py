@@ -139,3 +139,10 @@ def test_outputs_are_dated_markdown_and_json(sim_flight_run):
     assert [f["status"] for f in loaded["figures"]] == [f.status for f in judged]
     assert loaded["figures"][0]["compared"] == [True, True, False]
     assert "| simulated | sift |" in markdown.read_text()
+
+
+def test_a_differing_figure_keeps_its_earlier_note():
+    figure = figures.Figure("c", "sift", "rho 32", [0.5, 7.58, 5.0], (figures.PIXELS, figures.PIXELS, figures.PERCENT),
+                            note="20 pairs, the README's 300")
+    judged = figures.judge(figure, "0.42 / 7.58 / 5.0 %")
+    assert judged.note == "20 pairs, the README's 300; number 1: measured 0.5, README 0.42"

@@ -63,7 +63,8 @@ def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: 
             continue
         resolved = path.resolve()
         is_frame = source.is_dir() and resolved.parent == source.resolve() and path.suffix.lower() in IMAGE_SUFFIXES
-        if resolved in sources or (is_frame and not written_by_udh(path, files["mosaic"].name)):
+        ours = written_by_udh(path, files["mosaic"].name) if "mosaic" in files else earlier_run  # live mode's pictures: unrecorded
+        if resolved in sources or (is_frame and not ours):
             raise UdhError(f"{path}: the {role} would replace an input file of {source}; choose another output name")
         owned_by_run = path.name.lower().endswith(GEOREFERENCE_SUFFIXES + (CAMERAS_SUFFIX, REPORT_PAGE_SUFFIX, PAM_SUFFIX))
         if path.suffix.lower() == ".json" and not owned_by_run and not _is_udh_json(path, ("udh-mosaic",)):

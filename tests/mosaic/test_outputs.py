@@ -275,3 +275,13 @@ def test_an_output_is_never_a_frame_whatever_an_earlier_run_in_the_folder_wrote(
             run_mosaic(folder, folder / "frame_000.jpg", FAST, overwrite=overwrite)
     assert (folder / "frame_000.jpg").read_bytes() == frame
     run_mosaic(folder, folder / "frame_000.png", FAST)  # its own earlier output is replaced as before
+
+
+def test_a_mosaic_in_the_way_that_no_run_to_it_wrote_is_refused_before_any_work(flight, tmp_path):
+    folder, prints = flight
+    (tmp_path / "m.png").write_bytes(b"the user's")
+    with pytest.raises(UdhError, match=r"m.png: exists and no earlier run to m.png wrote it.*--overwrite"):
+        run_mosaic(folder, tmp_path / "m.png", FAST, estimator=FailOn(prints, lambda a, b: False))
+    assert listed(tmp_path) == ["m.png"] and (tmp_path / "m.png").read_bytes() == b"the user's"
+    run_mosaic(folder, tmp_path / "m.png", FAST, estimator=FailOn(prints, lambda a, b: False), overwrite=True)
+    assert (tmp_path / "m.png").read_bytes().startswith(b"\x89PNG")

@@ -22,8 +22,8 @@ from udh_cli.mosaic.inputs.frames import FrameSet, gps_fixes, open_frames
 from udh_cli.mosaic.inputs.lens import Lens, read_cameras
 from udh_cli.mosaic.inputs.lens_fit import CAMERA_ESTIMATE, undistort_by_fitted_lens
 from udh_cli.mosaic.outputs.files import RunFiles, check_output
-from udh_cli.mosaic.outputs.staging import (StagedFiles, check_outputs_are_not_inputs, check_sidecar_is_this_outputs, remove_stale_files,
-                                            remove_stale_staged)
+from udh_cli.mosaic.outputs.staging import (StagedFiles, check_always_written_are_this_runs, check_outputs_are_not_inputs,
+                                            check_sidecar_is_this_outputs, remove_stale_files, remove_stale_staged)
 from udh_cli.mosaic.pairs.cache import PairCache
 from udh_cli.mosaic.pairs.plan import estimate_sequence
 from udh_cli.mosaic.pairs.types import PairResult
@@ -117,6 +117,7 @@ def _check_inputs(source: Path, files: RunFiles, config: MosaicConfig, gcp: str 
         raise UdhError(f"--cache-dir {files.cache_dir}: no such folder; create it first")
     check_outputs_are_not_inputs(source, files.roles(), files.sidecar)
     check_sidecar_is_this_outputs(files, overwrite)
+    check_always_written_are_this_runs(files, overwrite)
     remove_stale_staged(files.output)
     gcps = read_gcp_file(gcp) if gcp is not None else None  # a bad file fails before any work
     lens = read_cameras(camera) if camera is not None and str(camera) != CAMERA_ESTIMATE else None

@@ -87,6 +87,15 @@ def check_sidecar_is_this_outputs(files: RunFiles, overwrite: bool = False) -> N
                        f"replace it, or choose another output name")
 
 
+def check_always_written_are_this_runs(files: RunFiles, overwrite: bool = False) -> None:
+    """Refuse, before any work, a mosaic, sidecar or report page in the way that no earlier run to this output wrote
+    (every run writes these; :meth:`StagedFiles.publish` checks the rest, parts among them, when they are known)."""
+    for path in (files.output, files.sidecar, files.report_page):
+        if not overwrite and (path.exists() or path.is_symlink()) and not written_by_udh(path, files.output.name):
+            raise UdhError(f"{path}: exists and no earlier run to {files.output.name} wrote it (or it changed since); add "
+                           f"--overwrite to replace it, or choose another output name")
+
+
 def _sidecar_mosaics(sidecar: Path) -> list[str]:
     """The file names of the mosaics a udh sidecar lists (its parts' ``file``); empty when it lists none or is not one."""
     try:

@@ -63,6 +63,7 @@ def mosaic(
     follow: Annotated[bool, typer.Option("--follow", help="Live: keep watching SOURCE (a folder) as frames arrive, draw each into NAME.live.jpg as it lands, refresh the mosaic every --refresh-every frames, finish when a DONE file appears or no frame comes for --idle-timeout.", metavar="")] = False,
     refresh_every: Annotated[int, typer.Option("--refresh-every", min=1, help="Live: rewrite the mosaic after this many new frames.")] = _FOLLOW.refresh_every,
     idle_timeout: Annotated[float, typer.Option("--idle-timeout", min=0.1, help="Live: seconds without a new frame that end the flight.")] = _FOLLOW.idle_timeout_s,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace files in the way of the outputs that no earlier run to OUTPUT wrote (a user's NAME.part1.png, another run's NAME.json); never removes them.")] = False,
 ) -> None:
     from udh_cli.mosaic import FollowConfig, Reporter, run_live, run_mosaic
 
@@ -76,10 +77,10 @@ def mosaic(
     if follow:
         live = FollowConfig(refresh_every=refresh_every, idle_timeout_s=idle_timeout)
         report = run_live(source, output, config, live, reporter, cache_dir=cache_dir, ground_truth=gt, gcp=gcp, gcp_image_width=gcp_image_width,
-                          camera=camera)
+                          camera=camera, overwrite=overwrite)
     else:
         report = run_mosaic(source, output, config, reporter, ground_truth=gt, resume=resume, cache_dir=cache_dir, gcp=gcp,
-                            gcp_image_width=gcp_image_width, camera=camera)
+                            gcp_image_width=gcp_image_width, camera=camera, overwrite=overwrite)
     _print_mosaic(report)
 
 

@@ -110,12 +110,13 @@ def _manifest(folder: Path) -> dict[str, dict]:
     return {name: entry for name, entry in data["files"].items() if isinstance(entry, dict)}
 
 
-def written_by_udh(path: str | os.PathLike) -> bool:
-    """Whether ``path`` is a file the manifest of its folder lists with its present size and digest."""
+def written_by_udh(path: str | os.PathLike, run: str | None = None) -> bool:
+    """Whether ``path`` is a file the manifest of its folder lists with its present size and digest; with ``run``,
+    also recorded as written by that run (see :func:`record_written`)."""
     path = Path(path)
     entry = _manifest(path.parent).get(path.name)
     try:
-        if entry is None or not path.is_file() or path.is_symlink() or path.stat().st_size != entry.get("size"):
+        if entry is None or (run is not None and entry.get("run") != run) or not path.is_file() or path.is_symlink() or path.stat().st_size != entry.get("size"):
             return False
         return file_digest(path) == (entry.get("size"), entry.get("sha256"))
     except OSError:
@@ -140,7 +141,7 @@ def check_replaceable(path: str | os.PathLike, overwrite: bool = False, option: 
 
 
 @contextlib.contextmanager
-def _folder_locked(folder: Path) -> Iterator[None]:
+def folder_locked(folder: Path) -> Iterator[None]:
     """An exclusive lock on ``folder`` itself (no lock file is left); a no-op where ``fcntl`` is missing."""
     try:
         import fcntl
@@ -155,8 +156,9 @@ def _folder_locked(folder: Path) -> Iterator[None]:
         os.close(fd)  # closing drops the lock
 
 
-def record_written(*paths: str | os.PathLike) -> None:
-    """Add each file's size and digest to the manifest of its folder (call it with the lock held, or alone)."""
+def record_written(*paths: str | os.PathLike, run: str | None = None) -> None:
+    """Add each file's size and digest to the manifest of its folder (call it with the lock held, or alone);
+    ``run`` names the run that wrote them (a mosaic's output file name), so that a run removes only its own."""
     by_folder: dict[Path, list[Path]] = {}
     for path in map(Path, paths):
         by_folder.setdefault(path.parent, []).append(path)
@@ -164,7 +166,7 @@ def record_written(*paths: str | os.PathLike) -> None:
         entries = _manifest(folder)
         for path in files:
             size, digest = file_digest(path)
-            entries[path.name] = {"size": size, "sha256": digest}
+            entries[path.name] = {"size": size, "sha256": digest, **({"run": run} if run is not None else {})}
         entries = {name: entry for name, entry in entries.items() if (folder / name).is_file()}  # forget removed files
         atomic_write_bytes(folder / MANIFEST_NAME, (json.dumps({"format": MANIFEST_FORMAT, "files": entries}, indent=1, sort_keys=True)
                                                     + "\n").encode())
@@ -176,7 +178,7 @@ def write_file_set(folder: str | os.PathLike, files: dict[str, bytes], overwrite
     Each must pass :func:`check_replaceable`; they are recorded as udh's. Returns their paths, in order."""
     folder = Path(folder)
     staged: dict[Path, Path] = {}
-    with _folder_locked(folder):
+    with folder_locked(folder):
         targets = [check_replaceable(folder / name, overwrite) for name in files]
         try:
             for target, data in zip(targets, files.values()):
@@ -227,7 +229,7 @@ def write_output(path: str | os.PathLike, data: bytes, overwrite: bool = False, 
     folder = path.parent
     if not folder.is_dir():
         return atomic_write_bytes(path, data)  # the one-line error for a missing folder is atomic_write_bytes'
-    with _folder_locked(folder):
+    with folder_locked(folder):
         check_replaceable(path, overwrite, option)
         atomic_write_bytes(path, data)
         record_written(path)

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from udh_cli.errors import UdhError
+from udh_cli.files import MANIFEST_NAME, record_written
 from udh_cli.mosaic import MosaicConfig, Reporter, run_mosaic
 from udh_cli.mosaic.render import composite as compositing
 from udh_cli.mosaic.outputs.files import RunFiles
@@ -34,6 +35,11 @@ def split(prints):
 
 def snapshot(folder: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def listed(folder: Path) -> list[str]:
+    """The file names in ``folder``, udh's record of what it wrote left out."""
+    return sorted(p.name for p in folder.iterdir() if p.name != MANIFEST_NAME)
 
 
 def fail_in_part(monkeypatch, number: int) -> None:
@@ -62,7 +68,7 @@ def test_a_failing_later_part_leaves_the_earlier_run_whole(flight, tmp_path, mon
     out = tmp_path / "m.png"
     run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))
     before = snapshot(tmp_path)
-    assert sorted(before) == ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg", "m.report.html"]
+    assert sorted(set(before) - {MANIFEST_NAME}) == ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg", "m.report.html"]
     fail_in_part(monkeypatch, 2)
     with pytest.raises(UdhError, match="made to fail"):  # another blend: part 1 would differ from the earlier one
         run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, blend="none"), estimator=split(prints), fallback=split(prints))
@@ -75,22 +81,23 @@ def test_stale_parts_of_an_earlier_run_are_removed_and_nothing_else(flight, tmp_
     others = ["m.part3.tif", "m.partial.png", "mm.part3.png", "m.part3.png.bak", "other.part3.png", "m.part0.png", "m.part3.jpg", "notes.txt"]
     for name in ["m.part3.png", "m.part3.preview.jpg", "m.part12.png", *others]:
         (tmp_path / name).write_bytes(b"earlier")
+    record_written(*(tmp_path / name for name in ["m.part3.png", "m.part3.preview.jpg", "m.part12.png"]), run=out.name)  # an earlier run's
     report = run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))
     assert report["summary"]["parts"] == 2
     expected = ["m.json", "m.part1.png", "m.part1.preview.jpg", "m.part2.png", "m.part2.preview.jpg", "m.report.html"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(expected + others)
+    assert listed(tmp_path) == sorted(expected + others)
 
     # Now in one part, without previews: every part file goes, and the single mosaic takes their place.
     reporter = Reporter(quiet=True)
     report = run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, preview=False), reporter, estimator=FailOn(prints, lambda a, b: False))
     assert report["summary"]["parts"] == 1
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", "m.report.html", *others])
+    assert listed(tmp_path) == sorted(["m.json", "m.png", "m.report.html", *others])
     assert json.loads((tmp_path / "m.json").read_text())["parts"][0]["file"] == out.name  # relative to the sidecar
 
     # Split again: the single mosaic of the run before is not a part file; it stays, with a warning.
     reporter = Reporter(quiet=True)
     run_mosaic(folder, out, MosaicConfig(overlap_per_frame=1, batch_size=4, preview=False), reporter, estimator=split(prints), fallback=split(prints))
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.json", "m.png", "m.part1.png", "m.part2.png", "m.report.html", *others])
+    assert listed(tmp_path) == sorted(["m.json", "m.png", "m.part1.png", "m.part2.png", "m.report.html", *others])
     assert any("m.png is left from an earlier run" in w for w in reporter.warnings)
 
 
@@ -99,6 +106,7 @@ def test_stale_part_files_matches_only_this_outputs_part_names(tmp_path):
     names = ["run.v2.part1.tif", "run.v2.part2.preview.jpg", "run.v2.part7.tif", "run.v2.part1.png", "run.v2.tif", "run.v2.preview.jpg", "runXv2.part1.tif", "run.v2.part1.tif.json"]
     for name in names:
         (tmp_path / name).write_bytes(b"x")
+    record_written(*(tmp_path / name for name in names), run=out.name)
     (tmp_path / "run.v2.part9.tif").mkdir()  # a folder is never removed
     stale = stale_part_files(out, [tmp_path / "run.v2.part1.tif"])
     assert [p.name for p in stale] == ["run.v2.part2.preview.jpg", "run.v2.part7.tif"]
@@ -109,10 +117,11 @@ def test_gdal_files_this_run_did_not_write_are_removed_and_nothing_else(tmp_path
     names = ["m.png.aux.xml", "m.part1.png.aux.xml", "m.part3.png.aux.xml", "m.part3.png.aux.xml.bak", "m.part3.tif.aux.xml", "m.aux.xml"]
     for name in names:
         (tmp_path / name).write_bytes(b"x")
+    record_written(*(tmp_path / name for name in names), run="m.png")
     reporter = Reporter(quiet=True)
     remove_stale_files(RunFiles(tmp_path / "m.png"), [tmp_path / "m.part1.png", tmp_path / "m.part1.png.aux.xml"],
                        [tmp_path / "m.png", tmp_path / "m.part1.png"], reporter)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.aux.xml", "m.part1.png.aux.xml", "m.part3.png.aux.xml.bak", "m.part3.tif.aux.xml"]
+    assert listed(tmp_path) == ["m.aux.xml", "m.part1.png.aux.xml", "m.part3.png.aux.xml.bak", "m.part3.tif.aux.xml"]
 
 
 def test_staged_files_keep_the_permissions_of_the_file_they_replace(tmp_path):
@@ -213,3 +222,66 @@ def test_warnings_print_file_names_and_commands_with_brackets_as_they_are(capsys
     reporter.info("see [bold] here")
     printed = capsys.readouterr().err
     assert "pip install '.[geo]'" in printed and "notes[draft].txt" in printed and "see [bold] here" in printed
+
+
+def test_a_user_s_file_named_like_a_part_is_neither_removed_nor_replaced(flight, tmp_path):
+    folder, prints = flight
+    out = tmp_path / "map.png"
+    for name in ["map.part1.png", "map.part3.png", "map.part3.preview.jpg"]:
+        (tmp_path / name).write_bytes(b"the user's")
+    run_mosaic(folder, out, FAST, estimator=FailOn(prints, lambda a, b: False))  # one part: no earlier run of map.png
+    assert all((tmp_path / name).read_bytes() == b"the user's" for name in ["map.part1.png", "map.part3.png", "map.part3.preview.jpg"])
+    before = snapshot(tmp_path)
+    with pytest.raises(UdhError, match=r"map.part1.png: exists and no earlier run to map.png wrote it.*--overwrite"):
+        run_mosaic(folder, out, FAST, estimator=split(prints), fallback=split(prints))  # two parts: part 1 is in the way
+    assert snapshot(tmp_path) == before
+
+
+def test_another_run_s_mosaic_named_like_a_part_is_left_to_it(flight, tmp_path):
+    folder, prints = flight
+    run_mosaic(folder, tmp_path / "m.part1.png", FAST, estimator=FailOn(prints, lambda a, b: False))
+    theirs = snapshot(tmp_path)
+    assert {"m.part1.png", "m.part1.preview.jpg", "m.part1.json"} <= set(theirs)
+    run_mosaic(folder, tmp_path / "m.png", FAST, estimator=FailOn(prints, lambda a, b: False))
+    assert all((tmp_path / name).read_bytes() == data for name, data in theirs.items() if name != MANIFEST_NAME)
+    with pytest.raises(UdhError, match="m.part1.png: exists and no earlier run to m.png wrote it"):
+        run_mosaic(folder, tmp_path / "m.png", FAST, estimator=split(prints), fallback=split(prints))
+    assert all((tmp_path / name).read_bytes() == data for name, data in theirs.items() if name != MANIFEST_NAME)
+
+
+def test_a_run_under_another_suffix_leaves_the_earlier_run_s_sidecar_and_map_files(flight, tmp_path):
+    folder, prints = flight
+    run_mosaic(folder, tmp_path / "m.png", FAST, estimator=FailOn(prints, lambda a, b: False))
+    for name in ["m.prj", "m.cog.tif"]:  # as a georeferenced run writes them
+        (tmp_path / name).write_bytes(b"map")
+    record_written(tmp_path / "m.prj", tmp_path / "m.cog.tif", run="m.png")
+    before = snapshot(tmp_path)
+    with pytest.raises(UdhError, match=r"m.json: the sidecar of the mosaic m.png, written by another run than one to m.tif; add --overwrite"):
+        run_mosaic(folder, tmp_path / "m.tif", FAST, estimator=FailOn(prints, lambda a, b: False))
+    assert snapshot(tmp_path) == before
+    # Asked to overwrite: the sidecar and preview go to the new run, the other run's map files stay.
+    run_mosaic(folder, tmp_path / "m.tif", FAST, estimator=FailOn(prints, lambda a, b: False), overwrite=True)
+    assert (tmp_path / "m.prj").read_bytes() == (tmp_path / "m.cog.tif").read_bytes() == b"map"
+    assert json.loads((tmp_path / "m.json").read_text())["parts"][0]["file"] == "m.tif"
+
+
+def test_an_output_is_never_a_frame_whatever_an_earlier_run_in_the_folder_wrote(tmp_path):
+    folder = tmp_path / "flight"
+    make_flight(folder, SMALL, seed=4)
+    run_mosaic(folder, folder / "frame_000.png", FAST)  # a new name among the frames: allowed
+    frame = (folder / "frame_000.jpg").read_bytes()
+    for overwrite in (False, True):
+        with pytest.raises(UdhError, match="frame_000.jpg: the mosaic would replace an input file"):
+            run_mosaic(folder, folder / "frame_000.jpg", FAST, overwrite=overwrite)
+    assert (folder / "frame_000.jpg").read_bytes() == frame
+    run_mosaic(folder, folder / "frame_000.png", FAST)  # its own earlier output is replaced as before
+
+
+def test_a_mosaic_in_the_way_that_no_run_to_it_wrote_is_refused_before_any_work(flight, tmp_path):
+    folder, prints = flight
+    (tmp_path / "m.png").write_bytes(b"the user's")
+    with pytest.raises(UdhError, match=r"m.png: exists and no earlier run to m.png wrote it.*--overwrite"):
+        run_mosaic(folder, tmp_path / "m.png", FAST, estimator=FailOn(prints, lambda a, b: False))
+    assert listed(tmp_path) == ["m.png"] and (tmp_path / "m.png").read_bytes() == b"the user's"
+    run_mosaic(folder, tmp_path / "m.png", FAST, estimator=FailOn(prints, lambda a, b: False), overwrite=True)
+    assert (tmp_path / "m.png").read_bytes().startswith(b"\x89PNG")

@@ -180,7 +180,7 @@ def test_a_tif_mosaic_streams_its_tiles_and_holds_the_png_run_s_pixels(small_fli
     monkeypatch.setattr(compositing, "TILE_SIDE", 128)  # many tiles on the small flight's canvas
     config = MosaicConfig(method="sift", overlap_per_frame=1, blend="multiband")
     png = run_mosaic(small_flight, tmp_path / "m.png", config, resume=True)  # keeps the pair cache for the .tif run
-    tif = run_mosaic(small_flight, tmp_path / "m.tif", config, resume=True)
+    tif = run_mosaic(small_flight, tmp_path / "m.tif", config, resume=True, overwrite=True)  # m.json is the .png run's
     assert tif["summary"]["pairs_from_cache"] == len(tif["pairs"])  # the same homographies
     with rasterio.open(tmp_path / "m.tif") as dataset:
         assert dataset.profile["tiled"] and dataset.count == 4 and dataset.profile["compress"] == "deflate"

@@ -22,7 +22,8 @@ from udh_cli.mosaic.inputs.frames import FrameSet, gps_fixes, open_frames
 from udh_cli.mosaic.inputs.lens import Lens, read_cameras
 from udh_cli.mosaic.inputs.lens_fit import CAMERA_ESTIMATE, undistort_by_fitted_lens
 from udh_cli.mosaic.outputs.files import RunFiles, check_output
-from udh_cli.mosaic.outputs.staging import StagedFiles, check_outputs_are_not_inputs, remove_stale_files, remove_stale_staged
+from udh_cli.mosaic.outputs.staging import (StagedFiles, check_always_written_are_this_runs, check_outputs_are_not_inputs,
+                                            check_sidecar_is_this_outputs, remove_stale_files, remove_stale_staged)
 from udh_cli.mosaic.pairs.cache import PairCache
 from udh_cli.mosaic.pairs.plan import estimate_sequence
 from udh_cli.mosaic.pairs.types import PairResult
@@ -52,6 +53,7 @@ def run_mosaic(
     gcp: str | Path | None = None,
     gcp_image_width: int | None = None,
     camera: str | Path | None = None,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Mosaic a folder of frames (or a video) into ``output``; returns the sidecar dict (also written).
 
@@ -72,10 +74,13 @@ def run_mosaic(
     ``camera`` is an OpenSfM/OpenDroneMap ``cameras.json``: every frame, and every ground-control pixel, is
     undistorted by its lens model (:mod:`.inputs.lens`) before anything else; ``"estimate"`` fits one k1 for the
     flight from its own frames first (:mod:`.inputs.lens_fit`).
+
+    Files are replaced or removed only when an earlier run to ``output`` wrote them (:mod:`.outputs.staging`);
+    ``overwrite`` replaces any file in the way, and another run's sidecar ``NAME.json``, all the same.
     """
     reporter = reporter or Reporter(quiet=True)
     source, files = Path(source), RunFiles(Path(output), None if cache_dir is None else Path(cache_dir))
-    gcps, lens = _check_inputs(source, files, config, gcp, gcp_image_width, camera)
+    gcps, lens = _check_inputs(source, files, config, gcp, gcp_image_width, camera, overwrite)
     started = time.perf_counter()
     truth = load_truth(source, ground_truth)
     opinions, spec = run_estimators(config, estimator, fallback)
@@ -88,7 +93,7 @@ def run_mosaic(
     anchors = solve_anchors(frameset, config.gcp_sigma_m, config.gps_sigma_m, reporter, gcps, gcp_image_width)
     solved = solve_parts(frameset, parts, pairs, config.global_solve(), reporter, anchors)
     plan = plan_canvases(frameset, parts, files, config.drawing())
-    staged = StagedFiles()  # the images of every part appear together, or none of them does
+    staged = StagedFiles(files.output, overwrite)  # the images of every part appear together, or none of them does
     try:
         drawn = [composite_part(frameset, part, config.drawing(), reporter, staged) for part in plan.parts]
         warn_about_earlier_output(files, plan, reporter)
@@ -103,7 +108,7 @@ def run_mosaic(
 
 
 def _check_inputs(source: Path, files: RunFiles, config: MosaicConfig, gcp: str | Path | None, gcp_image_width: int | None,
-                  camera: str | Path | None) -> tuple[GcpFile | None, Lens | None]:
+                  camera: str | Path | None, overwrite: bool = False) -> tuple[GcpFile | None, Lens | None]:
     """Everything that can be checked before any work: the output, the settings, that no output replaces an
     input, the ground-control file and the lens file; stale temporaries of a killed run are removed."""
     check_output(files.output)
@@ -111,6 +116,8 @@ def _check_inputs(source: Path, files: RunFiles, config: MosaicConfig, gcp: str 
     if files.cache_dir is not None and not files.cache_dir.is_dir():
         raise UdhError(f"--cache-dir {files.cache_dir}: no such folder; create it first")
     check_outputs_are_not_inputs(source, files.roles(), files.sidecar)
+    check_sidecar_is_this_outputs(files, overwrite)
+    check_always_written_are_this_runs(files, overwrite)
     remove_stale_staged(files.output)
     gcps = read_gcp_file(gcp) if gcp is not None else None  # a bad file fails before any work
     lens = read_cameras(camera) if camera is not None and str(camera) != CAMERA_ESTIMATE else None

@@ -12,6 +12,7 @@ from typing import Any
 
 from udh_cli.errors import UdhError
 from udh_cli.estimators import create_estimator
+from udh_cli.files import record_written
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.live.follow import FollowConfig, check_followed_folder, follow_mosaic
 from udh_cli.mosaic.inputs.lens_fit import CAMERA_ESTIMATE
@@ -87,6 +88,7 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     written["source"] = report["source"] = relative_to(Path(folder), sidecar.parent)
     atomic_write_bytes(sidecar, (json.dumps(written, indent=1) + "\n").encode())
     rewrite_report_page(written, sidecar.parent)  # it too names the folder, and says how the flight went
+    record_written(*[p for p in (sidecar, files.report_page) if p.is_file()], run=output.name)  # the next run's to replace
     return report
 
 

@@ -5,6 +5,10 @@ under a hidden temporary name (:class:`StagedFiles`); only when every part has b
 renamed to their own names together with the sidecar, which comes last. A run that fails in its third part so
 leaves the outputs of the previous run as they were, not a mix of both. Part files of this output name
 that the new run does not produce (an earlier run had more parts) are removed (:func:`stale_part_files`).
+
+What a run publishes is recorded as written by it (the folder's ``.udh-written.json``, :mod:`udh_cli.files`, with the
+output's name as the run), and a run replaces or removes only files recorded as its own earlier run's and unchanged
+since: never a user's file named like a part, nor another run's mosaic named ``NAME.part1.png``.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from pathlib import Path
 from typing import Iterable
 
 from udh_cli.errors import UdhError
+from udh_cli.files import folder_locked, record_written, written_by_udh
 from udh_cli.images import IMAGE_SUFFIXES
 from udh_cli.mosaic.outputs.files import CAMERAS_SUFFIX, GEOREFERENCE_SUFFIXES, PAM_SUFFIX, PREVIEW_SUFFIX, REPORT_PAGE_SUFFIX, MosaicFiles, RunFiles
 from udh_cli.mosaic.report import Reporter
@@ -47,8 +52,9 @@ def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: 
     """Refuse, before any work, outputs that would replace a user's file rather than an earlier run's.
 
     ``files`` names every file the run may write (``{"mosaic": path, "sidecar": path, ...}``). Refused: any
-    of them that is the input video or an existing frame of ``source`` (unless ``sidecar`` is an earlier
-    udh run's, which wrote it), and a ``.json`` of ours that exists and was not written by udh.
+    of them that is the input video or an existing frame of ``source`` (unless an earlier run to the same
+    mosaic recorded it as its own, whatever its extension), and a ``.json`` of ours that exists and was not
+    written by udh.
     """
     sources = {source.resolve()} if source.is_file() else set()
     earlier_run = sidecar.is_file() and _is_udh_json(sidecar, ("udh-mosaic/",))
@@ -57,13 +63,47 @@ def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: 
             continue
         resolved = path.resolve()
         is_frame = source.is_dir() and resolved.parent == source.resolve() and path.suffix.lower() in IMAGE_SUFFIXES
-        if resolved in sources or (is_frame and not earlier_run):
+        ours = written_by_udh(path, files["mosaic"].name) if "mosaic" in files else earlier_run  # live mode's pictures: unrecorded
+        if resolved in sources or (is_frame and not ours):
             raise UdhError(f"{path}: the {role} would replace an input file of {source}; choose another output name")
         owned_by_run = path.name.lower().endswith(GEOREFERENCE_SUFFIXES + (CAMERAS_SUFFIX, REPORT_PAGE_SUFFIX, PAM_SUFFIX))
         if path.suffix.lower() == ".json" and not owned_by_run and not _is_udh_json(path, ("udh-mosaic",)):
             raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
         if owned_by_run and not earlier_run:  # in formats of their own (world files, OpenSfM's): only an earlier run of ours wrote these
             raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
+
+
+def check_sidecar_is_this_outputs(files: RunFiles, overwrite: bool = False) -> None:
+    """Refuse, before any work, a run whose sidecar ``NAME.json`` is an earlier run's to another mosaic (``NAME.png``
+    when this one writes ``NAME.tif``): replacing it would orphan that run's files. ``overwrite`` allows it."""
+    sidecar, output = files.sidecar, files.output
+    if overwrite or not sidecar.is_file() or written_by_udh(sidecar, output.name):
+        return
+    mosaics = _sidecar_mosaics(sidecar)
+    own = re.compile(rf"{re.escape(output.stem)}(?:\.part[1-9][0-9]*)?{re.escape(output.suffix)}")
+    if written_by_udh(sidecar) or (mosaics and not any(own.fullmatch(name) for name in mosaics)):
+        other = f" of the mosaic {mosaics[0]}" if mosaics else ""
+        raise UdhError(f"{sidecar}: the sidecar{other}, written by another run than one to {output.name}; add --overwrite to "
+                       f"replace it, or choose another output name")
+
+
+def check_always_written_are_this_runs(files: RunFiles, overwrite: bool = False) -> None:
+    """Refuse, before any work, a mosaic, sidecar or report page in the way that no earlier run to this output wrote
+    (every run writes these; :meth:`StagedFiles.publish` checks the rest, parts among them, when they are known)."""
+    for path in (files.output, files.sidecar, files.report_page):
+        if not overwrite and (path.exists() or path.is_symlink()) and not written_by_udh(path, files.output.name):
+            raise UdhError(f"{path}: exists and no earlier run to {files.output.name} wrote it (or it changed since); add "
+                           f"--overwrite to replace it, or choose another output name")
+
+
+def _sidecar_mosaics(sidecar: Path) -> list[str]:
+    """The file names of the mosaics a udh sidecar lists (its parts' ``file``); empty when it lists none or is not one."""
+    try:
+        data = json.loads(sidecar.read_text(errors="replace"))
+    except (OSError, ValueError, RecursionError):
+        return []
+    parts = data.get("parts") if isinstance(data, dict) and str(data.get("format", "")).startswith("udh-mosaic/") else None
+    return [Path(p["file"]).name for p in parts if isinstance(p, dict) and isinstance(p.get("file"), str)] if isinstance(parts, list) else []
 
 
 STALE_AFTER_S = 60.0  # a live quick look's temporary younger than this may be at work beside the refresh
@@ -100,7 +140,8 @@ def stale_part_files(output: Path, produced: list[Path]) -> list[Path]:
     world, ``.prj``, ``.cog.tif`` and GDAL ``.aux.xml`` files, K >= 1) that are not in ``produced``: what an
     earlier run with more parts (or with previews) left behind.
 
-    Only those exact patterns match, with ``output``'s own stem and suffix; nothing else is returned.
+    Only those exact patterns match, with ``output``'s own stem and suffix, and only files recorded as written
+    by an earlier run to ``output`` and unchanged since; nothing else is returned.
     """
     part = rf"{re.escape(output.stem)}\.part[1-9][0-9]*"
     georeference = "|".join(re.escape(s) for s in GEOREFERENCE_SUFFIXES)
@@ -110,7 +151,8 @@ def stale_part_files(output: Path, produced: list[Path]) -> list[Path]:
         candidates = sorted(output.parent.iterdir())
     except OSError:
         return []
-    return [p for p in candidates if pattern.fullmatch(p.name) and p.is_file() and not p.is_symlink() and p.resolve() not in keep]
+    return [p for p in candidates if pattern.fullmatch(p.name) and p.is_file() and not p.is_symlink() and p.resolve() not in keep
+            and written_by_udh(p, output.name)]
 
 
 class StagedFiles:
@@ -118,10 +160,13 @@ class StagedFiles:
 
     ``path_for(final)`` gives the name to write to; :meth:`publish` renames every staged file to its
     final name (keeping the permissions of the file it replaces); :meth:`discard` deletes what is left.
+    With ``run`` (the mosaic's output path), :meth:`publish` replaces only files recorded as that run's (or any,
+    with ``overwrite``) and records what it publishes as that run's.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, run: Path | None = None, overwrite: bool = False) -> None:
         self.staged: list[tuple[Path, Path]] = []  # (temporary, final)
+        self.run, self.overwrite = run, overwrite
 
     def path_for(self, final: Path) -> Path:
         # Hidden (frames folders skip dot files) and with the final suffix, which picks the image encoder.
@@ -143,6 +188,19 @@ class StagedFiles:
         """Rename every staged file to its final name; returns the final names. Raises :class:`UdhError` if a
         rename fails."""
         published = [final for _, final in self.staged]
+        if self.run is None:
+            self._rename()
+            return published
+        with folder_locked(self.run.parent):
+            for final in published:
+                if not self.overwrite and (final.exists() or final.is_symlink()) and not written_by_udh(final, self.run.name):
+                    raise UdhError(f"{final}: exists and no earlier run to {self.run.name} wrote it (or it changed since); nothing "
+                                   f"was written: add --overwrite to replace it, or choose another output name")
+            self._rename()
+            record_written(*published, run=self.run.name)
+        return published
+
+    def _rename(self) -> None:
         for temporary, final in self.staged:
             try:
                 if final.exists():
@@ -151,7 +209,6 @@ class StagedFiles:
             except OSError as exc:
                 raise UdhError(f"{final}: cannot put the new file in place ({exc.strerror}); check the folder's permissions") from None
         self.staged = []
-        return published
 
     def discard(self) -> None:
         """Delete the staged files that were not published (after a failure)."""
@@ -186,11 +243,13 @@ def _is_sidecar(path: Path) -> bool:
 def remove_stale_files(files: RunFiles, published: list[Path], mosaics: list[Path], reporter: Reporter) -> None:
     """Remove part files of this output name (an earlier run with more parts) that this run did not write
     (``published``), and the georeference files (world, .prj, GeoTIFF, .aux.xml) beside ``mosaics`` that this run did not
-    write again: an old world file beside a new mosaic would put it on the map in the wrong place."""
+    write again: an old world file beside a new mosaic would put it on the map in the wrong place. Only files an
+    earlier run to this output recorded as its own, unchanged since, are removed."""
     produced = {f.resolve() for f in published}
     stale = stale_part_files(files.output, published)
     for mosaic in mosaics:
-        stale += [f for f in MosaicFiles(mosaic).georeference if f.is_file() and f.resolve() not in produced and f not in stale]
+        stale += [f for f in MosaicFiles(mosaic).georeference if f.is_file() and f.resolve() not in produced and f not in stale
+                  and written_by_udh(f, files.output.name)]
     for path in stale:
         try:
             path.unlink()

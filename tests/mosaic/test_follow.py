@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -92,8 +93,27 @@ def test_a_flight_that_never_starts_ends_with_a_clear_error(tmp_path):
         run_live(tmp_path / "nothing", tmp_path / "out" / "m.png", MosaicConfig(method="sift"))
 
 
-def test_a_refresh_that_fails_or_whose_process_dies_does_not_end_the_flight(tmp_path):
+def _arrivals(batches: list, live: Path):
+    """A fake clock for follow_mosaic: the first batch of frames is in ``live`` at once, each poll brings the next,
+    then the DONE file. Returns (the clock's reading as a one-item list, its sleep)."""
     import shutil
+
+    now, polls = [0.0], [0]
+
+    def sleep(seconds):
+        now[0] += seconds
+        polls[0] += 1
+        for path in (batches[polls[0]] if polls[0] < len(batches) else []):
+            shutil.copy(path, live / path.name)
+        if polls[0] == len(batches):
+            (live / "DONE").write_text("")
+
+    for path in batches[0]:
+        shutil.copy(path, live / path.name)
+    return now, sleep
+
+
+def test_a_refresh_that_fails_or_whose_process_dies_does_not_end_the_flight(tmp_path):
     from concurrent.futures import Future
     from concurrent.futures.process import BrokenProcessPool
 
@@ -106,18 +126,7 @@ def test_a_refresh_that_fails_or_whose_process_dies_does_not_end_the_flight(tmp_
     frames = make_flight(source, FlightConfig(frame_size=(160, 120), strips=2, frames_per_strip=6, focal_px=150.0), seed=1)
     live.mkdir()
     batches = [frames[:4], frames[4:8], frames[8:]]
-    now, polls = [0.0], [0]
-
-    def sleep(seconds):  # a fake clock: each poll brings the next batch of frames, then the DONE file
-        now[0] += seconds
-        polls[0] += 1
-        for path in (batches[polls[0]] if polls[0] < len(batches) else []):
-            shutil.copy(path, live / path.name)
-        if polls[0] == len(batches):
-            (live / "DONE").write_text("")
-
-    for path in batches[0]:
-        shutil.copy(path, live / path.name)
+    now, sleep = _arrivals(batches, live)
     failures = iter([RuntimeError("a bug in a refresh"), BrokenProcessPool("killed")])
 
     def start_refresh(folder):
@@ -166,8 +175,6 @@ def test_the_quick_look_s_failures_are_warnings_in_a_live_run(tmp_path, monkeypa
 
 def test_the_final_run_comes_only_when_the_last_refresh_missed_frames(tmp_path):
     """A refresh after 8 of 12 frames: the last 4 came after it, so a final run over the folder makes the map."""
-    import shutil
-
     from mosaic_flights import make_flight
     from udh_cli.mosaic.live.follow import follow_mosaic
     from udh_cli.simulate import FlightConfig
@@ -176,23 +183,14 @@ def test_the_final_run_comes_only_when_the_last_refresh_missed_frames(tmp_path):
     frames = make_flight(source, FlightConfig(frame_size=(160, 120), strips=2, frames_per_strip=6, focal_px=150.0), seed=1)
     live.mkdir()
     batches = [frames[:8], frames[8:]]
-    now, polls, runs = [0.0], [0], []
-
-    def sleep(seconds):
-        now[0] += seconds
-        polls[0] += 1
-        for path in (batches[polls[0]] if polls[0] < len(batches) else []):
-            shutil.copy(path, live / path.name)
-        if polls[0] == len(batches):
-            (live / "DONE").write_text("")
+    now, sleep = _arrivals(batches, live)
+    runs = []
 
     def run(folder):
         runs.append(folder)
         held = len(list(folder.glob("*.jpg")))
         return {"summary": {"placed": held, "frames": held}}
 
-    for path in batches[0]:
-        shutil.copy(path, live / path.name)
     report = follow_mosaic(live, tmp_path / "m.png", run, FollowConfig(refresh_every=8, poll_s=0.1, idle_timeout_s=60.0),
                            clock=lambda: now[0], sleep=sleep)
     assert len(runs) == 2 and runs[0] != live and runs[-1] == live

@@ -8,7 +8,8 @@ from typing import Any
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.estimators import DEFAULT_METHOD, Estimate, create_estimator, require_ok
+from udh_cli.estimators import DEFAULT_METHOD, create_estimator, require_ok
+from udh_cli.estimators.base import is_verified
 from udh_cli.homography_files import read_homography
 from udh_cli.files import check_replaceable, write_output
 from udh_cli.images import IMAGE_SUFFIXES, check_output_path, encode_image, read_image
@@ -19,19 +20,6 @@ ESTIMATE_WORK_SIZE = 1600
 # Memory the full cascade can take per pixel of the two images at full resolution (its copies, pyramids and
 # SIFT's scale space at once); docs/estimators.md gives the measurement.
 FULL_RESOLUTION_BYTES_PER_PIXEL = 100
-# Below this confidence an answer that carries no verification of its own counts as unverified. It is the
-# mosaic's acceptance floor (Acceptance.min_confidence): what udh would not build a map on.
-MIN_CONFIDENCE = 0.2
-
-
-def is_verified(estimate: Estimate) -> bool:
-    """Whether an answer is confirmed: the estimator's own verdict where it gives one (``auto``), else a
-    confidence of at least :data:`MIN_CONFIDENCE`."""
-    if estimate.verified is not None:
-        return estimate.verified
-    return estimate.confidence >= MIN_CONFIDENCE
-
-
 def _work_copy(image, work_size: int | None):
     """``image`` shrunk so that its longer side is at most ``work_size`` (None: as it is)."""
     import cv2
@@ -107,7 +95,7 @@ def estimate_report(
         sizes = [f"{image.shape[1]}x{image.shape[0]}" for image in (image_a, image_b)]
         check_memory(FULL_RESOLUTION_BYTES_PER_PIXEL * (image_a.shape[0] * image_a.shape[1] + image_b.shape[0] * image_b.shape[1]),
                      f"--full-resolution on {sizes[0]} and {sizes[1]} images", "leave out --full-resolution (the answer is in "
-                     f"full-resolution pixels all the same; --work-size sets the working size)")
+                     "full-resolution pixels all the same; --work-size sets the working size)")
     if truth is not None:
         _check_truth_fits(truth, gt, image_a.shape[1], image_a.shape[0])
     work_a, work_b = _work_copy(image_a, work_size), _work_copy(image_b, work_size)

@@ -22,7 +22,6 @@ from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate
 from udh_cli.estimators.base import Estimator
 from udh_cli.estimators.pair import PreparedImage
-from udh_cli.homography_files import format_homography
 
 from conftest import warped_pair
 

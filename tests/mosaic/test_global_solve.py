@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-import numpy as np
-
 from udh_cli import geometry
 from udh_cli.mosaic.pairs.types import PairResult
 from udh_cli.mosaic.report import Reporter

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from udh_cli.bench.plots import TEXT, Axes, _colour, _legend, _marker, _text
+from udh_cli.bench.plots import Axes, _colour, _legend, _marker, _text
 from udh_cli.bench.verdicts import Reliability
 
 DIAGONAL = (150, 150, 150)

@@ -3,8 +3,8 @@ confidence predicts being right (the reliability diagram's bins).
 
 A pair is **right** when there is an answer within ``FAIL_PX`` (10 px) of the truth, and a **failure**
 otherwise (:func:`udh_cli.bench.metrics.failures`). An answer is **verified** by the rule ``udh estimate``
-reports (:func:`udh_cli.api.is_verified`): the method's own verdict where it gives one
-(``Estimate.verified``), else a confidence of at least the mosaic's acceptance floor. **Verified but wrong**
+reports (:func:`udh_cli.estimators.base.is_verified`): the method's own verdict where it gives one
+(``Estimate.verified``), else a confidence of at least its floor (``MIN_CONFIDENCE``). **Verified but wrong**
 is a verified answer that is a failure: the answers a map would be built on, and should not be.
 """
 
@@ -16,16 +16,14 @@ import numpy as np
 
 from udh_cli.bench import metrics
 from udh_cli.bench.runner import MethodRun
-from udh_cli.mosaic.pairs.types import Acceptance
+from udh_cli.estimators.base import MIN_CONFIDENCE as VERIFIED_CONFIDENCE
 
-# udh_cli.api.is_verified's floor for answers their method does not judge: what udh would not build a map on.
-VERIFIED_CONFIDENCE = Acceptance.min_confidence
 RELIABILITY_BINS = 10  # equal confidence bins over [0, 1]; 1.0 falls in the last
 ALL_KINDS = "all kinds"
 
 
 def verified(run: MethodRun) -> np.ndarray:
-    """(N,) bool: answers udh reports as verified (see the module docstring)."""
+    """(N,) bool: answers udh reports as verified, :func:`~udh_cli.estimators.base.is_verified` over the run's arrays."""
     judged = np.asarray(run.verdicts)
     by_confidence = (judged == -1) & (np.asarray(run.confidence) >= VERIFIED_CONFIDENCE)
     return np.asarray(run.answered, bool) & ((judged == 1) | by_confidence)

@@ -170,3 +170,16 @@ def require_ok(estimate: Estimate) -> Estimate:
     if not estimate.ok:
         raise UdhError(f"{estimate.method} found no homography: {estimate.failure}")
     return estimate
+
+
+# Below this confidence an answer that carries no verification of its own counts as unverified. It is the
+# mosaic's acceptance floor (Acceptance.min_confidence): what udh would not build a map on.
+MIN_CONFIDENCE = 0.2
+
+
+def is_verified(estimate: Estimate) -> bool:
+    """Whether an answer is confirmed: the estimator's own verdict where it gives one (``auto``), else a
+    confidence of at least :data:`MIN_CONFIDENCE`."""
+    if estimate.verified is not None:
+        return estimate.verified
+    return estimate.confidence >= MIN_CONFIDENCE

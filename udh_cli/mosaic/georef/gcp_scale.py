@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Callable, Sequence
 
 from udh_cli.errors import UdhError
-from udh_cli.mosaic.georef.gcp import INCONSISTENT_M, MIN_GCPS, GcpFile, GcpFit, fit_gcps
+from udh_cli.mosaic.georef.gcp import INCONSISTENT_M, MIN_GCPS, GcpFile, GcpFit
 
 ASPECT_TOLERANCE = 0.01  # an EXIF size of another aspect than the frame's is not its original
 # All observations inside the frames' box, though they were measured on originals this much larger, would

@@ -383,3 +383,16 @@ def test_a_confident_match_outranks_what_the_tiles_confirmed_and_is_kept_as_matc
     assert estimate.stage == "tiles" and geometry.mace(estimate.homography, moved, 320, 240) < 1e-6
     # ...but the verdict sees that the match, an opinion of 40 cells, puts it 30 px elsewhere.
     assert not estimate.verified and "match agrees" in estimate.details["verdict_failed"]
+
+
+def test_near_its_prior_the_network_keeps_its_networks_and_drops_the_far_searches():
+    """A pre-warped loop pair: no shift search, and the global match at B's own heading and first side only;
+    the estimator it came from is unchanged."""
+    if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
+        pytest.skip("shipped unsupervised model not built yet")
+    full = create_estimator("unsupervised", device="cpu")
+    near = full.near_prior()
+    assert (near.search, near.match_headings, near.match_escalate_side) == (0, 1, None)
+    assert (full.search, full.match_headings, full.match_escalate_side) == (deep.PIPELINE_SEARCH, deep.MATCH_HEADINGS, deep.MAX_MATCH_SIDE)
+    assert near.network is full.network and near.matcher is full.matcher  # nothing loaded again
+    assert near.heading_search == full.heading_search and near.settings() != full.settings()

@@ -475,3 +475,24 @@ def test_a_polish_that_leaves_the_matches_is_dropped_and_the_details_say_so():
     estimate = auto.estimate(a, b)
     assert estimate.details["fallback"]["refinement_kept"] is False
     np.testing.assert_allclose(estimate.homography, off / off[2, 2], atol=1e-9)
+
+
+class _Twinned(Estimator):
+    """Names the twin :meth:`near_prior` gives."""
+
+    name: ClassVar[str] = "twinned"
+
+    def __init__(self, label: str) -> None:
+        self.label = label
+
+    def near_prior(self):
+        return _Twinned(self.label + " near")
+
+
+def test_a_cascade_near_its_prior_takes_every_opinion_near_its_prior():
+    cascade = Cascade("auto", _Twinned("start"), opinions=(Opinion("fallback", _Twinned("sift"), "sift"),
+                                                          Opinion("mirrored", ViewEstimator(_Twinned("view"), "mirrored"), "mirrored")))
+    near = cascade.near_prior()
+    assert near.start.label == "start near" and near.opinions[0].estimator.label == "sift near"
+    assert near.opinions[1].estimator.inner.label == "view near" and near.opinions[1].key == "mirrored"
+    assert cascade.start.label == "start" and near.policy == cascade.policy

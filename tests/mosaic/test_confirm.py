@@ -75,3 +75,24 @@ def test_only_the_marked_pairs_start_from_the_prediction():
     out = judge_opinions([cascade], Acceptance(), [pair, pair, pair], [False, True, False])
     assert [attempts[-1][0].method for attempts in out] == ["truth", "chain+ecc", "truth"] and cascade.asked == 2
     assert [attempts[-1][0].method for attempts in judge_opinions([cascade], Acceptance(), [pair])] == ["truth"]
+
+
+class Searching(Truth):
+    """A :class:`Truth` whose :meth:`near_prior` twin is another instance, as the network's is without its searches."""
+
+    def __init__(self, b_from_a: np.ndarray) -> None:
+        super().__init__(b_from_a)
+        self.near = Truth(b_from_a)
+
+    def near_prior(self):
+        return self.near
+
+
+def test_a_prewarped_pair_the_prediction_left_doubted_asks_the_opinions_without_their_searches():
+    truth = residual(30.0, 22.0, 3.0)  # too far for the confirmation: the cascade decides
+    far = warped_pair(truth, W, H, seed=16)
+    method = Searching(truth)
+    out = judge_opinions([method], Acceptance(), [far, far, far], [True, False, True])
+    assert (method.asked, method.near.asked) == (1, 2)  # the unmarked pair alone asks the searching opinion
+    assert [attempts[-1][0].method for attempts in out] == ["truth"] * 3
+    assert [len(attempts) for attempts in out] == [2, 1, 2]  # the marked pairs tried the prediction first

@@ -122,6 +122,13 @@ class Estimator:
     def _estimate(self, pair: PreparedPair) -> tuple[np.ndarray, float, dict]:
         raise NotImplementedError
 
+    def near_prior(self) -> "Estimator":
+        """This estimator for a pair whose B is already pre-warped into A's frame by a prediction (a mosaic's
+        loop pair, placed by the chain): without the searches for B's heading or far position, which ask what
+        the prediction settled; an answer far from it is rejected anyway. Estimators without such searches
+        return themselves."""
+        return self
+
     def settings(self) -> dict[str, Any]:
         """The options this estimator runs with, JSON-ready: its dataclass fields shown in its repr (nested
         settings such as a refiner's as dicts). With :attr:`name` and :meth:`model_files` it says what makes

@@ -134,6 +134,7 @@ class DeepEstimator(Estimator):
     tile_network: OnnxHomographyModel = field(init=False, repr=False)  # the network of the tile stage
     tile_coarse_network: OnnxHomographyModel | None = field(init=False, repr=False)  # its coarse level's, if any
     matcher: OnnxMatcher | None = field(init=False, repr=False)  # the global matcher, if any
+    match_headings: int = field(init=False, repr=False, default=MATCH_HEADINGS)  # B's turns the global match tries
 
     def __post_init__(self) -> None:
         from udh_cli.models_catalog import PRECISIONS, check_precision, has_shipped, shipped_onnx
@@ -212,6 +213,17 @@ class DeepEstimator(Estimator):
         twin.iterations = DEFAULT_ITERATIONS
         twin.refine_rounds = DEFAULT_REFINE_ROUNDS if len(self.stages) > 1 else 0
         twin.stages = [(network, rounds) for (network, _), rounds in zip(self.stages, (twin.iterations, twin.refine_rounds))]
+        return twin
+
+    def near_prior(self) -> "DeepEstimator":
+        """The same estimator and loaded networks without the shift search (shifts up to half the frame), and with
+        the global match at B's own heading and its first side only (:meth:`Estimator.near_prior`). Why the match
+        stays: on brighton-beach it answers loop pairs the cascade cannot (1,200-4,000 cells at 384 px, heading
+        0); on copr its other turns and the escalation to 768 px cost 0.1-0.4 s a doubted loop pair and rescued
+        none (docs/benchmarks.md, "Loop-closure pairs near their prediction"). The heading search stays: it is
+        cheap and answered a brighton-beach loop pair."""
+        twin = copy.copy(self)
+        twin.search, twin.match_headings, twin.match_escalate_side = 0, 1, None
         return twin
 
     def loaded_precision(self) -> str:
@@ -306,7 +318,7 @@ class DeepEstimator(Estimator):
         matched_any = self.matcher is not None and bool(doubtful)
         if matched_any:
             for i in doubtful:
-                found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side, MATCH_HEADINGS, self.match_refine_side,
+                found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side, self.match_headings, self.match_refine_side,
                                      self.match_escalate_side)
                 if found.b_from_a is None:
                     continue

@@ -17,6 +17,7 @@ a :class:`Policy` that chooses between them), composed by the ``build()`` of the
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Sequence
@@ -132,6 +133,11 @@ class Cascade(Estimator):
     def model_files(self) -> list[str]:
         inner = [self.start, *(opinion.estimator for opinion in self.opinions)]
         return sorted({path for estimator in inner for path in estimator.model_files()})
+
+    def near_prior(self) -> "Cascade":
+        """The same cascade with its start and every opinion :meth:`~Estimator.near_prior`."""
+        opinions = tuple(Opinion(o.key, o.estimator.near_prior(), o.stage) for o in self.opinions)
+        return dataclasses.replace(self, start=self.start.near_prior(), opinions=opinions)
 
     def estimate_pairs(self, pairs: Sequence[PreparedPair]) -> list[Estimate]:
         if not pairs:

@@ -38,6 +38,9 @@ class ViewEstimator(Estimator):
         if self.view not in VIEWS:
             raise UdhError(f"view '{self.view}': choose one of {', '.join(VIEWS)}")
 
+    def near_prior(self) -> "ViewEstimator":
+        return ViewEstimator(self.inner.near_prior(), self.view)
+
     def _estimate(self, pair: PreparedPair) -> tuple[np.ndarray, float, dict]:
         if self.view == "swapped":
             found = _answer(self.inner.estimate_pairs([pair.swapped()])[0])

@@ -77,12 +77,17 @@ def judge_opinions(opinions: Sequence[Estimator], acceptance, pairs: Sequence[Im
     for i, judged in zip(confirming, judge_batch(PREDICTION_CHECK, acceptance, [pairs[i] for i in confirming])):
         out[i].append(judged)
     doubted = [i for i in range(len(pairs)) if not out[i] or out[i][-1][2] is not None]
-    for opinion in opinions:
-        if not doubted:
-            break
-        for i, judged in zip(doubted, judge_batch(opinion, acceptance, [pairs[i] for i in doubted])):
-            out[i].append(judged)
-        doubted = [i for i in doubted if out[i][-1][2] is not None]
+    marked = set(confirming)
+    # A pre-warped pair the prediction did not confirm asks the opinions without their searches for B's heading
+    # or position (Estimator.near_prior): a loop pair must land near its prediction to be kept at all.
+    for group, asked in (([i for i in doubted if i not in marked], opinions),
+                         ([i for i in doubted if i in marked], [opinion.near_prior() for opinion in opinions] if marked else [])):
+        for opinion in asked:
+            if not group:
+                break
+            for i, judged in zip(group, judge_batch(opinion, acceptance, [pairs[i] for i in group])):
+                out[i].append(judged)
+            group = [i for i in group if out[i][-1][2] is not None]
     return out
 
 

@@ -68,7 +68,8 @@ def judge_opinions(opinions: Sequence[Estimator], acceptance, pairs: Sequence[Im
     All in the same job, so that a doubted batch never waits in the queue behind other batches for its second
     opinion. Each pair is prepared once (:mod:`udh_cli.estimators.pair`) for every opinion and the acceptance
     test. The pairs marked in ``from_prediction`` (pre-warped loop pairs) are first confirmed from the prediction
-    (:mod:`.confirm`), and ask the opinions only when that is doubted."""
+    (:mod:`.confirm`), and ask the opinions near their prior (:meth:`~udh_cli.estimators.Estimator.near_prior`)
+    only when that is doubted."""
     from udh_cli.mosaic.pairs.confirm import PREDICTION_CHECK  # here: the cascade's modules load when a job runs, not on import
 
     pairs = [PreparedPair.of(a, b) for a, b in pairs]

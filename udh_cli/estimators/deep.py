@@ -220,7 +220,7 @@ class DeepEstimator(Estimator):
         the global match at B's own heading and its first side only (:meth:`Estimator.near_prior`). Why the match
         stays: on brighton-beach it answers loop pairs the cascade cannot (1,200-4,000 cells at 384 px, heading
         0); on copr its other turns and the escalation to 768 px cost 0.1-0.4 s a doubted loop pair and rescued
-        none (docs/benchmarks.md, "Loop-closure pairs near their prediction"). The heading search stays: it is
+        none (docs/mosaic.md, "Loop-closure pairs from the chain's prediction"). The heading search stays: it is
         cheap and answered a brighton-beach loop pair."""
         twin = copy.copy(self)
         twin.search, twin.match_headings, twin.match_escalate_side = 0, 1, None

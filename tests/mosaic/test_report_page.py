@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from udh_cli.mosaic.report_page import MAX_ROWS, build_report_page, overlap_counts, pair_style, residual_colour
+from udh_cli.mosaic.report_page import MAX_ROWS, build_report_page, overlap_counts, pair_style, residual_colour, source_label
 
 
 def test_overlap_counts_add_up_the_outlines():
@@ -23,6 +23,20 @@ def test_pairs_are_named_by_what_they_did():
     assert pair_style({"status": "ok", "kind": "overlap", "consistency_px": {"loop": True}}) == "loop closure"
     assert pair_style({"status": "ok", "kind": "consecutive", "consistency_px": {"loop": False}}) == "chain"
     assert residual_colour(0.0, 5.0) == "#00ff30" and residual_colour(9.0, 5.0) == "#ff0030"
+
+
+def test_the_title_names_the_source_without_the_steps_out_of_the_output_folder():
+    assert source_label("../../work/shared/data/flights/copr/images") == "copr/images"
+    assert source_label("flight") == "flight" and source_label("/data/survey") == "data/survey"
+    page = build_report_page(_long_flight_report(30, 0, 0) | {"source": "../../data/flights/seneca/images"}, {})
+    assert "<title>udh mosaic of seneca/images</title>" in page
+
+
+def test_the_sequence_strip_lists_only_the_kinds_of_pair_it_shows():
+    page = build_report_page(_long_flight_report(30, 0, 0), {})
+    strip = page[page.index('class="sequence"'):]
+    caption = strip[strip.index("<figcaption>"):strip.index("</figcaption>")]
+    assert "chain 29" in caption and "loop closure" not in caption  # the strip shows consecutive pairs only
 
 
 def test_a_run_writes_its_report_beside_the_mosaic_with_every_picture_inline(tmp_path):

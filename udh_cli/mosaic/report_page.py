@@ -15,7 +15,7 @@ import base64
 import html
 import json
 import math
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any
 
 import cv2
@@ -70,7 +70,7 @@ def build_report_page(report: dict[str, Any], previews: dict[int, bytes | None])
     """The page's HTML for the sidecar dict ``report``; ``previews``: part number -> that part's preview as
     JPEG bytes (None: the frames' outlines are drawn on a dark ground instead)."""
     summary = report["summary"]
-    title = f"udh mosaic of {report['source']}"
+    title = f"udh mosaic of {source_label(report['source'])}"
     body = [f"<h1>{_e(title)}</h1>", _summary_table(report), _sequence_section(report)]
     for part in report["parts"]:
         body.append(_part_section(report, part, previews.get(part["part"])))
@@ -364,10 +364,18 @@ def _overlap_stats(counts: np.ndarray) -> str:
             f"is seen by 2 or more frames, {100 * np.mean(covered >= 3):.0f} % by 3 or more")
 
 
+def source_label(source: str) -> str:
+    """The source as a title names it: its last two folders, without the ``..`` steps of a path relative to the
+    output folder (the sidecar's ``source``): ``copr/images``, not ``../../data/flights/copr/images``."""
+    named = [part for part in PurePath(source).parts if part not in ("..", ".", "/")]
+    return "/".join(named[-2:]) or source
+
+
 def _pair_legend(pairs: list[dict[str, Any]]) -> str:
+    """The styles of ``pairs``, each with its count; a style no pair has is left out."""
     counts = {name: sum(pair_style(p) == name for p in pairs) for name in PAIR_STYLES}
     return " ".join(f'<span class="swatch line" style="border-top:3px {"dashed" if dash else "solid"} {colour}"></span>{name} {counts[name]}'
-                    for name, (colour, dash) in PAIR_STYLES.items())
+                    for name, (colour, dash) in PAIR_STYLES.items() if counts[name])
 
 
 def _figure(svg: str, caption: str) -> str:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 import time
 from concurrent.futures import Future, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -35,6 +34,9 @@ import numpy as np
 from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES
 from udh_cli.mosaic.report import Reporter
+from udh_cli.processes import remove_dead_runs_folders, run_temp_folder
+
+FOLLOW_STAGING_PREFIX = ".udh-follow-"  # the refreshes' folder of links to the complete frames, beside the output
 
 
 @dataclass(frozen=True)
@@ -138,7 +140,9 @@ def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], 
     refreshed_at, last_new, refreshes = 0, clock(), 0
     pending: Future | None = None
     latest: dict[str, Any] | None = None  # the last refresh that was written
-    staging = Path(tempfile.mkdtemp(prefix=".udh-follow-", dir=output.parent))
+    for gone in remove_dead_runs_folders(output.parent, FOLLOW_STAGING_PREFIX):
+        reporter.info(f"live: removed {gone.name}, left by a live run that was killed")
+    staging = run_temp_folder(output.parent, FOLLOW_STAGING_PREFIX)
 
     def refreshed(outcome: Callable[[], dict[str, Any]], frames: int) -> None:
         nonlocal refreshes, start_refresh, latest

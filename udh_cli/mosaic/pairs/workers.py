@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import os
 import re
-import signal
 import sys
 import threading
 from collections import deque
@@ -30,6 +29,7 @@ import numpy as np
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.estimators.pair import PreparedPair
+from udh_cli.processes import die_with_parent
 
 ImagePair = tuple[np.ndarray, np.ndarray]  # working-size images A and B, as sent to a worker
 Judged = tuple[Estimate, "float | None", "str | None"]  # the estimate, its verification score, why it is doubted
@@ -136,11 +136,6 @@ def judge_on_worker(spec: EstimatorSpec, pairs: Sequence[ImagePair], from_predic
     return judge_opinions(_worker_estimators(spec), spec.acceptance, list(pairs), from_prediction)
 
 
-def _ignore_interrupts() -> None:
-    """Pool workers leave Ctrl-C to the parent, which stops them; otherwise each prints its own traceback."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 class LocalRunner:
     """Runs each job in this process as soon as it is submitted, with the given estimator instances."""
 
@@ -200,7 +195,8 @@ class PoolRunner:
         self.spec = _single_threaded(spec)
         self.window = 2 * workers  # a batch queued behind each running one keeps every worker busy
         # spawn, not fork: a forked onnxruntime or OpenCV thread pool can hang its child.
-        self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_ignore_interrupts)
+        self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=die_with_parent, initargs=(os.getpid(),))
 
     def submit(self, pairs: Sequence[ImagePair], from_prediction: Sequence[bool] | None = None) -> Future:
         return self.pool.submit(judge_on_worker, self.spec, list(pairs), from_prediction)

@@ -136,3 +136,65 @@ def test_only_folders_of_dead_processes_on_this_host_are_removed(tmp_path):
     (dead / "link.jpg").symlink_to(tmp_path / "nowhere.jpg")
     assert remove_dead_runs_folders(tmp_path, ".udh-x-") == [dead]
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([mine.name, other_host.name, users.name])
+
+
+class _Server:
+    """A local TCP server on a thread that accepts every connection and then does ``behaviour(connection)``."""
+
+    def __init__(self, behaviour):
+        import socket
+        import threading
+
+        self.socket = socket.create_server(("127.0.0.1", 0))
+        self.stop = threading.Event()
+        self.behaviour = behaviour
+        self.thread = threading.Thread(target=self.serve, daemon=True)
+        self.thread.start()
+        self.address = f"tcp://127.0.0.1:{self.socket.getsockname()[1]}"
+
+    def serve(self) -> None:
+        self.socket.settimeout(0.1)
+        while not self.stop.is_set():
+            try:
+                connection, _ = self.socket.accept()
+            except OSError:
+                continue
+            with connection:
+                self.behaviour(connection, self.stop)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join()
+        self.socket.close()
+
+
+def _silent(connection, stop) -> None:
+    stop.wait()
+
+
+def _http(connection, stop) -> None:
+    connection.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n")
+    stop.wait()
+
+
+def _dripping(connection, stop) -> None:
+    while not stop.wait(0.05):
+        try:
+            connection.sendall(b"\x00")
+        except OSError:
+            return
+
+
+@pytest.mark.parametrize("behaviour", [_silent, _http, _dripping], ids=["silent", "http", "dripping"])
+def test_a_scheduler_that_never_answers_is_a_one_line_error_within_the_timeout(behaviour):
+    pytest.importorskip("distributed")
+    from udh_cli.errors import UdhError
+    from udh_cli.mosaic.pairs.workers import DaskRunner, EstimatorSpec
+
+    server = _Server(behaviour)
+    try:
+        with pytest.raises(UdhError, match="cannot reach the Dask scheduler") as refused:
+            DaskRunner(EstimatorSpec((("sift", {}),)), server.address, timeout_s=1.0)
+    finally:
+        server.close()
+    assert "\n" not in str(refused.value) and server.address in str(refused.value)

@@ -224,6 +224,7 @@ class DaskRunner:
         except ImportError:
             raise UdhError("--scheduler needs Dask: pip install 'dask[distributed]' (from the udh checkout: pip install '.[cluster]')") from None
         try:
+            _handshake(scheduler, timeout_s)
             self.client = Client(scheduler, timeout=timeout_s)
         except (OSError, TimeoutError, ValueError) as exc:
             raise UdhError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc}); start one with `dask scheduler` "
@@ -248,6 +249,42 @@ class DaskRunner:
 
     def close(self, abort: bool = False) -> None:
         self.client.close()
+
+
+def _handshake(scheduler: str, timeout_s: float) -> None:
+    """Connect to ``scheduler`` and exchange Dask's handshake within ``timeout_s`` seconds, or raise TimeoutError.
+
+    Why: ``distributed``'s connect bounds the TCP connection but not the handshake after it, so a server that
+    accepts and never answers would hold the run for ever. It runs on a thread of its own, whose event loop is
+    its own even when the caller's thread runs one (a notebook)."""
+    import asyncio
+
+    from distributed.comm import connect
+
+    async def exchange() -> None:
+        comm = await asyncio.wait_for(connect(scheduler, timeout=timeout_s), timeout_s)
+        await comm.close()
+
+    failure: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            asyncio.run(exchange())
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+            failure.append(exc)
+
+    thread = threading.Thread(target=run, name="udh-dask-handshake", daemon=True)
+    thread.start()
+    thread.join(timeout_s + 5)  # wait_for ends the exchange at timeout_s; this only guards a loop that never returns
+    if thread.is_alive():
+        raise TimeoutError(f"no handshake within {timeout_s:g} s")
+    if failure:
+        exc = failure[0]
+        if isinstance(exc, asyncio.TimeoutError):
+            raise TimeoutError(f"no handshake within {timeout_s:g} s")
+        if isinstance(exc, (OSError, ValueError, TimeoutError)):
+            raise exc
+        raise OSError(f"the handshake failed ({type(exc).__name__}: {exc})")
 
 
 def _single_threaded(spec: EstimatorSpec) -> EstimatorSpec:

@@ -205,9 +205,16 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
         listing = list(folder.iterdir())
     except OSError as exc:
         raise UdhError(f"{folder}: cannot list the folder ({exc.strerror}); check its permissions") from None
-    entries = sorted((p for p in listing if p.is_file() and not p.name.startswith(".")), key=lambda p: _natural_key(p.name))
-    entries = [p for p in entries if p.resolve() not in excluded and p.name not in IGNORED_FILES]
     skipped: list[dict] = []
+    entries = []
+    for path in sorted((p for p in listing if not p.name.startswith(".") and p.name not in IGNORED_FILES), key=lambda p: _natural_key(p.name)):
+        why = not_a_file(path)
+        if why is None:
+            entries.append(path)
+        elif why:  # a frame that cannot be read must be named, never dropped without a word (a FIFO is never opened)
+            skipped.append({"file": path.name, "reason": why})
+            reporter.warn(f"skipping {path.name}: {why}")
+    entries = [p for p in entries if p.resolve() not in excluded]
     candidates = []
     earlier = earlier_outputs(entries)
     for path in entries:
@@ -248,6 +255,27 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
         found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"
         raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames{_subfolder_hint(folder)}")
     return FrameSet(folder, frames, skipped, stretch_work_copies(frames))
+
+
+def not_a_file(path: Path) -> str | None:
+    """None when the folder entry ``path`` is a regular file or a link to one; "" for a folder; else why it cannot
+    be a frame: a link to nothing, a loop of links, a pipe, device or socket (a FIFO would block its reader)."""
+    import errno
+    import stat
+
+    try:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return "a loop of symbolic links; point the link at the frame itself"
+        if path.is_symlink():
+            return f"a symbolic link to {os.readlink(path)}, which does not exist; copy the frame there or remove the link"
+        return f"cannot be read ({exc.strerror or exc}); check its permissions"
+    if stat.S_ISDIR(mode):
+        return ""
+    if not stat.S_ISREG(mode):
+        return "not a regular file (a pipe, device or socket); copy the frame into a file"
+    return None
 
 
 def _subfolder_hint(folder: Path) -> str:

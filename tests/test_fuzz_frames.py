@@ -1,0 +1,44 @@
+"""Fuzzing a mosaic's frames: entries that are not files, earlier outputs re-saved, headers that declare
+bombs, frames replaced while a run reads them. Each is named in one line, never dropped or drawn in silence."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from conftest import run_main
+from mosaic_flights import SMALL, make_flight
+
+
+@pytest.fixture
+def frames(tmp_path) -> Path:
+    folder = tmp_path / "frames"
+    make_flight(folder, SMALL, seed=3)
+    (folder / "ground_truth.json").unlink(missing_ok=True)
+    return folder
+
+
+def mosaic(monkeypatch, capfd, frames: Path, output: Path, *options: str) -> tuple[int, str]:
+    code, _, err = run_main(monkeypatch, capfd, "mosaic", str(frames), "-o", str(output), "-m", "sift", "--quiet", "--overlap-pairs", "1", *options)
+    return code, err
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
+def test_links_to_nothing_link_loops_and_pipes_named_jpg_are_named_and_never_opened(frames, tmp_path, monkeypatch, capfd):
+    (frames / "zz_dangling.jpg").symlink_to(tmp_path / "gone.jpg")
+    (frames / "zz_loop_a.jpg").symlink_to(frames / "zz_loop_b.jpg")
+    (frames / "zz_loop_b.jpg").symlink_to(frames / "zz_loop_a.jpg")
+    os.mkfifo(frames / "zz_pipe.jpg")  # no writer: opening it to read would wait for ever
+    (frames / "zz_linked.jpg").symlink_to(frames / "frame_000.jpg")  # a link to a frame is a frame
+    code, err = mosaic(monkeypatch, capfd, frames, tmp_path / "m.png")
+    assert code == 0, err
+    assert f"skipping zz_dangling.jpg: a symbolic link to {tmp_path / 'gone.jpg'}, which does not exist" in err
+    assert "skipping zz_loop_a.jpg: a loop of symbolic links" in err and "skipping zz_loop_b.jpg: a loop of symbolic links" in err
+    assert "skipping zz_pipe.jpg: not a regular file (a pipe, device or socket)" in err
+    report = json.loads((tmp_path / "m.json").read_text())
+    skipped = {entry["file"] for entry in report["skipped_files"]}
+    assert skipped == {"zz_dangling.jpg", "zz_loop_a.jpg", "zz_loop_b.jpg", "zz_pipe.jpg"}
+    assert "zz_linked.jpg" in [frame["file"] for frame in report["frames"]]

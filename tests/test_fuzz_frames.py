@@ -42,3 +42,26 @@ def test_links_to_nothing_link_loops_and_pipes_named_jpg_are_named_and_never_ope
     skipped = {entry["file"] for entry in report["skipped_files"]}
     assert skipped == {"zz_dangling.jpg", "zz_loop_a.jpg", "zz_loop_b.jpg", "zz_pipe.jpg"}
     assert "zz_linked.jpg" in [frame["file"] for frame in report["frames"]]
+
+
+@pytest.mark.parametrize("resave", [dict(sort_keys=True, indent=2), dict(separators=(",", ":"), sort_keys=True)], ids=["sorted", "compact"])
+def test_an_earlier_mosaic_whose_sidecar_was_re_saved_is_still_not_a_frame(resave, frames, monkeypatch, capfd):
+    code, err = mosaic(monkeypatch, capfd, frames, frames / "old.png")
+    assert code == 0, err
+    sidecar = frames / "old.json"
+    sidecar.write_text(json.dumps(json.loads(sidecar.read_text()), **resave))  # as an editor or jq would save it
+    assert not sidecar.read_text().startswith('{"format"') and not sidecar.read_text().startswith('{\n  "format"')
+    code, err = mosaic(monkeypatch, capfd, frames, frames / "new.png")
+    assert code == 0, err
+    assert "skipping old.png: an earlier udh mosaic's output (old.json)" in err
+    report = json.loads((frames / "new.json").read_text())
+    assert not any(frame["file"].startswith("old.") for frame in report["frames"])
+    assert report["summary"]["frames"] == len(list(frames.glob("frame_*.jpg")))
+
+
+def test_a_json_file_that_only_mentions_the_sidecar_format_is_not_a_sidecar(frames, monkeypatch, capfd):
+    from udh_cli.mosaic.outputs.staging import SIDECAR_FORMAT, earlier_outputs
+
+    (frames / "notes.json").write_text(json.dumps({"a": 1, "about": SIDECAR_FORMAT}, sort_keys=True))
+    (frames / "notes.png").write_bytes((frames / "frame_000.jpg").read_bytes())
+    assert earlier_outputs(sorted(frames.iterdir())) == {}

@@ -65,3 +65,45 @@ def test_a_json_file_that_only_mentions_the_sidecar_format_is_not_a_sidecar(fram
     (frames / "notes.json").write_text(json.dumps({"a": 1, "about": SIDECAR_FORMAT}, sort_keys=True))
     (frames / "notes.png").write_bytes((frames / "frame_000.jpg").read_bytes())
     assert earlier_outputs(sorted(frames.iterdir())) == {}
+
+
+def jpeg_declaring(width: int, height: int, padding: int = 0) -> bytes:
+    """A small JPEG whose frame header declares ``width`` x ``height``; ``padding`` bytes of comment segments make
+    the file look large enough to hold them (the coded data stays a few hundred bytes)."""
+    import struct
+
+    import cv2
+
+    from conftest import textured_image
+
+    ok, encoded = cv2.imencode(".jpg", textured_image(64, 64, seed=1))
+    data = bytearray(encoded.tobytes())
+    start = data.find(b"\xff\xc0") + 5
+    data[start:start + 4] = struct.pack(">HH", height, width)
+    comments = b""
+    while len(comments) < padding:
+        comments += b"\xff\xfe" + struct.pack(">H", 60002) + bytes(60000)
+    return bytes(data[:2] + comments + data[2:])
+
+
+def test_frames_declaring_15000_squared_are_refused_before_any_decoder_sees_them(frames, tmp_path, monkeypatch, capfd):
+    import cv2
+
+    from udh_cli.mosaic.live.follow import ends_whole
+
+    bomb = jpeg_declaring(15000, 15000, padding=60_000)  # under the old limit of pixels per byte of the whole file
+    for number in range(4):
+        (frames / f"zz_bomb{number}.jpg").write_bytes(bomb)
+    decode = cv2.imdecode
+
+    def guarded(buffer, flags):
+        assert len(buffer) != len(bomb), "a frame declaring 15000x15000 pixels reached the decoder"
+        return decode(buffer, flags)
+
+    monkeypatch.setattr(cv2, "imdecode", guarded)
+    code, err = mosaic(monkeypatch, capfd, frames, tmp_path / "m.png")
+    assert code == 0, err
+    for number in range(4):
+        assert f"skipping zz_bomb{number}.jpg: cannot be decoded (the JPEG declares 15000x15000 pixels in only" in err
+    assert json.loads((tmp_path / "m.json").read_text())["summary"]["frames"] == len(list(frames.glob("frame_*.jpg")))
+    assert ends_whole(frames / "zz_bomb0.jpg", len(bomb))  # live mode: complete by its end marker, and never decoded

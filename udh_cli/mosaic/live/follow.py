@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import IMAGE_SUFFIXES
+from udh_cli.images import IMAGE_SUFFIXES, check_declared_pixels
 from udh_cli.mosaic.report import Reporter
 from udh_cli.processes import remove_dead_runs_folders, run_temp_folder
 
@@ -89,6 +89,10 @@ def ends_whole(path: Path, size: int) -> bool:
         return False
     if len(data) != size:
         return False
+    try:
+        check_declared_pixels(path, data)
+    except UdhError:
+        return True  # whole as far as its end marker says; never decoded here: the run's reader refuses it, saying why
     decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
     return decoded is not None and decoded.size > 0
 

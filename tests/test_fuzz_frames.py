@@ -107,3 +107,30 @@ def test_frames_declaring_15000_squared_are_refused_before_any_decoder_sees_them
         assert f"skipping zz_bomb{number}.jpg: cannot be decoded (the JPEG declares 15000x15000 pixels in only" in err
     assert json.loads((tmp_path / "m.json").read_text())["summary"]["frames"] == len(list(frames.glob("frame_*.jpg")))
     assert ends_whole(frames / "zz_bomb0.jpg", len(bomb))  # live mode: complete by its end marker, and never decoded
+
+
+@pytest.mark.parametrize("change", ["rewritten", "replaced"])
+def test_a_frame_changed_on_disk_after_its_pairs_were_estimated_is_refused_not_drawn(change, frames, tmp_path, monkeypatch, capfd):
+    import shutil
+
+    from udh_cli.mosaic import run as mosaic_run
+
+    victim, other = frames / "frame_003.jpg", frames / "frame_005.jpg"
+    solve = mosaic_run.solve_parts
+
+    def solve_then_change(*args, **kwargs):  # between the pair estimates and the compositing, the file changes
+        if change == "rewritten":
+            victim.write_bytes(other.read_bytes())
+        else:
+            shutil.copy(other, tmp_path / "new.jpg")
+            os.replace(tmp_path / "new.jpg", victim)
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(mosaic_run, "solve_parts", solve_then_change)
+    out = tmp_path / "out"
+    out.mkdir()
+    code, err = mosaic(monkeypatch, capfd, frames, out / "m.png")
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 1 and len(lines) == 1, err
+    assert lines[0].startswith(f"error: {victim}: changed on disk while the mosaic was made"), err
+    assert not (out / "m.png").exists() and not (out / "m.json").exists()

@@ -42,6 +42,7 @@ class Frame:
         video_frame: the frame number in the video; ``None`` for image files.
         capture_time: EXIF capture time, when ordering by time.
         metadata: what the file's EXIF and XMP say (GPS, camera, DJI flight data); None for video frames.
+        stamp: the file's :func:`file_stamp` when it was read for the working copy; None for video frames.
     """
 
     index: int
@@ -52,6 +53,7 @@ class Frame:
     video_frame: int | None = None
     capture_time: str | None = None
     metadata: FrameMetadata | None = None
+    stamp: tuple[int, int, int] | None = None
 
     @property
     def work_size(self) -> tuple[int, int]:
@@ -70,6 +72,7 @@ class FrameSet:
     value_range: tuple[float, float] | None = None
     lens: Lens | None = None  # every frame is undistorted by it as it is read (:mod:`.lens`)
     lens_fit: dict | None = None  # how the lens was estimated from the flight (``--camera estimate``, :mod:`.lens_fit`)
+    source_stamp: tuple[int, int, int] | None = None  # a video's :func:`file_stamp` when its frames were read
 
     @property
     def is_video(self) -> bool:
@@ -78,13 +81,17 @@ class FrameSet:
     def full_images(self, indices: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(index, (H, W, 3) BGR uint8)`` at full resolution for ``indices``, in sequence order.
 
-        Image files are read again; a video is decoded again from the start, sequentially.
+        Image files are read again; a video is decoded again from the start, sequentially. A file changed on disk
+        since its working copy was read is refused (:class:`UdhError`): its homography is the old picture's.
         """
         wanted = sorted(set(indices))
         if not self.is_video:
             for index in wanted:
-                yield index, display_u8(_undistorted(read_image(self.frames[index].path), self.lens), self.value_range)
+                frame = self.frames[index]
+                _check_unchanged(frame.path, frame.stamp)
+                yield index, display_u8(_undistorted(read_image(frame.path), self.lens), self.value_range)
             return
+        _check_unchanged(self.source, self.source_stamp)
         by_video_frame = {self.frames[i].video_frame: i for i in wanted}
         capture = _open_capture(self.source)
         try:
@@ -98,6 +105,23 @@ class FrameSet:
                 number += 1
         finally:
             capture.release()
+
+
+def file_stamp(path: Path) -> tuple[int, int, int] | None:
+    """``(size in bytes, modification time in ns, inode)`` of ``path``: any of them changes when a file is
+    rewritten or replaced. None when it cannot be read."""
+    try:
+        info = os.stat(path)
+    except OSError:
+        return None
+    return info.st_size, info.st_mtime_ns, info.st_ino
+
+
+def _check_unchanged(path: Path, stamp: tuple[int, int, int] | None) -> None:
+    """Refuse a file that changed since ``stamp`` was taken (None: nothing was recorded, nothing to compare)."""
+    if stamp is not None and file_stamp(path) != stamp:
+        raise UdhError(f"{path}: changed on disk while the mosaic was made (its pairs were estimated from the earlier file); "
+                       f"run again once the frames stay as they are (--resume reuses the pairs of the others)")
 
 
 def _undistorted(image: np.ndarray, lens: Lens | None) -> np.ndarray:
@@ -238,6 +262,7 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
     frames: list[Frame] = []
     with reporter.stage("reading frames", len(candidates)) as advance:
         for path in candidates:
+            stamp = file_stamp(path)  # before the read: a change during it is a change too
             try:
                 image = read_image(path)
             except UdhError as exc:
@@ -249,7 +274,7 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
             if lens is not None:
                 lens.check((image.shape[1], image.shape[0]), path.name)
             frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(_undistorted(image, lens), work_size), path, None,
-                                metadata[path].capture_time if order == "time" else None, metadata[path]))
+                                metadata[path].capture_time if order == "time" else None, metadata[path], stamp))
             advance(1)
     if len(frames) < 2:
         found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"
@@ -304,6 +329,7 @@ def _open_capture(path: Path) -> cv2.VideoCapture:
 def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens: Lens | None) -> FrameSet:
     if path.suffix.lower() in IMAGE_SUFFIXES:
         raise UdhError(f"{path}: is a single image; give a folder of frames or a video")
+    stamp = file_stamp(path)
     capture = _open_capture(path)
     if not capture.isOpened():
         raise UdhError(f"{path}: cannot open this as a video; give a folder of frames or a video OpenCV can decode (e.g. MP4/H.264)")
@@ -329,7 +355,7 @@ def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens
         raise UdhError(f"{path}: no frame could be decoded from this video; check the file or extract its frames to a folder")
     if len(frames) < 2:
         raise UdhError(f"{path}: only {len(frames)} frame kept of {number} (--every {every}); a mosaic needs at least two")
-    return FrameSet(path, frames, value_range=stretch_work_copies(frames))
+    return FrameSet(path, frames, value_range=stretch_work_copies(frames), source_stamp=stamp)
 
 
 def _check_sizes(frames: FrameSet, reporter: Reporter) -> None:

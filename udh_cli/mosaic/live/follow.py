@@ -1,8 +1,11 @@
 """Live mode: mosaic a folder while a flight is still writing frames into it (``udh mosaic FOLDER --follow``).
 
 The folder is polled. A frame joins once it is complete (a frame being copied or written is never read
-half-way): a JPEG or PNG as soon as it ends with its format's end marker and decodes, any frame once its size
-and modification time are unchanged over two polls and it is at least ``settle_s`` old. Each new frame is
+half-way, however long its writer pauses): a JPEG or PNG once it ends with its format's end marker and decodes
+without damage, a TIFF once every strip or tile its header names lies inside the file; a frame of another format
+once its size and modification time are unchanged over two polls and it is at least ``settle_s`` old. After the
+flight ends, a JPEG, PNG or TIFF that never became whole joins by that rule too, for the run to refuse by name.
+Each new frame is
 handed at once to ``on_frames`` (the quick look, :mod:`.quicklook`). Every ``refresh_every`` new frames the
 mosaic, its preview, sidecar and map files are rewritten from the frames so far. Each refresh is a whole
 :func:`~udh_cli.mosaic.run.run_mosaic` run with the pair cache, so only the new frames' pairs (and the
@@ -32,7 +35,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import IMAGE_SUFFIXES, check_declared_pixels
+from udh_cli.images import DAMAGE_MESSAGES, IMAGE_SUFFIXES, _native_messages_silenced, check_declared_pixels
 from udh_cli.mosaic.report import Reporter
 from udh_cli.processes import remove_dead_runs_folders, run_temp_folder
 
@@ -70,6 +73,37 @@ class _Watch:
 END_MARKERS = {".jpg": b"\xff\xd9", ".jpeg": b"\xff\xd9", ".png": b"IEND\xaeB`\x82"}
 
 
+def structurally_whole(path: Path, size: int) -> bool | None:
+    """Whether the frame ``path`` (``size`` bytes) is whole by its format's structure (:func:`ends_whole`,
+    :func:`tiff_whole`); None for a format without such a check."""
+    suffix = path.suffix.lower()
+    if suffix in END_MARKERS:
+        return ends_whole(path, size)
+    if suffix in (".tif", ".tiff"):
+        return tiff_whole(path, size)
+    return None
+
+
+def tiff_whole(path: Path, size: int) -> bool:
+    """Whether the TIFF ``path`` (``size`` bytes) holds its first image whole: its header and directory read, and
+    every strip or tile they name ends inside the file. Pillow reads only the header here."""
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a half-written directory: Pillow's warnings say what the answer does
+            with Image.open(path) as image:
+                tags = image.tag_v2
+                offsets, counts = tags.get(273) or tags.get(324), tags.get(279) or tags.get(325)
+    except Exception:  # noqa: BLE001 - a header Pillow cannot read yet is a file not yet whole
+        return False
+    if not offsets or not counts or len(offsets) != len(counts):
+        return False
+    return max(int(offset) + int(count) for offset, count in zip(offsets, counts)) <= size
+
+
 def ends_whole(path: Path, size: int) -> bool:
     """Whether ``path`` (``size`` bytes) ends with its format's end marker and decodes: complete, whatever its age.
 
@@ -93,12 +127,17 @@ def ends_whole(path: Path, size: int) -> bool:
         check_declared_pixels(path, data)
     except UdhError:
         return True  # whole as far as its end marker says; never decoded here: the run's reader refuses it, saying why
-    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
-    return decoded is not None and decoded.size > 0
+    messages: list[str] = []
+    with _native_messages_silenced(messages):  # a JPEG cut after its thumbnail decodes, but says it ended early
+        decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
+    damaged = any(line.lstrip().startswith(DAMAGE_MESSAGES) for line in messages)
+    return decoded is not None and decoded.size > 0 and not damaged
 
 
-def poll_complete_frames(folder: Path, watch: _Watch, settle_s: float, exclude: set[Path], now: float) -> list[Path]:
-    """Look at ``folder`` once; the frames that became complete since the last look, in name order."""
+def poll_complete_frames(folder: Path, watch: _Watch, settle_s: float, exclude: set[Path], now: float,
+                         flight_over: bool = False) -> list[Path]:
+    """Look at ``folder`` once; the frames that became complete since the last look, in name order. With
+    ``flight_over``, a frame that settled joins even when its structure says it is not whole (it is damaged)."""
     current: dict[Path, tuple[int, float]] = {}
     for entry in os.scandir(folder):
         path = Path(entry.path)
@@ -109,11 +148,20 @@ def poll_complete_frames(folder: Path, watch: _Watch, settle_s: float, exclude: 
     done = set(watch.complete)
     new = [path for path, state in current.items()
            if path not in done and state[0] > 0
-           and ((watch.seen.get(path) == state and now - state[1] >= settle_s) or ends_whole(path, state[0]))]
+           and _complete(path, state[0], watch.seen.get(path) == state and now - state[1] >= settle_s, flight_over)]
     watch.seen = current
     new.sort(key=lambda p: p.name)
     watch.complete.extend(new)
     return new
+
+
+def _complete(path: Path, size: int, settled: bool, flight_over: bool) -> bool:
+    """Whether a frame may be read: whole by its structure, else (a format without one, or after the flight)
+    ``settled``: unchanged over two polls and old enough."""
+    whole = structurally_whole(path, size)
+    if whole is None:
+        return settled
+    return whole or (flight_over and settled)
 
 
 def check_followed_folder(folder: Path) -> None:
@@ -218,7 +266,7 @@ def _wait_until_settled(folder: Path, watch: _Watch, follow: FollowConfig, exclu
     final run reads every frame whole."""
     deadline = clock() + follow.idle_timeout_s
     while clock() < deadline:
-        poll_complete_frames(folder, watch, follow.settle_s, exclude(), clock())
+        poll_complete_frames(folder, watch, follow.settle_s, exclude(), clock(), flight_over=True)
         if set(watch.seen) <= set(watch.complete):
             return
         sleep(follow.poll_s)

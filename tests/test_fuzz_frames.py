@@ -134,3 +134,42 @@ def test_a_frame_changed_on_disk_after_its_pairs_were_estimated_is_refused_not_d
     assert code == 1 and len(lines) == 1, err
     assert lines[0].startswith(f"error: {victim}: changed on disk while the mosaic was made"), err
     assert not (out / "m.png").exists() and not (out / "m.json").exists()
+
+
+def test_a_damaged_video_skips_the_frames_its_decoder_reports_and_says_so(tmp_path, monkeypatch, capfd):
+    import cv2
+    import numpy as np
+
+    from conftest import textured_image
+
+    video = tmp_path / "flight.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10, (320, 240))
+    if not writer.isOpened():
+        pytest.skip("OpenCV here cannot write MPEG-4 video")
+    ground = cv2.cvtColor(textured_image(800, 600, seed=3), cv2.COLOR_GRAY2BGR)
+    for number in range(20):
+        writer.write(np.ascontiguousarray(ground[number * 10:number * 10 + 240, number * 12:number * 12 + 320]))
+    writer.release()
+    data = bytearray(video.read_bytes())
+    middle = len(data) // 2
+    data[middle:middle + 400] = np.random.default_rng(0).integers(0, 256, 400, dtype=np.uint8).tobytes()  # a damaged stretch
+    video.write_bytes(bytes(data))
+
+    out = tmp_path / "out"
+    out.mkdir()
+    code, _, err = run_main(monkeypatch, capfd, "mosaic", str(video), "-o", str(out / "m.png"), "-m", "sift", "--quiet", "--overlap-pairs", "1")
+    captured = capfd.readouterr()
+    assert code == 0, err
+    lines = [line for line in (err + captured.out).splitlines() if line.strip()]
+    assert all(line.startswith("warning: ") for line in lines), lines  # FFmpeg's own lines stay off the terminal
+    import re
+
+    damaged = re.findall(r"warning: skipping flight\.mp4#(\d+): damaged \(the decoder says: ", err)  # the frame its damaged packet made
+    stopped = re.search(r"warning: flight\.mp4: the decoder stopped after (\d+) of the 20 frames the video lists", err)
+    assert damaged and stopped and all(int(number) < int(stopped.group(1)) for number in damaged), err
+    report = json.loads((out / "m.json").read_text())
+    named = {entry["file"] for entry in report["skipped_files"]}
+    for line in lines:
+        if line.startswith("warning: skipping "):
+            assert line.split()[2].rstrip(":") in named
+    assert report["summary"]["placed"] == report["summary"]["frames"] < 20

@@ -199,30 +199,34 @@ DAMAGE_MESSAGES = ("Corrupt JPEG data", "Premature end of JPEG file", "Invalid J
 
 
 @contextlib.contextmanager
-def _native_messages_silenced(captured: list[str] | None = None):
+def _native_messages_silenced(captured: list[str] | None = None, fds: tuple[int, ...] = (2,)):
     """Mute what the C codecs print on stderr while decoding a broken file ("libpng error: ...",
     "Corrupt JPEG data", OpenCV's WARN log): the user gets one clear line from udh instead. The lines printed
-    are appended to ``captured`` when it is given."""
+    are appended to ``captured`` when it is given. ``fds``: the descriptors muted (OpenCV's FFmpeg log goes to
+    stdout, 1, as well)."""
     with _STDERR_LOCK:
         level = cv2.utils.logging.getLogLevel()
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-        saved = sink = None
+        saved: dict[int, int] = {}
+        sink = None
         try:
+            sys.stdout.flush()
             sys.stderr.flush()
-            saved = os.dup(2)
             try:
                 sink = tempfile.TemporaryFile() if captured is not None else open(os.devnull, "wb")  # noqa: SIM115
             except OSError:  # no room for the capture (a full disk): mute at least
                 sink = open(os.devnull, "wb")  # noqa: SIM115
-            os.dup2(sink.fileno(), 2)
-        except (OSError, ValueError, AttributeError):  # no fd 2 or no sys.stderr: only the log is muted
+            for fd in fds:
+                saved[fd] = os.dup(fd)
+                os.dup2(sink.fileno(), fd)
+        except (OSError, ValueError, AttributeError):  # no such fd or no sys.stderr: only the log is muted
             pass
         try:
             yield
         finally:
-            if saved is not None:
-                os.dup2(saved, 2)
-                os.close(saved)
+            for fd, original in saved.items():
+                os.dup2(original, fd)
+                os.close(original)
             if sink is not None:
                 if captured is not None and sink.seekable():
                     sink.seek(0)

@@ -97,7 +97,7 @@ class FrameSet:
         try:
             number, last = 0, max(by_video_frame)
             while number <= last:
-                ok, image = capture.read()
+                ok, image, _ = read_video_frame(capture)  # a frame kept on the first pass decoded cleanly then
                 if not ok:
                     raise UdhError(f"{self.source}: the video ended early on the second pass (frame {number}); extract its frames to a folder")
                 if number in by_video_frame:
@@ -316,14 +316,27 @@ def _subfolder_hint(folder: Path) -> str:
 
 def _open_capture(path: Path) -> cv2.VideoCapture:
     """``cv2.VideoCapture(path)`` without FFmpeg's own lines on stderr ("moov atom not found"...): udh says
-    what is wrong in one line. FFmpeg's log level is also set to quiet for the decoding that follows, where
-    the process has not chosen one (OPENCV_FFMPEG_LOGLEVEL is read when the first video is opened)."""
+    what is wrong in one line. FFmpeg keeps its errors for the decoding that follows, where the process has not
+    chosen a log level (OPENCV_FFMPEG_LOGLEVEL is read when the first video is opened): :func:`read_video_frame`
+    takes them as the decoder's damage reports. One decoding thread, so that a report comes with its own frame."""
     if "OPENCV_FFMPEG_LOGLEVEL" not in os.environ and "OPENCV_FFMPEG_DEBUG" not in os.environ:
-        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "-8"  # AV_LOG_QUIET
-    with _native_messages_silenced():
-        capture = cv2.VideoCapture(str(path))
+        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "16"  # AV_LOG_ERROR: damaged packets, nothing chattier
+    with _native_messages_silenced(fds=(1, 2)):
+        capture = cv2.VideoCapture(str(path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, 1])
         capture.isOpened()  # FFmpeg probes the file while opening; its complaints are muted with it
     return capture
+
+
+def read_video_frame(capture: cv2.VideoCapture) -> tuple[bool, np.ndarray | None, str | None]:
+    """``capture.read()``, and what the decoder reported while decoding that frame (its first line), else None.
+
+    Why: FFmpeg conceals a damaged packet (the smeared block a mosaic would draw) and says so only in its log;
+    its lines are caught here, off the terminal, as the frame's damage."""
+    messages: list[str] = []
+    with _native_messages_silenced(messages, fds=(1, 2)):
+        ok, image = capture.read()
+    reported = [" ".join(re.sub(r"^\[OPENCV:FFMPEG:\d+\]", "", line).split()) for line in messages if line.strip()]
+    return ok, image, (reported[0][:160] if reported else None)
 
 
 def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens: Lens | None) -> FrameSet:
@@ -335,14 +348,18 @@ def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens
         raise UdhError(f"{path}: cannot open this as a video; give a folder of frames or a video OpenCV can decode (e.g. MP4/H.264)")
     total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
     frames: list[Frame] = []
+    skipped: list[dict] = []
     try:
         with reporter.stage("reading video", total) as advance:
             number = 0
             while True:
-                ok, image = capture.read()
+                ok, image, damage = read_video_frame(capture)
                 if not ok:
                     break
-                if number % every == 0:
+                if damage is not None and number % every == 0:
+                    skipped.append({"file": f"{path.name}#{number}", "reason": f"damaged (the decoder says: {damage})"})
+                    reporter.warn(f"skipping {path.name}#{number}: damaged (the decoder says: {damage})")
+                elif number % every == 0:
                     if lens is not None:
                         lens.check((image.shape[1], image.shape[0]), f"{path.name}#{number}")
                     frames.append(Frame(len(frames), f"{path.name}#{number}", (image.shape[1], image.shape[0]),
@@ -353,9 +370,11 @@ def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens
         capture.release()
     if number == 0:
         raise UdhError(f"{path}: no frame could be decoded from this video; check the file or extract its frames to a folder")
+    if total is not None and number < total:
+        reporter.warn(f"{path.name}: the decoder stopped after {number} of the {total} frames the video lists; it is damaged or cut short")
     if len(frames) < 2:
         raise UdhError(f"{path}: only {len(frames)} frame kept of {number} (--every {every}); a mosaic needs at least two")
-    return FrameSet(path, frames, value_range=stretch_work_copies(frames), source_stamp=stamp)
+    return FrameSet(path, frames, skipped, stretch_work_copies(frames), source_stamp=stamp)
 
 
 def _check_sizes(frames: FrameSet, reporter: Reporter) -> None:

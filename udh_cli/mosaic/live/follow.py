@@ -1,20 +1,19 @@
 """Live mode: mosaic a folder while a flight is still writing frames into it (``udh mosaic FOLDER --follow``).
 
-The folder is polled. A frame joins once it is complete (a frame being copied or written is never read
-half-way, however long its writer pauses): a JPEG or PNG once it ends with its format's end marker and decodes
-without damage, a TIFF once every strip or tile its header names lies inside the file; a frame of another format
-once its size and modification time are unchanged over two polls and it is at least ``settle_s`` old. After the
-flight ends, a JPEG, PNG or TIFF that never became whole joins by that rule too, for the run to refuse by name.
-Each new frame is
-handed at once to ``on_frames`` (the quick look, :mod:`.quicklook`). Every ``refresh_every`` new frames the
+The folder is polled. A frame joins once it is complete (a frame being copied or written is never read half-way,
+however long its writer pauses): a JPEG or PNG once it ends with its format's end marker and decodes without
+damage, a TIFF once every strip or tile its header names lies inside the file; a frame of another format once its
+size and modification time are unchanged over two polls and it is at least ``settle_s`` old. After the flight ends,
+a JPEG, PNG or TIFF that never became whole joins by that rule too, for the run to refuse by name. Each new frame
+is handed at once to ``on_frames`` (the quick look, :mod:`.quicklook`). Every ``refresh_every`` new frames the
 mosaic, its preview, sidecar and map files are rewritten from the frames so far. Each refresh is a whole
-:func:`~udh_cli.mosaic.run.run_mosaic` run with the pair cache, so only the new frames' pairs (and the
-loop closures that changed) are estimated: the solve is redone in full each time, which costs little next to
-the pairs (1.3 s for 500 frames). A refresh can run in another process (``start_refresh``), so that new frames
-are not kept waiting behind it. The flight is over when a file named ``sentinel`` appears in the folder or no
-new frame has come for ``idle_timeout_s``. When the last refresh already held every frame, its mosaic is the
-final one; otherwise a last run over every frame makes it, with the folder itself as its source (its pairs
-come from the cache, so it costs the solve and the compositing).
+:func:`~udh_cli.mosaic.run.run_mosaic` run with the pair cache, so only the new frames' pairs (and the loop
+closures that changed) are estimated: the solve is redone in full each time, which costs little next to the pairs
+(1.3 s for 500 frames). A refresh can run in another process (``start_refresh``), so that new frames are not kept
+waiting behind it. The flight is over when a file named ``sentinel`` appears in the folder or no new frame has come
+for ``idle_timeout_s``. When the last refresh already held every frame, its mosaic is the final one; otherwise a
+last run over every frame makes it, with the folder itself as its source (its pairs come from the cache, so it
+costs the solve and the compositing).
 
 Why polling and not inotify: it works the same on every OS and on network shares; at ``poll_s`` 0.1 a scan of a
 folder of 1,000 frames costs a few ms, and a frame is seen within a tenth of a second of its last byte.
@@ -71,6 +70,8 @@ class _Watch:
 
 # The last bytes of a complete file: JPEG's end-of-image marker, PNG's IEND chunk.
 END_MARKERS = {".jpg": b"\xff\xd9", ".jpeg": b"\xff\xd9", ".png": b"IEND\xaeB`\x82"}
+# Where a TIFF's pixels lie: the tags of its strips' (or tiles') offsets and byte counts.
+TIFF_OFFSETS, TIFF_BYTE_COUNTS = (273, 324), (279, 325)
 
 
 def structurally_whole(path: Path, size: int) -> bool | None:
@@ -96,7 +97,8 @@ def tiff_whole(path: Path, size: int) -> bool:
             warnings.simplefilter("ignore")  # a half-written directory: Pillow's warnings say what the answer does
             with Image.open(path) as image:
                 tags = image.tag_v2
-                offsets, counts = tags.get(273) or tags.get(324), tags.get(279) or tags.get(325)
+                offsets = next((tags[tag] for tag in TIFF_OFFSETS if tags.get(tag)), None)
+                counts = next((tags[tag] for tag in TIFF_BYTE_COUNTS if tags.get(tag)), None)
     except Exception:  # noqa: BLE001 - a header Pillow cannot read yet is a file not yet whole
         return False
     if not offsets or not counts or len(offsets) != len(counts):

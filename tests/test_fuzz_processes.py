@@ -198,3 +198,19 @@ def test_a_scheduler_that_never_answers_is_a_one_line_error_within_the_timeout(b
     finally:
         server.close()
     assert "\n" not in str(refused.value) and server.address in str(refused.value)
+
+
+def test_a_staged_folder_left_by_a_killed_run_is_removed_by_the_next_one(tmp_path):
+    from udh_cli.files import staged_folder
+
+    dead_pid = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True).stdout.strip()
+    live = run_temp_folder(tmp_path, ".flight.", ".staged")  # this process's: a run still writing
+    host = live.name.split("-")[1]
+    dead = tmp_path / f".flight.{dead_pid}-{host}-abcd.staged"
+    dead.mkdir()
+    (dead / "frame_000.jpg").write_bytes(b"half a flight")
+    with staged_folder(tmp_path / "flight") as staging:
+        (staging / "frame_000.jpg").write_bytes(b"a whole flight")
+    assert not dead.exists() and live.is_dir()
+    assert (tmp_path / "flight" / "frame_000.jpg").read_bytes() == b"a whole flight"
+    live.rmdir()

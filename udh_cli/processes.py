@@ -45,9 +45,9 @@ def _host_tag() -> str:
     return hashlib.sha256(socket.gethostname().encode(errors="replace")).hexdigest()[:8]
 
 
-def run_temp_folder(parent: Path, prefix: str) -> Path:
-    """A new temporary folder in ``parent`` named ``PREFIX<pid>-<host tag>-<random>``: owned by this process."""
-    return Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-{_host_tag()}-", dir=parent))
+def run_temp_folder(parent: Path, prefix: str, suffix: str = "") -> Path:
+    """A new temporary folder in ``parent`` named ``PREFIX<pid>-<host tag>-<random>SUFFIX``: owned by this process."""
+    return Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-{_host_tag()}-", suffix=suffix, dir=parent))
 
 
 def _alive(pid: int) -> bool:

@@ -153,7 +153,9 @@ class PairCache:
 
     def add(self, request: PairRequest, result: PairResult) -> None:
         """Record a finished pair (call :meth:`save` to write it)."""
-        self.entries[self.key(request)] = _record(result, self.frames)
+        key = self.key(request)
+        record = _record(result, self.frames)
+        self.entries[key] = {**record, "digest": record_digest(key, record)}
 
     def save(self, prune: bool = False) -> None:
         """Write every pair of this run so far, atomically (an interrupt leaves the previous file whole).
@@ -164,7 +166,7 @@ class PairCache:
         if not self.keep:
             return
         records = dict(self.entries) if prune else {**self.previous, **self.entries}
-        pairs = [{"key": key, **_content(record), "digest": record_digest(key, record)} for key, record in records.items()]
+        pairs = [{"key": key, **_content(record), "digest": record["digest"]} for key, record in records.items()]  # as sealed
         text = json.dumps({"format": CACHE_FORMAT, "pairs": pairs}, indent=None, separators=(",", ":"))
         atomic_write_bytes(self.path, (text + "\n").encode())
 

@@ -51,8 +51,9 @@ def run_temp_folder(parent: Path, prefix: str, suffix: str = "") -> Path:
 
 
 def _alive(pid: int) -> bool:
-    """Whether a process ``pid`` exists on this machine (one we may not signal counts as alive)."""
-    if pid <= 0:  # 0 and below name process groups, never one run
+    """Whether a process ``pid`` exists on this machine (one we may not signal, or cannot ask about, counts as
+    alive: its folder is kept)."""
+    if pid <= 0 or os.name == "nt":  # 0 and below name process groups; Windows' os.kill would end the process
         return True
     try:
         os.kill(pid, 0)

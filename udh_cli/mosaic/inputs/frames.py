@@ -335,8 +335,13 @@ def read_video_frame(capture: cv2.VideoCapture) -> tuple[bool, np.ndarray | None
     messages: list[str] = []
     with _native_messages_silenced(messages, fds=(1, 2)):
         ok, image = capture.read()
-    reported = [" ".join(re.sub(r"^\[OPENCV:FFMPEG:\d+\]", "", line).split()) for line in messages if line.strip()]
+    # Only FFmpeg's own lines: a progress bar redrawn meanwhile by another thread is caught too, and is no damage.
+    reported = [" ".join(line[match.end():].split()) for line in messages if (match := _FFMPEG_LINE.match(line))]
     return ok, image, (reported[0][:160] if reported else None)
+
+
+# A line of FFmpeg's log: "[OPENCV:FFMPEG:16] ..." through OpenCV's callback, "[h264 @ 0x55d0...] ..." through its own.
+_FFMPEG_LINE = re.compile(r"\s*\[(?:OPENCV:FFMPEG:\d+|[\w,\-]+ @ 0x[0-9a-fA-F]+)\]")
 
 
 def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens: Lens | None) -> FrameSet:

@@ -15,6 +15,7 @@ import copy
 import importlib
 import json
 import os
+import pickle
 import shutil
 import signal
 import struct
@@ -132,6 +133,8 @@ def models(inputs, tmp_path_factory) -> dict[str, Path]:
     variant("wrong_size", config={**config, "patch_size": 64})  # 32-pixel weights
     paths["corrupt_pt"] = folder / "corrupt.pt"
     paths["corrupt_pt"].write_bytes(np.random.default_rng(0).bytes(4096))
+    paths["pickle_pt"] = folder / "pickled.pt"  # a plain pickle (protocol 4): torch warns about it before refusing it
+    paths["pickle_pt"].write_bytes(pickle.dumps({"format": CHECKPOINT_FORMAT, "model": {}}, protocol=4))
     paths["text_onnx"] = folder / "text.onnx"
     paths["text_onnx"].write_text("not a model\n")
 
@@ -427,6 +430,7 @@ CASES = [
     Case("export-missing-checkpoint", ["export-onnx", "{in}/missing.pt", "-o", "{out}/m.onnx"], 1, "no such checkpoint", "torch"),
     Case("export-checkpoint-dev-zero", ["export-onnx", "/dev/zero", "-o", "{out}/m.onnx"], 1, "/dev/zero: not a regular file", "torch"),
     Case("export-corrupt-checkpoint", ["export-onnx", "{corrupt_pt}", "-o", "{out}/m.onnx"], 1, "not a readable udh checkpoint", "torch"),
+    Case("export-plain-pickle-checkpoint", ["export-onnx", "{pickle_pt}", "-o", "{out}/m.onnx"], 1, "not a readable udh checkpoint", "torch"),
     Case("export-image-as-checkpoint", ["export-onnx", "{a}", "-o", "{out}/m.onnx"], 1, "not a readable udh checkpoint", "torch"),
     Case("export-config-without-arch", ["export-onnx", "{no_arch}", "-o", "{out}/m.onnx"], 1, "lacks 'arch'", "torch"),
     Case("export-config-not-a-dict", ["export-onnx", "{config_list}", "-o", "{out}/m.onnx"], 1, "config is not a dict", "torch"),
@@ -514,6 +518,17 @@ def test_bad_input_fails_in_one_line_and_leaves_nothing(case: Case, inputs, tmp_
     assert [snapshot(folder) for folder in watched] == before  # no output, no temporary, no input replaced or touched
     leftovers = [p.name for folder in watched for p in folder.rglob(".*") if p.name.endswith(".part") or ".staged" in p.name]
     assert leftovers == []
+
+
+def test_a_refused_checkpoint_comes_without_torchs_pickle_warning(models, tmp_path, monkeypatch, capfd):
+    """torch warns about a pickle protocol it did not write before it refuses the file; udh's line is the only one."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code, _, err = run_main(monkeypatch, capfd, "export-onnx", str(models["pickle_pt"]), "-o", str(tmp_path / "m.onnx"))
+    assert code == 1 and err.strip().startswith("error:") and len(err.strip().splitlines()) == 1, err
+    assert [str(w.message) for w in caught if "pickle" in str(w.message).lower()] == []
 
 
 # ------------------------------------------------------------------------------------ frames skipped, and why

@@ -304,3 +304,19 @@ def test_an_encoder_failure_is_one_line_with_the_codecs_words_off_stderr(tmp_pat
     with pytest.raises(UdhError, match=r"could not encode .* \(TIFFAppendToStrip: Write error at scanline 12\.\); check the free space"):
         write_image(tmp_path / "m.tif", np.zeros((16, 16, 3), np.uint8))
     assert capfd.readouterr().err == "" and list(tmp_path.iterdir()) == []
+
+
+def test_an_image_is_decoded_only_when_the_memory_free_can_hold_it(tmp_path, monkeypatch):
+    path = tmp_path / "a.png"
+    cv2.imwrite(str(path), np.zeros((480, 640), np.uint8))
+    monkeypatch.setenv("UDH_MEMORY_BUDGET", str(640 * 480 * 8 - 1))
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("decoded although it cannot fit")
+
+    monkeypatch.setattr(cv2, "imdecode", forbidden)
+    with pytest.raises(UdhError, match=r"decoding its 640x480 pixels needs about .* downscale the image"):
+        images.read_image(path)
+    monkeypatch.undo()
+    monkeypatch.setenv("UDH_MEMORY_BUDGET", str(640 * 480 * 8))
+    assert images.read_image(path).shape == (480, 640)

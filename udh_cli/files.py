@@ -203,11 +203,15 @@ def write_file_set(folder: str | os.PathLike, files: dict[str, bytes], overwrite
 @contextlib.contextmanager
 def staged_folder(folder: str | os.PathLike) -> Iterator[Path]:
     """A new folder written all or none: yields a hidden staging folder beside ``folder`` to write into, renamed
-    to ``folder`` (which must be new or empty) when the block ends, and removed with its contents when it fails."""
+    to ``folder`` (which must be new or empty) when the block ends, and removed with its contents when it fails.
+    The staging folder names its process, so that the next run removes one a killed run left."""
+    from udh_cli.processes import remove_dead_runs_folders, run_temp_folder
+
     folder = Path(folder)
     try:
         folder.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".staged", dir=folder.parent))
+        remove_dead_runs_folders(folder.parent, f".{folder.name}.")  # what a killed run left of its own staging
+        staging = run_temp_folder(folder.parent, f".{folder.name}.", ".staged")
     except OSError as exc:
         raise UdhError(f"{folder}: cannot create a folder beside it ({exc.strerror or exc}); choose another place") from None
     try:

@@ -134,14 +134,8 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         raise UdhError(f"{path}: cannot read it ({exc.strerror or exc}); check its permissions") from None
     if len(data) == 0:
         raise UdhError(f"{path}: the file is empty; give a JPEG, PNG or TIFF image")
-    size = image_size_from_header(data)
+    check_declared_pixels(path, data)
     limit = max_pixels()
-    if size is not None and size[0] * size[1] > limit:
-        raise UdhError(f"{path}: the image declares {size[0]}x{size[1]} pixels, over the {limit / 1e6:.0f} MP limit; "
-                       f"downscale it, or raise {MAX_PIXELS_ENV} if it is real")
-    if size is not None and data[:2] == b"\xff\xd8" and size[0] * size[1] > len(data) * MAX_JPEG_PIXELS_PER_BYTE:
-        raise UdhError(f"{path}: the JPEG declares {size[0]}x{size[1]} pixels in only {len(data)} bytes: it is truncated or "
-                       f"damaged; copy the whole file again")
     # ANYDEPTH keeps 16-bit data; ANYCOLOR keeps grey as grey. Without IGNORE_ORIENTATION, EXIF is applied.
     messages: list[str] = []
     try:
@@ -163,36 +157,76 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     return image
 
 
+def check_declared_pixels(path: str | os.PathLike, data: bytes) -> None:
+    """Refuse, before a pixel is decoded, an encoded image (``data``, the file ``path``'s bytes) whose header
+    declares more pixels than :func:`max_pixels`, than a JPEG's coded data can hold (:data:`MAX_JPEG_PIXELS_PER_BYTE`;
+    header segments such as EXIF or comments do not count), or than the memory free can decode."""
+    size = image_size_from_header(data)
+    if size is None:
+        return
+    width, height = size
+    limit = max_pixels()
+    if width * height > limit:
+        raise UdhError(f"{path}: the image declares {width}x{height} pixels, over the {limit / 1e6:.0f} MP limit; "
+                       f"downscale it, or raise {MAX_PIXELS_ENV} if it is real")
+    if data[:2] == b"\xff\xd8" and width * height > jpeg_coded_bytes(data) * MAX_JPEG_PIXELS_PER_BYTE:
+        raise UdhError(f"{path}: the JPEG declares {width}x{height} pixels in only {jpeg_coded_bytes(data)} bytes of coded data: "
+                       f"it is truncated or damaged; copy the whole file again")
+    from udh_cli.budget import check_memory
+
+    # The decoded colour image (3 bytes a pixel) and a grey float copy of it (4), as the readers make.
+    check_memory(8 * width * height, f"{path}: decoding its {width}x{height} pixels", "downscale the image")
+
+
+def jpeg_coded_bytes(data: bytes) -> int:
+    """The bytes of a JPEG from its first scan on: what its pixels are coded in. Header segments (EXIF, XMP,
+    comments) are skipped by their lengths; a header that cannot be walked counts whole."""
+    position = 2
+    while position + 4 <= len(data) and data[position] == 0xFF:
+        marker = data[position + 1]
+        if marker == 0xDA:  # start of scan
+            return len(data) - position
+        if marker == 0xFF:  # fill byte
+            position += 1
+            continue
+        position += 2 + int.from_bytes(data[position + 2:position + 4], "big")
+    return len(data)
+
+
 _STDERR_LOCK = threading.Lock()
 # What libjpeg prints when it met damage and went on with invented pixels (grey blocks, a shifted half).
 DAMAGE_MESSAGES = ("Corrupt JPEG data", "Premature end of JPEG file", "Invalid JPEG file structure")
 
 
 @contextlib.contextmanager
-def _native_messages_silenced(captured: list[str] | None = None):
+def _native_messages_silenced(captured: list[str] | None = None, fds: tuple[int, ...] = (2,)):
     """Mute what the C codecs print on stderr while decoding a broken file ("libpng error: ...",
     "Corrupt JPEG data", OpenCV's WARN log): the user gets one clear line from udh instead. The lines printed
-    are appended to ``captured`` when it is given."""
+    are appended to ``captured`` when it is given. ``fds``: the descriptors muted (OpenCV's FFmpeg log goes to
+    stdout, 1, as well)."""
     with _STDERR_LOCK:
         level = cv2.utils.logging.getLogLevel()
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-        saved = sink = None
+        saved: dict[int, int] = {}
+        sink = None
         try:
+            sys.stdout.flush()
             sys.stderr.flush()
-            saved = os.dup(2)
             try:
                 sink = tempfile.TemporaryFile() if captured is not None else open(os.devnull, "wb")  # noqa: SIM115
             except OSError:  # no room for the capture (a full disk): mute at least
                 sink = open(os.devnull, "wb")  # noqa: SIM115
-            os.dup2(sink.fileno(), 2)
-        except (OSError, ValueError, AttributeError):  # no fd 2 or no sys.stderr: only the log is muted
+            for fd in fds:
+                saved[fd] = os.dup(fd)
+                os.dup2(sink.fileno(), fd)
+        except (OSError, ValueError, AttributeError):  # no such fd or no sys.stderr: only the log is muted
             pass
         try:
             yield
         finally:
-            if saved is not None:
-                os.dup2(saved, 2)
-                os.close(saved)
+            for fd, original in saved.items():
+                os.dup2(original, fd)
+                os.close(original)
             if sink is not None:
                 if captured is not None and sink.seekable():
                     sink.seek(0)

@@ -16,8 +16,8 @@ from udh_cli.mosaic.live.follow import _Watch, poll_complete_frames
 
 
 def test_a_frame_joins_only_once_it_stopped_changing(tmp_path):
-    frame = tmp_path / "f1.jpg"
-    frame.write_bytes(b"\xff\xd8 half")
+    frame = tmp_path / "f1.bmp"  # a format without a structure to tell a whole file by: the settle rule decides
+    frame.write_bytes(b"BM half")
     watch = _Watch()
     now = time.time() + 10  # old enough to have settled
     assert poll_complete_frames(tmp_path, watch, 1.0, set(), now) == []  # first sight: not yet known to be still
@@ -30,6 +30,33 @@ def test_a_frame_joins_only_once_it_stopped_changing(tmp_path):
     (tmp_path / "f2.png").write_bytes(b"png")
     poll_complete_frames(tmp_path, watch, 1.0, {(tmp_path / "f2.png").resolve()}, now)
     assert poll_complete_frames(tmp_path, watch, 1.0, {(tmp_path / "f2.png").resolve()}, now) == []  # excluded: an output
+
+
+@pytest.mark.parametrize("suffix", [".jpg", ".png", ".tif"])
+def test_a_frame_whose_writer_pauses_half_way_joins_only_once_it_is_whole(suffix, tmp_path):
+    import cv2
+
+    from conftest import textured_image
+
+    ok, encoded = cv2.imencode(suffix, textured_image(160, 120, seed=2))
+    data = encoded.tobytes()
+    frame = tmp_path / f"f{suffix}"
+    frame.write_bytes(data[: len(data) // 2])
+    watch, later = _Watch(), time.time() + 10  # long after the first half: settled by size, age and two looks
+    for _ in range(3):
+        assert poll_complete_frames(tmp_path, watch, 1.0, set(), later) == []  # its structure says it is not whole
+    with frame.open("ab") as handle:  # the writer goes on after its pause
+        handle.write(data[len(data) // 2 :])
+    assert poll_complete_frames(tmp_path, watch, 1.0, set(), later) == [frame]
+
+
+def test_after_the_flight_a_frame_that_never_became_whole_joins_for_the_run_to_refuse(tmp_path):
+    frame = tmp_path / "f.jpg"
+    frame.write_bytes(b"\xff\xd8" + bytes(200))  # cut short for good
+    watch, later = _Watch(), time.time() + 10
+    assert poll_complete_frames(tmp_path, watch, 1.0, set(), later) == []
+    assert poll_complete_frames(tmp_path, watch, 1.0, set(), later) == []  # settled, but not whole: the flight goes on
+    assert poll_complete_frames(tmp_path, watch, 1.0, set(), later, flight_over=True) == [frame]
 
 
 def test_a_flight_written_while_it_is_followed_gives_the_mosaic_of_the_whole_folder(tmp_path):

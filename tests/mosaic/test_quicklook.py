@@ -9,7 +9,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.estimators import create_estimator
-from udh_cli.mosaic.live.follow import ends_whole
+from udh_cli.mosaic.live.follow import ends_whole, tiff_whole
 from udh_cli.mosaic.pairs.types import Acceptance
 from udh_cli.mosaic.live.quicklook import FRAME_SIDE, QuickLook
 from udh_cli.mosaic.outputs.files import RunFiles
@@ -89,4 +89,8 @@ def test_a_jpeg_or_png_is_whole_once_its_end_marker_is_written_and_it_decodes(tm
         assert not ends_whole(path, path.stat().st_size)
     tiff = tmp_path / "f.tif"
     cv2.imwrite(str(tiff), image)
-    assert not ends_whole(tiff, tiff.stat().st_size)  # no end marker: left to the settle rule
+    assert not ends_whole(tiff, tiff.stat().st_size)  # no end marker: its strips tell instead
+    assert tiff_whole(tiff, tiff.stat().st_size)
+    data = tiff.read_bytes()
+    tiff.write_bytes(data[: len(data) - 100])
+    assert not tiff_whole(tiff, tiff.stat().st_size)

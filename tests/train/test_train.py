@@ -452,3 +452,41 @@ def test_export_refuses_its_own_checkpoint_and_a_non_onnx_name(tmp_path):
     from udh_cli.onnx_model import OnnxHomographyModel
 
     assert OnnxHomographyModel.load(onnx_path).metadata["motion"] == "paper"
+
+
+# A run stopped between two evaluations (SIGTERM, Ctrl-C) and resumed logs what the uninterrupted run logs.
+STEPS, EVAL_EVERY, STOP_AT = 10, 8, 3  # stopped after step 3: the evaluation at step 8 averages steps 1-8
+STOPPED_RUN = dict(steps=STEPS, eval_every=EVAL_EVERY, checkpoint_every=EVAL_EVERY, val_pairs=16, batch=8)
+
+
+def logged_without_times(out) -> list[dict]:
+    return [{k: v for k, v in record.items() if k != "time_s"} for record in read_metrics(out)]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["sigterm", "ctrl-c"])
+def test_a_run_stopped_between_evaluations_then_resumed_logs_the_same_loss(sig, pool, tmp_path, monkeypatch):
+    straight = tmp_path / "straight"
+    train(tiny_config(pool, straight, **STOPPED_RUN), threads=1, progress=False)
+
+    made = Trainer.__init__
+
+    def signalled_during_step(self, *args, **kwargs):  # the signal arrives while step STOP_AT draws its batch
+        made(self, *args, **kwargs)
+        draw = self.data.batch
+
+        def batch(rng, size, unsupervised):
+            if self.step == STOP_AT - 1:
+                os.kill(os.getpid(), sig)
+            return draw(rng, size, unsupervised)
+
+        self.data.batch = batch
+
+    interrupted = tmp_path / "interrupted"
+    with monkeypatch.context() as patch:
+        patch.setattr(Trainer, "__init__", signalled_during_step)
+        with pytest.raises(KeyboardInterrupt):
+            train(tiny_config(pool, interrupted, **STOPPED_RUN), threads=1, progress=False)
+    assert load_checkpoint(interrupted / "checkpoint.pt")["step"] == STOP_AT  # stopped between two evaluations
+    train(tiny_config(pool, interrupted, **STOPPED_RUN), resume=True, threads=1, progress=False)
+    assert [record["step"] for record in logged_without_times(interrupted)] == [0, EVAL_EVERY, STEPS]
+    assert logged_without_times(interrupted) == logged_without_times(straight)  # the mean losses too, to the last bit

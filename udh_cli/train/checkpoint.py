@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +41,10 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise UdhError(f"{path}: no such checkpoint file")
     data = read_side_file(path, "", MAX_CHECKPOINT_BYTES)  # a regular file, bounded: never a FIFO that blocks
     try:
-        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():
+            # torch's note on a pickle protocol it did not write would come before udh's own line about the file
+            warnings.filterwarnings("ignore", message="Detected pickle protocol", category=UserWarning)
+            state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling/format problem means "not a checkpoint"
         raise UdhError(f"{path}: not a readable udh checkpoint ({type(exc).__name__}); give a .pt written by `udh train`") from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:

@@ -26,7 +26,6 @@ from udh_cli.train.run_folder import check_fresh_out, lock_run_folder, logged_st
 from udh_cli.train.warm_start import ENCODER_INITS, WIDENINGS, load_encoder, load_weights, resolve_init
 
 
-
 def _distributed() -> tuple[int, int]:
     """(rank, world size) under torchrun, else (0, 1). Initialises the process group once."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -119,6 +118,8 @@ class Trainer:
         self.elapsed_before = 0.0  # seconds of training before the checkpoint we resume from
         self._clock_start: float | None = None
         self.best_val = math.inf
+        # The loss summed since the last evaluation and its steps, checkpointed: a resumed run logs the same mean.
+        self.running_loss, self.running_steps = 0.0, 0
         if saved is not None:
             self._restore(saved)
         elif config.init:
@@ -182,6 +183,8 @@ class Trainer:
             "rng_states": [json.dumps(s) for s in rng_states],
             "torch_rng": torch.get_rng_state(),
             "best_val": self.best_val,
+            "running_loss": self.running_loss,
+            "running_steps": self.running_steps,
             "elapsed_s": self._elapsed(),
             "trained_before": self.trained_before,
             "data_description": self.data.description,
@@ -201,6 +204,9 @@ class Trainer:
             self.rng.bit_generator.state = json.loads(states[self.rank])
         torch.set_rng_state(saved["torch_rng"])
         self.best_val = float(saved.get("best_val", math.inf))
+        running_loss, running_steps = saved.get("running_loss", 0.0), saved.get("running_steps", 0)
+        if isinstance(running_loss, float) and math.isfinite(running_loss) and isinstance(running_steps, int) and running_steps >= 0:
+            self.running_loss, self.running_steps = running_loss, running_steps  # else a checkpoint from before they were kept
         self.elapsed_before = float(saved.get("elapsed_s", 0.0))
         self.trained_before = dict(saved.get("trained_before", {}))
         self._truncate_metrics(self.step)
@@ -335,7 +341,6 @@ class Trainer:
 
         # time_s in the log is wall time spent training this run, summed over every resume.
         self._clock_start = time.perf_counter() - self.elapsed_before
-        running_loss, seen = 0.0, 0
         self.model.train()
         with TrainProgress(c.steps, self.step, enabled=self.progress) as bar:
             while self.step < c.steps:
@@ -356,12 +361,12 @@ class Trainer:
                 if not all(torch.isfinite(p).all() for p in self.model.parameters()):
                     self._diverged("the weights became NaN or infinite")
                 self.step += 1
-                running_loss += float(loss.detach())
-                seen += 1
+                self.running_loss += float(loss.detach())
+                self.running_steps += 1
                 if self.step % c.eval_every == 0 or self.step == c.steps:
-                    last = {"step": self.step, "loss": running_loss / seen, "lr": self._learning_rate(), **self.evaluate(),
-                            "time_s": round(self._elapsed(), 1)}
-                    running_loss, seen = 0.0, 0
+                    last = {"step": self.step, "loss": self.running_loss / self.running_steps, "lr": self._learning_rate(),
+                            **self.evaluate(), "time_s": round(self._elapsed(), 1)}
+                    self.running_loss, self.running_steps = 0.0, 0
                     self._log(last)
                     if last.get("val_mace_mean", math.inf) < self.best_val and self.rank == 0:
                         self.best_val = last["val_mace_mean"]

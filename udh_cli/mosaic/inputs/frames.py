@@ -42,6 +42,7 @@ class Frame:
         video_frame: the frame number in the video; ``None`` for image files.
         capture_time: EXIF capture time, when ordering by time.
         metadata: what the file's EXIF and XMP say (GPS, camera, DJI flight data); None for video frames.
+        stamp: the file's :func:`file_stamp` when it was read for the working copy; None for video frames.
     """
 
     index: int
@@ -52,6 +53,7 @@ class Frame:
     video_frame: int | None = None
     capture_time: str | None = None
     metadata: FrameMetadata | None = None
+    stamp: tuple[int, int, int] | None = None
 
     @property
     def work_size(self) -> tuple[int, int]:
@@ -70,6 +72,7 @@ class FrameSet:
     value_range: tuple[float, float] | None = None
     lens: Lens | None = None  # every frame is undistorted by it as it is read (:mod:`.lens`)
     lens_fit: dict | None = None  # how the lens was estimated from the flight (``--camera estimate``, :mod:`.lens_fit`)
+    source_stamp: tuple[int, int, int] | None = None  # a video's :func:`file_stamp` when its frames were read
 
     @property
     def is_video(self) -> bool:
@@ -78,19 +81,23 @@ class FrameSet:
     def full_images(self, indices: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(index, (H, W, 3) BGR uint8)`` at full resolution for ``indices``, in sequence order.
 
-        Image files are read again; a video is decoded again from the start, sequentially.
+        Image files are read again; a video is decoded again from the start, sequentially. A file changed on disk
+        since its working copy was read is refused (:class:`UdhError`): its homography is the old picture's.
         """
         wanted = sorted(set(indices))
         if not self.is_video:
             for index in wanted:
-                yield index, display_u8(_undistorted(read_image(self.frames[index].path), self.lens), self.value_range)
+                frame = self.frames[index]
+                _check_unchanged(frame.path, frame.stamp)
+                yield index, display_u8(_undistorted(read_image(frame.path), self.lens), self.value_range)
             return
+        _check_unchanged(self.source, self.source_stamp)
         by_video_frame = {self.frames[i].video_frame: i for i in wanted}
         capture = _open_capture(self.source)
         try:
             number, last = 0, max(by_video_frame)
             while number <= last:
-                ok, image = capture.read()
+                ok, image, _ = read_video_frame(capture)  # a frame kept on the first pass decoded cleanly then
                 if not ok:
                     raise UdhError(f"{self.source}: the video ended early on the second pass (frame {number}); extract its frames to a folder")
                 if number in by_video_frame:
@@ -98,6 +105,23 @@ class FrameSet:
                 number += 1
         finally:
             capture.release()
+
+
+def file_stamp(path: Path) -> tuple[int, int, int] | None:
+    """``(size in bytes, modification time in ns, inode)`` of ``path``: any of them changes when a file is
+    rewritten or replaced. None when it cannot be read."""
+    try:
+        info = os.stat(path)
+    except OSError:
+        return None
+    return info.st_size, info.st_mtime_ns, info.st_ino
+
+
+def _check_unchanged(path: Path, stamp: tuple[int, int, int] | None) -> None:
+    """Refuse a file that changed since ``stamp`` was taken (None: nothing was recorded, nothing to compare)."""
+    if stamp is not None and file_stamp(path) != stamp:
+        raise UdhError(f"{path}: changed on disk while the mosaic was made (its pairs were estimated from the earlier file); "
+                       f"run again once the frames stay as they are (--resume reuses the pairs of the others)")
 
 
 def _undistorted(image: np.ndarray, lens: Lens | None) -> np.ndarray:
@@ -205,9 +229,16 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
         listing = list(folder.iterdir())
     except OSError as exc:
         raise UdhError(f"{folder}: cannot list the folder ({exc.strerror}); check its permissions") from None
-    entries = sorted((p for p in listing if p.is_file() and not p.name.startswith(".")), key=lambda p: _natural_key(p.name))
-    entries = [p for p in entries if p.resolve() not in excluded and p.name not in IGNORED_FILES]
     skipped: list[dict] = []
+    entries = []
+    for path in sorted((p for p in listing if not p.name.startswith(".") and p.name not in IGNORED_FILES), key=lambda p: _natural_key(p.name)):
+        why = not_a_file(path)
+        if why is None:
+            entries.append(path)
+        elif why:  # a frame that cannot be read must be named, never dropped without a word (a FIFO is never opened)
+            skipped.append({"file": path.name, "reason": why})
+            reporter.warn(f"skipping {path.name}: {why}")
+    entries = [p for p in entries if p.resolve() not in excluded]
     candidates = []
     earlier = earlier_outputs(entries)
     for path in entries:
@@ -231,6 +262,7 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
     frames: list[Frame] = []
     with reporter.stage("reading frames", len(candidates)) as advance:
         for path in candidates:
+            stamp = file_stamp(path)  # before the read: a change during it is a change too
             try:
                 image = read_image(path)
             except UdhError as exc:
@@ -242,12 +274,33 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
             if lens is not None:
                 lens.check((image.shape[1], image.shape[0]), path.name)
             frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(_undistorted(image, lens), work_size), path, None,
-                                metadata[path].capture_time if order == "time" else None, metadata[path]))
+                                metadata[path].capture_time if order == "time" else None, metadata[path], stamp))
             advance(1)
     if len(frames) < 2:
         found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"
         raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames{_subfolder_hint(folder)}")
     return FrameSet(folder, frames, skipped, stretch_work_copies(frames))
+
+
+def not_a_file(path: Path) -> str | None:
+    """None when the folder entry ``path`` is a regular file or a link to one; "" for a folder; else why it cannot
+    be a frame: a link to nothing, a loop of links, a pipe, device or socket (a FIFO would block its reader)."""
+    import errno
+    import stat
+
+    try:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return "a loop of symbolic links; point the link at the frame itself"
+        if path.is_symlink():
+            return f"a symbolic link to {os.readlink(path)}, which does not exist; copy the frame there or remove the link"
+        return f"cannot be read ({exc.strerror or exc}); check its permissions"
+    if stat.S_ISDIR(mode):
+        return ""
+    if not stat.S_ISREG(mode):
+        return "not a regular file (a pipe, device or socket); copy the frame into a file"
+    return None
 
 
 def _subfolder_hint(folder: Path) -> str:
@@ -263,32 +316,55 @@ def _subfolder_hint(folder: Path) -> str:
 
 def _open_capture(path: Path) -> cv2.VideoCapture:
     """``cv2.VideoCapture(path)`` without FFmpeg's own lines on stderr ("moov atom not found"...): udh says
-    what is wrong in one line. FFmpeg's log level is also set to quiet for the decoding that follows, where
-    the process has not chosen one (OPENCV_FFMPEG_LOGLEVEL is read when the first video is opened)."""
+    what is wrong in one line. FFmpeg keeps its errors for the decoding that follows, where the process has not
+    chosen a log level (OPENCV_FFMPEG_LOGLEVEL is read when the first video is opened): :func:`read_video_frame`
+    takes them as the decoder's damage reports. One decoding thread, so that a report comes with its own frame."""
     if "OPENCV_FFMPEG_LOGLEVEL" not in os.environ and "OPENCV_FFMPEG_DEBUG" not in os.environ:
-        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "-8"  # AV_LOG_QUIET
-    with _native_messages_silenced():
-        capture = cv2.VideoCapture(str(path))
+        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "16"  # AV_LOG_ERROR: damaged packets, nothing chattier
+    with _native_messages_silenced(fds=(1, 2)):
+        capture = cv2.VideoCapture(str(path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, 1])
         capture.isOpened()  # FFmpeg probes the file while opening; its complaints are muted with it
     return capture
+
+
+def read_video_frame(capture: cv2.VideoCapture) -> tuple[bool, np.ndarray | None, str | None]:
+    """``capture.read()``, and what the decoder reported while decoding that frame (its first line), else None.
+
+    Why: FFmpeg conceals a damaged packet (the smeared block a mosaic would draw) and says so only in its log;
+    its lines are caught here, off the terminal, as the frame's damage."""
+    messages: list[str] = []
+    with _native_messages_silenced(messages, fds=(1, 2)):
+        ok, image = capture.read()
+    # Only FFmpeg's own lines: a progress bar redrawn meanwhile by another thread is caught too, and is no damage.
+    reported = [" ".join(line[match.end():].split()) for line in messages if (match := _FFMPEG_LINE.match(line))]
+    return ok, image, (reported[0][:160] if reported else None)
+
+
+# A line of FFmpeg's log: "[OPENCV:FFMPEG:16] ..." through OpenCV's callback, "[h264 @ 0x55d0...] ..." through its own.
+_FFMPEG_LINE = re.compile(r"\s*\[(?:OPENCV:FFMPEG:\d+|[\w,\-]+ @ 0x[0-9a-fA-F]+)\]")
 
 
 def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens: Lens | None) -> FrameSet:
     if path.suffix.lower() in IMAGE_SUFFIXES:
         raise UdhError(f"{path}: is a single image; give a folder of frames or a video")
+    stamp = file_stamp(path)
     capture = _open_capture(path)
     if not capture.isOpened():
         raise UdhError(f"{path}: cannot open this as a video; give a folder of frames or a video OpenCV can decode (e.g. MP4/H.264)")
     total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
     frames: list[Frame] = []
+    skipped: list[dict] = []
     try:
         with reporter.stage("reading video", total) as advance:
             number = 0
             while True:
-                ok, image = capture.read()
+                ok, image, damage = read_video_frame(capture)
                 if not ok:
                     break
-                if number % every == 0:
+                if damage is not None and number % every == 0:
+                    skipped.append({"file": f"{path.name}#{number}", "reason": f"damaged (the decoder says: {damage})"})
+                    reporter.warn(f"skipping {path.name}#{number}: damaged (the decoder says: {damage})")
+                elif number % every == 0:
                     if lens is not None:
                         lens.check((image.shape[1], image.shape[0]), f"{path.name}#{number}")
                     frames.append(Frame(len(frames), f"{path.name}#{number}", (image.shape[1], image.shape[0]),
@@ -299,9 +375,11 @@ def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens
         capture.release()
     if number == 0:
         raise UdhError(f"{path}: no frame could be decoded from this video; check the file or extract its frames to a folder")
+    if total is not None and number < total:
+        reporter.warn(f"{path.name}: the decoder stopped after {number} of the {total} frames the video lists; it is damaged or cut short")
     if len(frames) < 2:
         raise UdhError(f"{path}: only {len(frames)} frame kept of {number} (--every {every}); a mosaic needs at least two")
-    return FrameSet(path, frames, value_range=stretch_work_copies(frames))
+    return FrameSet(path, frames, skipped, stretch_work_copies(frames), source_stamp=stamp)
 
 
 def _check_sizes(frames: FrameSet, reporter: Reporter) -> None:

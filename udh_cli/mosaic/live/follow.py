@@ -1,17 +1,19 @@
 """Live mode: mosaic a folder while a flight is still writing frames into it (``udh mosaic FOLDER --follow``).
 
-The folder is polled. A frame joins once it is complete (a frame being copied or written is never read
-half-way): a JPEG or PNG as soon as it ends with its format's end marker and decodes, any frame once its size
-and modification time are unchanged over two polls and it is at least ``settle_s`` old. Each new frame is
-handed at once to ``on_frames`` (the quick look, :mod:`.quicklook`). Every ``refresh_every`` new frames the
+The folder is polled. A frame joins once it is complete (a frame being copied or written is never read half-way,
+however long its writer pauses): a JPEG or PNG once it ends with its format's end marker and decodes without
+damage, a TIFF once every strip or tile its header names lies inside the file; a frame of another format once its
+size and modification time are unchanged over two polls and it is at least ``settle_s`` old. After the flight ends,
+a JPEG, PNG or TIFF that never became whole joins by that rule too, for the run to refuse by name. Each new frame
+is handed at once to ``on_frames`` (the quick look, :mod:`.quicklook`). Every ``refresh_every`` new frames the
 mosaic, its preview, sidecar and map files are rewritten from the frames so far. Each refresh is a whole
-:func:`~udh_cli.mosaic.run.run_mosaic` run with the pair cache, so only the new frames' pairs (and the
-loop closures that changed) are estimated: the solve is redone in full each time, which costs little next to
-the pairs (1.3 s for 500 frames). A refresh can run in another process (``start_refresh``), so that new frames
-are not kept waiting behind it. The flight is over when a file named ``sentinel`` appears in the folder or no
-new frame has come for ``idle_timeout_s``. When the last refresh already held every frame, its mosaic is the
-final one; otherwise a last run over every frame makes it, with the folder itself as its source (its pairs
-come from the cache, so it costs the solve and the compositing).
+:func:`~udh_cli.mosaic.run.run_mosaic` run with the pair cache, so only the new frames' pairs (and the loop
+closures that changed) are estimated: the solve is redone in full each time, which costs little next to the pairs
+(1.3 s for 500 frames). A refresh can run in another process (``start_refresh``), so that new frames are not kept
+waiting behind it. The flight is over when a file named ``sentinel`` appears in the folder or no new frame has come
+for ``idle_timeout_s``. When the last refresh already held every frame, its mosaic is the final one; otherwise a
+last run over every frame makes it, with the folder itself as its source (its pairs come from the cache, so it
+costs the solve and the compositing).
 
 Why polling and not inotify: it works the same on every OS and on network shares; at ``poll_s`` 0.1 a scan of a
 folder of 1,000 frames costs a few ms, and a frame is seen within a tenth of a second of its last byte.
@@ -21,7 +23,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 import time
 from concurrent.futures import Future, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -33,8 +34,11 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import IMAGE_SUFFIXES
+from udh_cli.images import DAMAGE_MESSAGES, IMAGE_SUFFIXES, _native_messages_silenced, check_declared_pixels
 from udh_cli.mosaic.report import Reporter
+from udh_cli.processes import remove_dead_runs_folders, run_temp_folder
+
+FOLLOW_STAGING_PREFIX = ".udh-follow-"  # the refreshes' folder of links to the complete frames, beside the output
 
 
 @dataclass(frozen=True)
@@ -66,6 +70,40 @@ class _Watch:
 
 # The last bytes of a complete file: JPEG's end-of-image marker, PNG's IEND chunk.
 END_MARKERS = {".jpg": b"\xff\xd9", ".jpeg": b"\xff\xd9", ".png": b"IEND\xaeB`\x82"}
+# Where a TIFF's pixels lie: the tags of its strips' (or tiles') offsets and byte counts.
+TIFF_OFFSETS, TIFF_BYTE_COUNTS = (273, 324), (279, 325)
+
+
+def structurally_whole(path: Path, size: int) -> bool | None:
+    """Whether the frame ``path`` (``size`` bytes) is whole by its format's structure (:func:`ends_whole`,
+    :func:`tiff_whole`); None for a format without such a check."""
+    suffix = path.suffix.lower()
+    if suffix in END_MARKERS:
+        return ends_whole(path, size)
+    if suffix in (".tif", ".tiff"):
+        return tiff_whole(path, size)
+    return None
+
+
+def tiff_whole(path: Path, size: int) -> bool:
+    """Whether the TIFF ``path`` (``size`` bytes) holds its first image whole: its header and directory read, and
+    every strip or tile they name ends inside the file. Pillow reads only the header here."""
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a half-written directory: Pillow's warnings say what the answer does
+            with Image.open(path) as image:
+                tags = image.tag_v2
+                offsets = next((tags[tag] for tag in TIFF_OFFSETS if tags.get(tag)), None)
+                counts = next((tags[tag] for tag in TIFF_BYTE_COUNTS if tags.get(tag)), None)
+    except Exception:  # noqa: BLE001 - a header Pillow cannot read yet is a file not yet whole
+        return False
+    if not offsets or not counts or len(offsets) != len(counts):
+        return False
+    return max(int(offset) + int(count) for offset, count in zip(offsets, counts)) <= size
 
 
 def ends_whole(path: Path, size: int) -> bool:
@@ -87,12 +125,21 @@ def ends_whole(path: Path, size: int) -> bool:
         return False
     if len(data) != size:
         return False
-    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
-    return decoded is not None and decoded.size > 0
+    try:
+        check_declared_pixels(path, data)
+    except UdhError:
+        return True  # whole as far as its end marker says; never decoded here: the run's reader refuses it, saying why
+    messages: list[str] = []
+    with _native_messages_silenced(messages):  # a JPEG cut after its thumbnail decodes, but says it ended early
+        decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
+    damaged = any(line.lstrip().startswith(DAMAGE_MESSAGES) for line in messages)
+    return decoded is not None and decoded.size > 0 and not damaged
 
 
-def poll_complete_frames(folder: Path, watch: _Watch, settle_s: float, exclude: set[Path], now: float) -> list[Path]:
-    """Look at ``folder`` once; the frames that became complete since the last look, in name order."""
+def poll_complete_frames(folder: Path, watch: _Watch, settle_s: float, exclude: set[Path], now: float,
+                         flight_over: bool = False) -> list[Path]:
+    """Look at ``folder`` once; the frames that became complete since the last look, in name order. With
+    ``flight_over``, a frame that settled joins even when its structure says it is not whole (it is damaged)."""
     current: dict[Path, tuple[int, float]] = {}
     for entry in os.scandir(folder):
         path = Path(entry.path)
@@ -103,11 +150,20 @@ def poll_complete_frames(folder: Path, watch: _Watch, settle_s: float, exclude: 
     done = set(watch.complete)
     new = [path for path, state in current.items()
            if path not in done and state[0] > 0
-           and ((watch.seen.get(path) == state and now - state[1] >= settle_s) or ends_whole(path, state[0]))]
+           and _complete(path, state[0], watch.seen.get(path) == state and now - state[1] >= settle_s, flight_over)]
     watch.seen = current
     new.sort(key=lambda p: p.name)
     watch.complete.extend(new)
     return new
+
+
+def _complete(path: Path, size: int, settled: bool, flight_over: bool) -> bool:
+    """Whether a frame may be read: whole by its structure, else (a format without one, or after the flight)
+    ``settled``: unchanged over two polls and old enough."""
+    whole = structurally_whole(path, size)
+    if whole is None:
+        return settled
+    return whole or (flight_over and settled)
 
 
 def check_followed_folder(folder: Path) -> None:
@@ -138,7 +194,9 @@ def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], 
     refreshed_at, last_new, refreshes = 0, clock(), 0
     pending: Future | None = None
     latest: dict[str, Any] | None = None  # the last refresh that was written
-    staging = Path(tempfile.mkdtemp(prefix=".udh-follow-", dir=output.parent))
+    for gone in remove_dead_runs_folders(output.parent, FOLLOW_STAGING_PREFIX):
+        reporter.info(f"live: removed {gone.name}, left by a live run that was killed")
+    staging = run_temp_folder(output.parent, FOLLOW_STAGING_PREFIX)
 
     def refreshed(outcome: Callable[[], dict[str, Any]], frames: int) -> None:
         nonlocal refreshes, start_refresh, latest
@@ -210,7 +268,7 @@ def _wait_until_settled(folder: Path, watch: _Watch, follow: FollowConfig, exclu
     final run reads every frame whole."""
     deadline = clock() + follow.idle_timeout_s
     while clock() < deadline:
-        poll_complete_frames(folder, watch, follow.settle_s, exclude(), clock())
+        poll_complete_frames(folder, watch, follow.settle_s, exclude(), clock(), flight_over=True)
         if set(watch.seen) <= set(watch.complete):
             return
         sleep(follow.poll_s)

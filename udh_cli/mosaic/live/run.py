@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
@@ -25,6 +26,7 @@ from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.pairs.workers import check_main_guard
 from udh_cli.mosaic.report_page import rewrite_report_page
 from udh_cli.mosaic.sidecar import relative_to
+from udh_cli.processes import die_with_parent
 
 
 def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = MosaicConfig(), follow: FollowConfig = FollowConfig(),
@@ -75,7 +77,8 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
                 reporter.warn(f"live: {path.name} is not in the quick look ({record.get('failure')}); the mosaic will try it again")
 
     # spawn, not fork: the networks' onnxruntime sessions and their threads do not survive a fork
-    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as refresher:
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=die_with_parent, initargs=(os.getpid(),)) as refresher:
         def start_refresh(source: Path):
             return refresher.submit(_live_run, source, output, config, cache_file, None, options)
 

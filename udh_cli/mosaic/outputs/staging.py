@@ -22,12 +22,12 @@ from pathlib import Path
 from typing import Iterable
 
 from udh_cli.errors import UdhError
-from udh_cli.files import folder_locked, record_written, written_by_udh
+from udh_cli.files import SIDE_FILE_LIMIT, folder_locked, read_side_file, record_written, written_by_udh
 from udh_cli.images import IMAGE_SUFFIXES
 from udh_cli.mosaic.outputs.files import CAMERAS_SUFFIX, GEOREFERENCE_SUFFIXES, PAM_SUFFIX, PREVIEW_SUFFIX, REPORT_PAGE_SUFFIX, MosaicFiles, RunFiles
 from udh_cli.mosaic.report import Reporter
 
-SIDECAR_FORMAT = "udh-mosaic/1"  # the sidecar's "format", its first key
+SIDECAR_FORMAT = "udh-mosaic/1"  # the sidecar's "format", its first key as udh writes it
 
 
 def _is_udh_json(path: Path, formats: tuple[str, ...]) -> bool:
@@ -231,13 +231,41 @@ def earlier_outputs(files: Iterable[Path]) -> dict[Path, str]:
 
 
 def _is_sidecar(path: Path) -> bool:
-    """Whether ``path`` begins as a udh mosaic sidecar does (its first 200 bytes are read)."""
+    """Whether ``path`` holds a udh mosaic sidecar: a JSON object whose ``"format"`` is :data:`SIDECAR_FORMAT`,
+    wherever the key stands (a sidecar re-saved with sorted keys or reformatted is still one).
+
+    The first 200 bytes answer for a sidecar as udh writes it; any other JSON file is parsed whole."""
     try:
         with open(path, "rb") as file:
             head = file.read(200)
     except OSError:
         return False
-    return re.search(rb'"format"\s*:\s*"' + re.escape(SIDECAR_FORMAT.encode()) + rb'"', head) is not None
+    if re.search(rb'"format"\s*:\s*"' + re.escape(SIDECAR_FORMAT.encode()) + rb'"', head) is not None:
+        return True
+    if SIDECAR_FORMAT.encode() not in head and not _mentions(path, SIDECAR_FORMAT.encode()):
+        return False  # most JSON files beside frames (GPS logs, cameras) end here without being parsed
+    try:
+        data = json.loads(read_side_file(path))
+    except (UdhError, ValueError, RecursionError):
+        return False
+    return isinstance(data, dict) and data.get("format") == SIDECAR_FORMAT
+
+
+def _mentions(path: Path, text: bytes, limit: int = SIDE_FILE_LIMIT) -> bool:
+    """Whether the first ``limit`` bytes of ``path`` contain ``text`` (read in chunks, never whole)."""
+    try:
+        with open(path, "rb") as file:
+            carried = b""
+            for _ in range(limit // (1 << 20) + 1):
+                chunk = file.read(1 << 20)
+                if not chunk:
+                    return False
+                if text in carried + chunk:
+                    return True
+                carried = chunk[-len(text):]
+    except OSError:
+        return False
+    return False
 
 
 def remove_stale_files(files: RunFiles, published: list[Path], mosaics: list[Path], reporter: Reporter) -> None:

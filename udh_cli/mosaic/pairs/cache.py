@@ -13,6 +13,9 @@ A pair's key covers everything its estimate depends on:
 - the acceptance thresholds (they decide which estimates are accepted and when the next opinion is asked);
 - for pre-warped loop-closure pairs, the prior (the chained prediction B is warped with), exactly, and whether it
   was first confirmed as it is (:mod:`.confirm`; the record's ``method`` then says which path answered).
+
+Each record also carries the SHA-256 of its key and content (``digest``): a record edited since udh wrote it, even
+consistently (a homography shifted with its estimate), is estimated again with a warning, never reused unchecked.
 """
 
 from __future__ import annotations
@@ -133,6 +136,8 @@ class PairCache:
         if record is None:
             return None
         try:
+            if record.get("digest") != record_digest(key, record):
+                raise ValueError("it is not as udh wrote it: its digest does not match its content (edited by hand?)")
             result = _result_from_record(record, request, self.frames)
         except Exception as exc:  # noqa: BLE001 - whatever the damage (NaN, wrong types or shapes), the pair is estimated again
             self.previous.pop(key, None)  # and never written back
@@ -148,7 +153,9 @@ class PairCache:
 
     def add(self, request: PairRequest, result: PairResult) -> None:
         """Record a finished pair (call :meth:`save` to write it)."""
-        self.entries[self.key(request)] = _record(result, self.frames)
+        key = self.key(request)
+        record = _record(result, self.frames)
+        self.entries[key] = {**record, "digest": record_digest(key, record)}
 
     def save(self, prune: bool = False) -> None:
         """Write every pair of this run so far, atomically (an interrupt leaves the previous file whole).
@@ -159,7 +166,7 @@ class PairCache:
         if not self.keep:
             return
         records = dict(self.entries) if prune else {**self.previous, **self.entries}
-        pairs = [{"key": key, **record} for key, record in records.items()]
+        pairs = [{"key": key, **_content(record), "digest": record["digest"]} for key, record in records.items()]  # as sealed
         text = json.dumps({"format": CACHE_FORMAT, "pairs": pairs}, indent=None, separators=(",", ":"))
         atomic_write_bytes(self.path, (text + "\n").encode())
 
@@ -167,6 +174,19 @@ class PairCache:
         if index not in self._frame_ids:
             self._frame_ids[index] = frame_identity(self.frames[index])
         return self._frame_ids[index]
+
+
+def _content(record: dict[str, Any]) -> dict[str, Any]:
+    """The record without its key and digest: what the digest covers, beside the key."""
+    return {name: value for name, value in record.items() if name not in ("key", "digest")}
+
+
+def record_digest(key: str, record: dict[str, Any]) -> str:
+    """SHA-256 of a pair's key and record content, as JSON with sorted keys (floats round-trip exactly; the record is
+    first passed through JSON so that a record about to be written and the same record read back agree)."""
+    as_read = json.loads(json.dumps([key, _content(record)]))
+    text = json.dumps(as_read, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _read(path: Path, reporter: Reporter) -> dict[str, dict]:
@@ -190,6 +210,12 @@ def _read(path: Path, reporter: Reporter) -> dict[str, dict]:
                if isinstance(record, dict) and isinstance(record.get("key"), str) and _depth(record) <= _MAX_RECORD_DEPTH}
     if len(records) < len(data["pairs"]):
         reporter.warn(f"--resume: {len(data['pairs']) - len(records)} entries of the pair cache {path} are damaged; their pairs are estimated again")
+    unsealed = [key for key, record in records.items() if "digest" not in record]
+    if unsealed:  # a cache of a udh before digests: its pairs are estimated again, once, without a warning for each
+        reporter.warn(f"--resume: {len(unsealed)} entries of the pair cache {path} have no digest (an older udh wrote them); "
+                      f"their pairs are estimated again")
+        for key in unsealed:
+            del records[key]
     return records
 
 

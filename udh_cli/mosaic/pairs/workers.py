@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import os
 import re
-import signal
 import sys
 import threading
 from collections import deque
@@ -30,6 +29,7 @@ import numpy as np
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.estimators.pair import PreparedPair
+from udh_cli.processes import die_with_parent
 
 ImagePair = tuple[np.ndarray, np.ndarray]  # working-size images A and B, as sent to a worker
 Judged = tuple[Estimate, "float | None", "str | None"]  # the estimate, its verification score, why it is doubted
@@ -142,11 +142,6 @@ def judge_on_worker(spec: EstimatorSpec, pairs: Sequence[ImagePair], from_predic
     return judge_opinions(_worker_estimators(spec), spec.acceptance, list(pairs), from_prediction)
 
 
-def _ignore_interrupts() -> None:
-    """Pool workers leave Ctrl-C to the parent, which stops them; otherwise each prints its own traceback."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 class LocalRunner:
     """Runs each job in this process as soon as it is submitted, with the given estimator instances."""
 
@@ -206,7 +201,8 @@ class PoolRunner:
         self.spec = _single_threaded(spec)
         self.window = 2 * workers  # a batch queued behind each running one keeps every worker busy
         # spawn, not fork: a forked onnxruntime or OpenCV thread pool can hang its child.
-        self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_ignore_interrupts)
+        self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=die_with_parent, initargs=(os.getpid(),))
 
     def submit(self, pairs: Sequence[ImagePair], from_prediction: Sequence[bool] | None = None) -> Future:
         return self.pool.submit(judge_on_worker, self.spec, list(pairs), from_prediction)
@@ -234,6 +230,7 @@ class DaskRunner:
         except ImportError:
             raise UdhError("--scheduler needs Dask: pip install 'dask[distributed]' (from the udh checkout: pip install '.[cluster]')") from None
         try:
+            _handshake(scheduler, timeout_s)
             self.client = Client(scheduler, timeout=timeout_s)
         except (OSError, TimeoutError, ValueError) as exc:
             raise UdhError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc}); start one with `dask scheduler` "
@@ -258,6 +255,42 @@ class DaskRunner:
 
     def close(self, abort: bool = False) -> None:
         self.client.close()
+
+
+def _handshake(scheduler: str, timeout_s: float) -> None:
+    """Connect to ``scheduler`` and exchange Dask's handshake within ``timeout_s`` seconds, or raise TimeoutError.
+
+    Why: ``distributed``'s connect bounds the TCP connection but not the handshake after it, so a server that
+    accepts and never answers would hold the run for ever. It runs on a thread of its own, whose event loop is
+    its own even when the caller's thread runs one (a notebook)."""
+    import asyncio
+
+    from distributed.comm import connect
+
+    async def exchange() -> None:
+        comm = await asyncio.wait_for(connect(scheduler, timeout=timeout_s), timeout_s)
+        await comm.close()
+
+    failure: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            asyncio.run(exchange())
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+            failure.append(exc)
+
+    thread = threading.Thread(target=run, name="udh-dask-handshake", daemon=True)
+    thread.start()
+    thread.join(timeout_s + 5)  # wait_for ends the exchange at timeout_s; this only guards a loop that never returns
+    if thread.is_alive():
+        raise TimeoutError(f"no handshake within {timeout_s:g} s")
+    if failure:
+        exc = failure[0]
+        if isinstance(exc, asyncio.TimeoutError):
+            raise TimeoutError(f"no handshake within {timeout_s:g} s")
+        if isinstance(exc, (OSError, ValueError, TimeoutError)):
+            raise exc
+        raise OSError(f"the handshake failed ({type(exc).__name__}: {exc})")
 
 
 def _single_threaded(spec: EstimatorSpec) -> EstimatorSpec:

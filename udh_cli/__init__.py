@@ -3,8 +3,14 @@
 Everything the ``udh`` command does is available from here; the CLI is a thin layer over it.
 """
 
+from typing import TYPE_CHECKING
+
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.registry import create_estimator, estimator_names
+
+if TYPE_CHECKING:  # for type checkers and editors; at run time they load on first use (__getattr__ below)
+    from udh_cli.estimators.base import Estimate, Estimator
+    from udh_cli.mosaic.arrays import MosaicResult, mosaic_images
 
 __version__ = "0.1.0"
 

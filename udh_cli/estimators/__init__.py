@@ -1,6 +1,11 @@
 """Homography estimators behind one interface (see :mod:`udh_cli.estimators.base`)."""
 
+from typing import TYPE_CHECKING
+
 from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS, create_estimator, estimator_names
+
+if TYPE_CHECKING:  # for type checkers and editors; at run time they load on first use (__getattr__ below)
+    from udh_cli.estimators.base import Estimate, Estimator, require_ok
 
 __all__ = ["DEFAULT_METHOD", "ESTIMATORS", "Estimate", "Estimator", "create_estimator", "estimator_names", "require_ok"]
 

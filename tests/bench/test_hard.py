@@ -11,9 +11,9 @@ import pytest
 from typer.testing import CliRunner
 
 from udh_cli import cli, geometry
-from udh_cli.api import is_verified
 from udh_cli.bench import runner
 from udh_cli.bench.hard import KINDS, build_sets, run_hard_bench
+from udh_cli.estimators.base import is_verified
 from udh_cli.bench.hard_pairs import FLIGHT_GROUP, PAIRS_GROUP, _stored_to_shown, find_pairs
 from udh_cli.bench.hard_report import markdown_table, write_hard_outputs
 from udh_cli.bench.motions import MOTION_KINDS

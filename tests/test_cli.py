@@ -171,11 +171,11 @@ def test_gt_is_checked_before_the_images(files, tmp_path, monkeypatch, capfd):
 
 
 def test_images_are_read_once(files, monkeypatch):
-    from udh_cli import api
+    from udh_cli import api, images
 
     calls = []
-    original = api.read_image
-    monkeypatch.setattr(api, "read_image", lambda path: calls.append(Path(path).name) or original(path))
+    original = images.read_image
+    monkeypatch.setattr(images, "read_image", lambda path: calls.append(Path(path).name) or original(path))
     api.estimate_report(files["a.png"], files["b16.png"], "identity", gt=files["truth.txt"])
     assert calls == ["a.png", "b16.png"]
 
@@ -345,6 +345,20 @@ def heavy(modules: set[str]) -> set[str]:
 @pytest.mark.parametrize("args", [(), ("--help",), ("estimate", "--help"), ("bench", "speed", "--help")])
 def test_start_up_imports_nothing_heavy(args):
     assert heavy(modules_loaded_by(*args)) == set()
+
+
+@pytest.mark.parametrize("args", [(), ("--help",), ("estimate", "--help"), ("simulate", "--help"), ("train", "--help")])
+def test_start_up_needs_no_numpy(args):
+    # NumPy is a tenth of a second of `udh --help`: the commands' defaults and the estimator names are read without it.
+    assert not {"numpy", "cv2"} & modules_loaded_by(*args)
+
+
+def test_the_public_names_load_on_first_use():
+    code = ("import sys, udh_cli\nloaded = 'numpy' in sys.modules\n"
+            "from udh_cli import Estimate, Estimator, create_estimator\nfrom udh_cli.estimators import require_ok\n"
+            "print(loaded, Estimate.__module__, Estimator.__name__, require_ok.__module__, type(create_estimator('identity')).__name__)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.stdout.split() == ["False", "udh_cli.estimators.base", "Estimator", "udh_cli.estimators.base", "IdentityEstimator"]
 
 
 def test_the_mosaic_command_loads_when_invoked():

@@ -6,13 +6,8 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.estimators import DEFAULT_METHOD, create_estimator, require_ok
-from udh_cli.estimators.base import is_verified
-from udh_cli.homography_files import read_homography
-from udh_cli.files import check_replaceable, write_output
-from udh_cli.images import IMAGE_SUFFIXES, check_output_path, encode_image, read_image
+from udh_cli.estimators.registry import DEFAULT_METHOD, create_estimator
 
 # Longest side (pixels) at which `udh estimate` works unless asked for full resolution: the precision of a
 # 1600 px frame, and SIFT, ECC and the networks in bounded time and memory on a 48 MP photo.
@@ -36,6 +31,8 @@ def _check_truth_fits(truth, gt: str | Path, width: int, height: int) -> None:
     """Refuse a ground truth that sends some of A's corners through the horizon (to infinity, or to the far side):
     no corner error can be measured against it (it came out as 1.3e6 px), so it is not a truth for this image."""
     import numpy as np
+
+    from udh_cli import geometry
 
     corners = np.column_stack([geometry.image_corners(width, height), np.ones(4)])
     w = corners @ np.asarray(truth, dtype=np.float64)[2]
@@ -79,6 +76,13 @@ def estimate_report(
     Raises:
         UdhError: for bad input, and when the method finds no homography.
     """
+    # Imported here, not above: the command line reads this module's defaults when it starts, before NumPy is needed.
+    from udh_cli import geometry
+    from udh_cli.estimators.base import is_verified, require_ok
+    from udh_cli.files import check_replaceable, write_output
+    from udh_cli.homography_files import read_homography
+    from udh_cli.images import IMAGE_SUFFIXES, check_output_path, encode_image, read_image
+
     estimator = create_estimator(method, **options)
     truth = read_homography(gt, "--gt") if gt is not None else None
     if viz is not None:

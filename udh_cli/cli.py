@@ -11,20 +11,22 @@ from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
 
-import numpy as np
 import typer
 from typer.core import TyperCommand, TyperGroup
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from udh_cli import __version__, geometry
+from udh_cli import __version__
 from udh_cli.errors import UdhError
 from udh_cli.api import ESTIMATE_WORK_SIZE
 from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS, parse_method_options
+from udh_cli.generator_settings import FlightConfig as _FlightConfig, GpsConfig as _GpsConfig
 from udh_cli.train.config import TrainConfig as _TrainConfig
 
 _TRAIN = _TrainConfig()  # the command line's defaults are the library's
+_FLIGHT = _FlightConfig()
+_GPS = _GpsConfig(0.0, 0.0)
 
 # Commands loaded only when invoked: the mosaic's options need the mosaic package at definition, and the bench
 # group's commands would make this module too long. name -> (module defining ``app``, the one-line help the root lists).
@@ -156,6 +158,8 @@ def estimate(
 
 
 def _print_estimate(payload: dict) -> None:
+    from udh_cli import geometry
+
     width, height = payload["size_a"]
     matrix = Table(title=f"H ({payload['method']}): pixels of A -> pixels of B", show_header=False)
     for row in payload["homography"]:
@@ -165,7 +169,7 @@ def _print_estimate(payload: dict) -> None:
     for column in ("corner", "in A (x, y)", "in B (x, y)", "offset (px)"):
         corners.add_column(column, justify="right")
     names = ("top-left", "top-right", "bottom-right", "bottom-left")
-    for name, c, off in zip(names, geometry.image_corners(width, height), np.asarray(payload["offsets_4pt"])):
+    for name, c, off in zip(names, geometry.image_corners(width, height), payload["offsets_4pt"]):
         corners.add_row(name, f"{c[0]:.0f}, {c[1]:.0f}", f"{c[0] + off[0]:.2f}, {c[1] + off[1]:.2f}", f"{off[0]:+.2f}, {off[1]:+.2f}")
     console.print(corners)
     summary = f"confidence {payload['confidence']:.3f}   time {payload['elapsed_ms']:.1f} ms"
@@ -287,12 +291,6 @@ def quantize(
                   f"{result['median_drift_px']:.3f} px median, {result['max_drift_px']:.2f} px at most ({result['check_pairs']} check pairs)")
 
 
-from udh_cli.simulate import FlightConfig as _FlightConfig, GpsConfig as _GpsConfig  # noqa: E402 - the simulator's defaults live there
-
-_FLIGHT = _FlightConfig()
-_GPS = _GpsConfig(0.0, 0.0)
-
-
 @app.command()
 def simulate(
     folder: Annotated[Path, typer.Argument(metavar="FOLDER", help="Folder to write the frames and ground_truth.json into (created; must be empty or new).")],
@@ -312,7 +310,7 @@ def simulate(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="With --ground-preview: replace an existing FOLDER_ground.jpg that udh did not write.", metavar="")] = False,
 ) -> None:
     """Write a simulated drone flight with exact ground truth (frames + ground_truth.json), for trying udh anywhere."""
-    from udh_cli.simulate import GpsConfig, write_flight
+    from udh_cli.simulate import write_flight
 
     config = _FlightConfig(frame_size=(width, height), strips=strips, frames_per_strip=frames_per_strip, forward_overlap=forward_overlap,
                            side_overlap=side_overlap, tilt_deg=tilt_deg, noise_sigma=noise_sigma,
@@ -325,7 +323,7 @@ def simulate(
             raise UdhError(f"--gps {gps}: give LAT,LON in degrees, e.g. --gps 46.85,-92.0") from None
         if not (-80.0 <= latitude <= 84.0 and -180.0 <= longitude <= 180.0):
             raise UdhError(f"--gps {gps}: latitude must be within -80..84 (UTM) and longitude within -180..180")
-        gps_config = GpsConfig(latitude, longitude, metres_per_pixel=metres_per_pixel, noise_m=gps_noise)
+        gps_config = _GpsConfig(latitude, longitude, metres_per_pixel=metres_per_pixel, noise_m=gps_noise)
     path = write_flight(folder, config, seed, ground_preview=ground_preview, gps=gps_config, overwrite=overwrite)
     err_console.print(f"wrote {strips * frames_per_strip} frames and {path}", highlight=False, soft_wrap=True)
 

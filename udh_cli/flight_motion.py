@@ -27,13 +27,13 @@ so that the photometric loss can look up every pixel of B that A's larger surrou
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
+from udh_cli.generator_settings import MotionConfig  # defined without NumPy: the command line reads its defaults
 from udh_cli.synthetic import PairBatch, _occlude, illuminate
 
 ASPECTS = (1.0, 4.0 / 3.0, 3.0 / 2.0, 16.0 / 9.0)  # frame shapes of common drone cameras (w / h)
@@ -45,41 +45,6 @@ CONTEXT_FACTOR = 3  # context canvas side, in views: A's view sits in the middle
 # consecutive pairs did not follow (brighton-beach under 10 px 38 -> 25 %, copr under 3 px 85 -> 82 %;
 # docs/training.md), so the edges stay replicated.
 PREWARP_BORDER = cv2.BORDER_REPLICATE
-
-
-@dataclass(frozen=True)
-class MotionConfig:
-    """The distribution of flight motion between two views. Defaults: the ``flight`` preset.
-
-    Attributes:
-        max_heading: largest rotation, degrees either way (180: the whole circle).
-        scale_range: (smallest, largest) scale of A's footprint relative to B's, drawn log-uniformly.
-        max_shift: largest translation of the footprint centre, as a fraction of the frame's width and height.
-        perspective: corner jitter after the similarity, pixels of the P x P view (the paper's rho).
-        min_overlap: smallest share of B's view that A's footprint must cover.
-        lighting: probability of each real-flight lighting effect (shadow, vignette, blur, noise, JPEG).
-        residual: 0 for the motion itself (a first round's view). Above 0, the pairs a later round of the
-            cascade sees: A is shown pre-warped into B's view by a wrong answer, with
-            :data:`PREWARP_BORDER` outside its frame, and the label is what is left, a corner perturbation
-            of up to ``residual`` px of the P x P view.
-    """
-
-    # Measured on real consecutive pairs (SIFT references): copr and brighton-beach turn by at most 27 degrees
-    # and shift by up to 0.45-0.8 of the frame; the half turns of a survey's strip ends are left to the
-    # estimator's heading search (DeepEstimator.headings).
-    max_heading: float = 30.0
-    scale_range: tuple[float, float] = (1 / 1.35, 1.35)
-    max_shift: float = 0.6
-    perspective: float = 12.0
-    min_overlap: float = 0.3
-    lighting: float = 0.3
-    residual: float = 0.0
-
-    def scaled(self, amount: float) -> "MotionConfig":
-        """The same distribution with every motion shrunk by ``amount`` in [0, 1] (for small-motion pairs)."""
-        low, high = self.scale_range
-        return MotionConfig(self.max_heading * amount, (low**amount, high**amount), self.max_shift * amount,
-                            self.perspective * amount, self.min_overlap, self.lighting, self.residual)
 
 
 def source_size(width: int, height: int) -> tuple[int, int]:

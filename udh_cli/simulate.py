@@ -27,48 +27,11 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.files import check_replaceable, read_side_text, staged_folder, write_output
+from udh_cli.generator_settings import FlightConfig, GpsConfig  # defined without NumPy: the command line reads its defaults
 from udh_cli.images import atomic_write_bytes
 
 GROUND_TRUTH_FILE = "ground_truth.json"
 GROUND_TRUTH_FORMAT = "udh-sim-flight/1"
-
-
-@dataclass(frozen=True)
-class FlightConfig:
-    """How a simulated flight is made.
-
-    Attributes:
-        frame_size: (width, height) of every frame, pixels.
-        strips: number of parallel flight lines (lawn-mower path, flown back and forth).
-        frames_per_strip: frames taken along each line.
-        forward_overlap: share of a frame's width that the next frame on the same line sees again.
-        side_overlap: share of a frame's height that neighbouring lines share.
-        ground_px_per_frame_px: ground sampling: ground pixels covered by one frame pixel at nadir
-            (1.0 renders the ground at its own resolution; above 1 would alias).
-        focal_px: focal length in frame pixels (600 px on 640 px is a 56 degree horizontal field of view).
-        tilt_deg: largest roll and pitch of the camera, degrees (the perspective jitter).
-        yaw_deg: largest yaw jitter around the flight heading, degrees.
-        altitude_jitter: largest relative change of altitude between frames.
-        position_jitter: largest offset of a frame from its planned position, as a share of the step.
-        exposure_range: (low, high) of the per-frame gain.
-        noise_sigma: standard deviation of the Gaussian sensor noise, in 8-bit grey levels.
-        jpeg_quality: JPEG quality of the written frames.
-    """
-
-    frame_size: tuple[int, int] = (640, 480)
-    strips: int = 3
-    frames_per_strip: int = 6
-    forward_overlap: float = 0.75
-    side_overlap: float = 0.6
-    ground_px_per_frame_px: float = 1.0
-    focal_px: float = 600.0
-    tilt_deg: float = 2.0
-    yaw_deg: float = 2.0
-    altitude_jitter: float = 0.02
-    position_jitter: float = 0.08
-    exposure_range: tuple[float, float] = (0.8, 1.2)
-    noise_sigma: float = 2.0
-    jpeg_quality: int = 90
 
 
 @dataclass(frozen=True)
@@ -272,24 +235,6 @@ def simulate_flight(config: FlightConfig = FlightConfig(), seed: int = 0) -> tup
     poses, ground_size = plan_path(config, rng)
     ground = make_ground(ground_size, seed=int(rng.integers(2**31)))
     return [render_frame(ground, pose, config, rng) for pose in poses], ground
-
-
-@dataclass(frozen=True)
-class GpsConfig:
-    """GPS written into the simulated frames' EXIF, as a drone's receiver would.
-
-    Attributes:
-        latitude, longitude: WGS84 degrees of the ground image's top-left corner.
-        metres_per_pixel: ground size of one ground-image pixel.
-        heading_deg: the bearing of the ground image's x axis, degrees clockwise from north (90: x points east).
-        noise_m: standard deviation of each fix's horizontal error, metres (a small drone's GPS: 1-3 m).
-    """
-
-    latitude: float
-    longitude: float
-    metres_per_pixel: float = 0.05
-    heading_deg: float = 90.0
-    noise_m: float = 2.0  # a small drone's GPS: 1-3 m
 
 
 EARTH_RADIUS_M = 6_371_008.8  # mean radius: the flights are a few hundred metres, where a sphere is exact to mm

@@ -11,7 +11,6 @@ import pytest
 from typer.testing import CliRunner
 
 from udh_cli import cli, geometry
-from udh_cli.api import is_verified
 from udh_cli.bench import runner
 from udh_cli.bench.hard import KINDS, build_sets, run_hard_bench
 from udh_cli.bench.hard_pairs import FLIGHT_GROUP, PAIRS_GROUP, _stored_to_shown, find_pairs
@@ -20,7 +19,7 @@ from udh_cli.bench.motions import MOTION_KINDS
 from udh_cli.bench.verdicts import ALL_KINDS, kind_scores, reliabilities, reliability, verified
 from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimate
-from udh_cli.estimators.base import Estimator
+from udh_cli.estimators.base import Estimator, is_verified
 from udh_cli.estimators.pair import PreparedImage
 
 from conftest import warped_pair

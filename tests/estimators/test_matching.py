@@ -197,3 +197,32 @@ def test_flat_cells_are_left_out_and_a_flat_pair_has_no_match():
 def test_a_sliver_of_a_frame_gets_no_match_rather_than_an_error():
     sliver = PreparedImage.of(textured_image(600, 40, seed=9))  # 15:1: 384 x 24 px described, under the matcher's 32
     assert matching.global_match(BlockDescriptors(), sliver, sliver).b_from_a is None
+
+
+def test_a_quarter_of_the_cells_finds_the_same_matches_for_those_cells():
+    scene = textured_image(400, 300, seed=10).astype(np.float32) / 255
+    features_a, features_b = BlockDescriptors().describe(scene[20:212, 24:280]), BlockDescriptors().describe(scene[60:252, 80:336])
+    whole_a, whole_b, _ = matching.mutual_matches(features_a, features_b)
+    quarter = np.zeros(features_a.shape[1:], bool)
+    quarter[::2, ::2] = True
+    part_a, part_b, _ = matching.mutual_matches(features_a, features_b, rows_a=quarter)
+    # Fewer rivals can only add mutual matches: every whole match from a kept cell is among the quarter's, unchanged.
+    kept = quarter.ravel()[((whole_a[:, 1] - 1.5) / 4 * features_a.shape[2] + (whole_a[:, 0] - 1.5) / 4).astype(int)]
+    found = {tuple(p): tuple(q) for p, q in zip(part_a, part_b)}
+    assert kept.sum() > 400 and all(found[tuple(p)] == tuple(q) for p, q in zip(whole_a[kept], whole_b[kept]))
+    assert len(part_a) < 0.3 * len(whole_a)
+
+
+def test_the_second_look_compares_every_cell_only_where_a_quarter_of_them_agree(monkeypatch):
+    calls = []
+    original = matching.mutual_matches
+    monkeypatch.setattr(matching, "mutual_matches", lambda a, b, **kw: calls.append((a.shape[1:], kw.get("rows_a") is not None)) or original(a, b, **kw))
+    unrelated = [PreparedImage.of(textured_image(256, 192, seed=s)) for s in (4, 5)]
+    found = matching.global_match(BlockDescriptors(), *unrelated, side=96, headings=2, escalate_side=256)
+    assert found.inliers < matching.SCREEN_INLIERS and found.side == 96
+    assert [c for c in calls if c[0] == (48, 64)] == [((48, 64), True)] * 2  # a quarter look at each heading, no whole one
+    calls.clear()
+    scene = textured_image(600, 300, seed=8).astype(np.float32) / 255
+    sliver = [PreparedImage.of(scene[40:232, 24:280]), PreparedImage.of(scene[40:232, 216:472])]
+    assert matching.global_match(BlockDescriptors(), *sliver, side=96, headings=1, escalate_side=256).side == 256
+    assert [c for c in calls if c[0] == (48, 64)] == [((48, 64), True), ((48, 64), False)]

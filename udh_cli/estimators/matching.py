@@ -36,6 +36,11 @@ GUIDED_THRESHOLD_PX = 4.0  # the guided fit's inlier threshold: a cell
 # 100, seneca's network-only loops went from 2.06 to 2.93 px (docs/training.md).
 CONFIDENT_INLIERS = 150
 HEADINGS = {1: (0,), 2: (0, 180), 4: (0, 180, 90, 270)}  # B's turns global_match tries, in order, by ``headings``
+# The second look at a larger side first compares every other cell of A each way (a quarter of the products) and
+# compares them all only where that quarter finds this many agreeing cells, a quarter of CONFIDENT_INLIERS. On
+# seneca's consecutive pairs, those the second look took to 150 or more found 82-350 on the quarter, and those it
+# left under 150 (and copr's frames 0 and 20, which do not overlap) at most 27 (docs/estimators.md).
+SCREEN_INLIERS = CONFIDENT_INLIERS // 4
 # Descriptors of recently seen images, by the matcher, size, turn and the pixels' digest (recent.py): a frame of
 # a mosaic is A in one pair and B in the next, and describing it at both sides costs about as much as the global
 # match itself (0.24 s at 384 and 640 px for a 1000 x 750 frame). A frame's descriptors hold 7 MB (64 channels
@@ -51,7 +56,8 @@ def cell_centres(height: int, width: int) -> np.ndarray:
 
 
 def mutual_matches(features_a: np.ndarray, features_b: np.ndarray, ratio: float = DISTINCT_RATIO,
-                   valid_a: np.ndarray | None = None, valid_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   valid_a: np.ndarray | None = None, valid_b: np.ndarray | None = None,
+                   rows_a: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mutual nearest neighbours between two descriptor grids that are also distinct: an A cell's best B cell
     must be nearer than ``ratio`` times the best B cell outside its 3 x 3 neighbourhood (Lowe's ratio test, with
     the neighbours left out because the descriptors of adjacent cells overlap).
@@ -64,6 +70,8 @@ def mutual_matches(features_a: np.ndarray, features_b: np.ndarray, ratio: float 
     Args:
         features_a, features_b: (C, h, w) unit descriptors (any h, w each).
         valid_a, valid_b: (h, w) masks of the cells that may be matched (None: all), e.g. :func:`textured_cells`.
+        rows_a: (h, w) mask of the cells of A compared at all (None: all), e.g. every other cell each way for a
+            quarter of the cost; a B cell's rivals in the mutual test are then these cells alone.
 
     Returns:
         ``points_a``, ``points_b`` (K, 2) cell centres in pixels of each described image, and ``similarity``
@@ -72,13 +80,14 @@ def mutual_matches(features_a: np.ndarray, features_b: np.ndarray, ratio: float 
     _, ha, wa = features_a.shape
     _, hb, wb = features_b.shape
     flat_a, flat_b = _cells(features_a), _cells(features_b)
-    best_b, first, second, column_best = _best_rows(flat_a, flat_b, wb)
+    rows = np.arange(ha * wa) if rows_a is None else np.flatnonzero(rows_a)
+    best_b, first, second, column_best = _best_rows(flat_a if rows_a is None else flat_a[rows], flat_b, wb)
     distance = lambda cosine: np.sqrt(np.clip(2.0 - 2.0 * cosine, 0.0, None))  # noqa: E731 - unit vectors
     distinct = distance(first) < ratio * distance(second)
     # Mutual: A's best B cell has no A cell more similar to it than this one.
     keep = (first >= column_best[best_b]) & distinct
     if valid_a is not None:
-        keep &= valid_a.ravel()
+        keep &= valid_a.ravel()[rows]
     if valid_b is not None:
         keep &= valid_b.ravel()[best_b]
     mutual = np.nonzero(keep)[0]
@@ -87,8 +96,8 @@ def mutual_matches(features_a: np.ndarray, features_b: np.ndarray, ratio: float 
     _, first_of_each = np.unique(best_b[mutual], return_index=True)
     mutual = mutual[np.sort(first_of_each)]
     target = best_b[mutual]
-    points_b = cell_centres(hb, wb)[target] + MATCH_CELL * _subcell(flat_a[mutual], flat_b, target, hb, wb)
-    return cell_centres(ha, wa)[mutual], points_b, first[mutual]
+    points_b = cell_centres(hb, wb)[target] + MATCH_CELL * _subcell(flat_a[rows[mutual]], flat_b, target, hb, wb)
+    return cell_centres(ha, wa)[rows[mutual]], points_b, first[mutual]
 
 
 def _cells(features: np.ndarray) -> np.ndarray:
@@ -206,7 +215,8 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
     trained for turns up to 45 degrees); 4 also quarter turns (a turn at a strip's end), each tried only
     while no heading has :data:`CONFIDENT_INLIERS`. ``escalate_side``: when no heading reaches
     :data:`CONFIDENT_INLIERS`, match again at this larger side (at most :data:`MAX_MATCH_SIDE` and the smaller
-    frame's longer side), from the best heading so far and its half turn, and keep whichever found more.
+    frame's longer side), from the best heading so far and its half turn, each only where a quarter of A's cells
+    first finds :data:`SCREEN_INLIERS` agreeing cells, and keep whichever found more.
     ``refine_side``: describe both again at that larger side and match every cell of A near where the answer
     puts it (:func:`guided_matches`) for a finer fit; the result keeps the global match's inliers, the evidence
     that it is the right place.
@@ -214,7 +224,8 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
     Why escalate: where two frames overlap by a sliver (a strip's end on seneca, 4-11 %), too few cells of 384 px
     lie in the overlap to reach the threshold however right the match, and four times the cells do (27 -> 229 and
     66 -> 455 cells), while pairs of frames from different flights stayed at most 34 at 768 px (60 pairs;
-    docs/estimators.md). Only the pairs that fail at ``side`` pay for it."""
+    docs/estimators.md). Only the pairs that fail at ``side`` pay for it, and those that fail at both sides pay a
+    quarter of it (the quarter look)."""
     if headings not in HEADINGS:
         raise ValueError(f"headings must be one of {sorted(HEADINGS)}, not {headings!r}")
     best = _match_at(network, image_a, image_b, side, HEADINGS[headings])
@@ -224,7 +235,7 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
         # The best turn so far and its half turn: a strip's end turns B by half a turn. All four turns placed one
         # more of seneca's frames (167 against 166, the same 11 parts and loops) in 593 s instead of 379 s.
         order = tuple(h for h in (best.heading, (best.heading + 180) % 360) if h in HEADINGS[headings])
-        finer = _match_at(network, image_a, image_b, finer_side, order)
+        finer = _match_at(network, image_a, image_b, finer_side, order, screened=True)
         if finer.inliers > best.inliers:
             best = finer
     if best.b_from_a is not None and refine_side and refine_side > best.side:
@@ -234,8 +245,9 @@ def global_match(network, image_a, image_b, side: int = MATCH_SIDE, headings: in
     return best
 
 
-def _match_at(network, image_a, image_b, side: int, turns: tuple[int, ...]) -> MatchResult:
-    """The global match at ``side`` px, trying B turned by each of ``turns`` in order until one is confident."""
+def _match_at(network, image_a, image_b, side: int, turns: tuple[int, ...], screened: bool = False) -> MatchResult:
+    """The global match at ``side`` px, trying B turned by each of ``turns`` in order until one is confident;
+    ``screened``: each turn only where a quarter of A's cells first finds :data:`SCREEN_INLIERS` agreeing cells."""
     size_a, size_b = match_size(image_a.size, side), match_size(image_b.size, side)
     best = MatchResult(None, 0, 0, 0, side)
     if min(*size_a, *size_b) < MIN_DESCRIBED_SIDE:  # a sliver of a frame (over 12:1 at 384 px): nothing to match
@@ -244,15 +256,25 @@ def _match_at(network, image_a, image_b, side: int, turns: tuple[int, ...]) -> M
     for heading in turns:
         if best.inliers >= CONFIDENT_INLIERS:
             break
-        features_b = _described(network, image_b, size_b, heading)
-        points_a, points_b, _ = mutual_matches(features_a, features_b, valid_a=textured_a,
-                                               valid_b=textured_cells(image_b, size_b, heading))
+        features_b, textured_b = _described(network, image_b, size_b, heading), textured_cells(image_b, size_b, heading)
+        if screened and not _quarter_agrees(features_a, features_b, textured_a, textured_b):
+            continue
+        points_a, points_b, _ = mutual_matches(features_a, features_b, valid_a=textured_a, valid_b=textured_b)
         found, inliers = fit_matches(points_a, points_b)
         if found is None or inliers.sum() <= best.inliers:
             continue
         full = np.linalg.inv(_to_described(image_b.size, size_b, heading)) @ found @ _to_described(image_a.size, size_a, 0)
         best = MatchResult(full / full[2, 2], int(inliers.sum()), len(points_a), heading, side)
     return best
+
+
+def _quarter_agrees(features_a: np.ndarray, features_b: np.ndarray, textured_a: np.ndarray, textured_b: np.ndarray) -> bool:
+    """Whether every other cell of A each way, a quarter of the products of a whole match, finds
+    :data:`SCREEN_INLIERS` cells of B that agree on one homography (descriptors (C, h, w), masks (h, w))."""
+    quarter = np.zeros(features_a.shape[1:], bool)
+    quarter[::2, ::2] = True
+    points_a, points_b, _ = mutual_matches(features_a, features_b, valid_a=textured_a, valid_b=textured_b, rows_a=quarter)
+    return int(fit_matches(points_a, points_b)[1].sum()) >= SCREEN_INLIERS
 
 
 def _to_described(size: tuple[int, int], described: tuple[int, int], heading: int) -> np.ndarray:

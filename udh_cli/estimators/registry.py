@@ -12,7 +12,9 @@ import typing
 from typing import Any, Sequence
 
 from udh_cli.errors import UdhError
-from udh_cli.estimators.base import Estimator
+
+if typing.TYPE_CHECKING:
+    from udh_cli.estimators.base import Estimator
 
 # name -> (module, class, one-line description). Modules are imported on demand, so that choosing
 # "sift" never loads onnxruntime. The class is an Estimator, or an options record whose build() composes one
@@ -110,6 +112,8 @@ def create_estimator(name: str, **options: Any) -> Estimator:
     if unknown:
         raise UdhError(f"method '{name}' does not take {', '.join(unknown)}; it takes: {', '.join(accepted) or 'no options'}")
     _check_option_types(name, cls, options)
+    from udh_cli.estimators.base import Estimator  # NumPy, once an estimator is made: the names alone need none
+
     made = cls(**options)
     return made if isinstance(made, Estimator) else made.build()  # an options record composes its estimator
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from udh_cli.flight_motion import MotionConfig
+from udh_cli.generator_settings import MotionConfig
 
 DEFAULT_ARCH = "corr"  # the CPU-friendly network of udh_cli.train.archs
 PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learning rates

@@ -50,6 +50,19 @@ def test_a_frame_whose_writer_pauses_half_way_joins_only_once_it_is_whole(suffix
     assert poll_complete_frames(tmp_path, watch, 1.0, set(), later) == [frame]
 
 
+@pytest.mark.parametrize("trailer", [bytes(64), b"MotionPhoto_Data" + bytes(300)])
+def test_a_whole_jpeg_with_bytes_after_its_end_marker_joins_once_settled(trailer, tmp_path):
+    import cv2
+
+    from conftest import textured_image
+
+    frame = tmp_path / "f.jpg"
+    frame.write_bytes(cv2.imencode(".jpg", textured_image(160, 120, seed=3))[1].tobytes() + trailer)
+    watch, later = _Watch(), time.time() + 10
+    assert poll_complete_frames(tmp_path, watch, 1.0, set(), later) == []  # first sight: not yet known to be still
+    assert poll_complete_frames(tmp_path, watch, 1.0, set(), later) == [frame]  # settled, and it decodes whole
+
+
 def test_after_the_flight_a_frame_that_never_became_whole_joins_for_the_run_to_refuse(tmp_path):
     frame = tmp_path / "f.jpg"
     frame.write_bytes(b"\xff\xd8" + bytes(200))  # cut short for good

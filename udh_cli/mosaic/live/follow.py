@@ -66,6 +66,7 @@ class _Watch:
 
     seen: dict[Path, tuple[int, float]] = field(default_factory=dict)
     complete: list[Path] = field(default_factory=list)
+    not_whole: dict[Path, tuple[int, float]] = field(default_factory=dict)  # settled frames that did not decode whole, as then
 
 
 # The last bytes of a complete file: JPEG's end-of-image marker, PNG's IEND chunk.
@@ -87,7 +88,8 @@ def structurally_whole(path: Path, size: int) -> bool | None:
 
 def tiff_whole(path: Path, size: int) -> bool:
     """Whether the TIFF ``path`` (``size`` bytes) holds its first image whole: its header and directory read, and
-    every strip or tile they name ends inside the file. Pillow reads only the header here."""
+    every strip or tile they name ends inside the file. Pillow reads only the header here; a TIFF whose header it
+    cannot read counts as not yet whole, so it joins when the flight ends (a half-written header looks the same)."""
     import warnings
 
     from PIL import Image
@@ -119,7 +121,18 @@ def ends_whole(path: Path, size: int) -> bool:
             handle.seek(-len(marker), os.SEEK_END)
             if handle.read() != marker:
                 return False
-            handle.seek(0)
+    except OSError:
+        return False
+    return decodes_whole(path, size)
+
+
+def decodes_whole(path: Path, size: int) -> bool:
+    """Whether the JPEG or PNG ``path`` (``size`` bytes) decodes, at an eighth of its size, without the decoder
+    saying it ended early or is damaged; one whose header declares too many pixels counts as whole here, never
+    decoded (the run's reader refuses it, saying why). Why beside :func:`ends_whole`: bytes after the end marker
+    (zero padding, a motion photo's trailer) leave a whole frame that does not end with it."""
+    try:
+        with path.open("rb") as handle:
             data = handle.read(size)
     except OSError:
         return False
@@ -148,21 +161,32 @@ def poll_complete_frames(folder: Path, watch: _Watch, settle_s: float, exclude: 
         stat = entry.stat()
         current[path] = (stat.st_size, stat.st_mtime)
     done = set(watch.complete)
-    new = [path for path, state in current.items()
-           if path not in done and state[0] > 0
-           and _complete(path, state[0], watch.seen.get(path) == state and now - state[1] >= settle_s, flight_over)]
+    new = []
+    for path, state in current.items():
+        if path in done or state[0] == 0:
+            continue
+        settled = watch.seen.get(path) == state and now - state[1] >= settle_s
+        if _complete(path, state[0], settled, flight_over, watch.not_whole.get(path) == state):
+            new.append(path)
+        elif settled:
+            watch.not_whole[path] = state  # not decoded again until it changes
     watch.seen = current
     new.sort(key=lambda p: p.name)
     watch.complete.extend(new)
     return new
 
 
-def _complete(path: Path, size: int, settled: bool, flight_over: bool) -> bool:
-    """Whether a frame may be read: whole by its structure, else (a format without one, or after the flight)
-    ``settled``: unchanged over two polls and old enough."""
+def _complete(path: Path, size: int, settled: bool, flight_over: bool, known_not_whole: bool = False) -> bool:
+    """Whether a frame may be read: whole by its structure; else, once ``settled`` (unchanged over two polls and
+    old enough), a format without such a structure, a JPEG or PNG that decodes whole with bytes after its end
+    marker, or any frame after the flight. ``known_not_whole``: settled and judged not whole as it is now."""
+    if known_not_whole:
+        return flight_over
     whole = structurally_whole(path, size)
     if whole is None:
         return settled
+    if not whole and settled and path.suffix.lower() in END_MARKERS:
+        whole = decodes_whole(path, size)
     return whole or (flight_over and settled)
 
 

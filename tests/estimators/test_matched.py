@@ -8,6 +8,7 @@ from conftest import BlockDescriptors, export_tiny_network, textured_image
 from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.estimators import create_estimator
+from udh_cli.estimators.matching import MAX_MATCH_SIDE
 
 
 @pytest.fixture(scope="module")
@@ -65,3 +66,9 @@ def test_a_model_file_rewritten_in_place_is_never_served_the_old_descriptors(tmp
     described_new = matching._described(new, PreparedImage.of(image), (128, 96), 0)
     assert not (described_new == described_old).all()
     assert (described_new == new.describe(image)).all()
+
+
+def test_near_its_prior_the_matcher_keeps_its_network_and_tries_b_as_it_lies(matcher):
+    near = matcher.near_prior()
+    assert (near.headings, near.escalate_side) == (1, None) and near.network is matcher.network
+    assert (matcher.headings, matcher.escalate_side) == (4, MAX_MATCH_SIDE)  # the matcher itself is unchanged

@@ -235,3 +235,20 @@ def test_the_final_run_comes_only_when_the_last_refresh_missed_frames(tmp_path):
                            clock=lambda: now[0], sleep=sleep)
     assert len(runs) == 2 and runs[0] != live and runs[-1] == live
     assert report["summary"]["frames"] == 12 and report["live"]["final"] == "a final run"
+
+
+def test_a_refresh_in_the_refresher_process_stops_on_ctrl_c_and_the_idle_process_ignores_it(monkeypatch):
+    """The refresher ignores Ctrl-C while idle (no traceback); during a refresh Ctrl-C stops it like the main run,
+    so the end of the flight never waits for a whole refresh."""
+    import signal
+
+    from udh_cli.mosaic.live import run as live_run
+
+    seen = []
+    monkeypatch.setattr(live_run, "_live_run", lambda *args: seen.append(signal.getsignal(signal.SIGINT)) or {})
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # as die_with_parent leaves the idle refresher
+    try:
+        assert live_run._refresh_in_worker(Path("f"), Path("m.png"), None, Path("m.pairs.json"), {}) == {}
+        assert seen == [signal.default_int_handler] and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)

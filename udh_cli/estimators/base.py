@@ -124,9 +124,9 @@ class Estimator:
 
     def near_prior(self) -> "Estimator":
         """This estimator for a pair whose B is already pre-warped into A's frame by a prediction (a mosaic's
-        loop pair, placed by the chain): without the searches for B's heading or far position, which ask what
-        the prediction settled; an answer far from it is rejected anyway. Estimators without such searches
-        return themselves."""
+        loop pair, placed by the chain): without the searches that ask what the prediction settled (a shift
+        search up to half the frame, a global match's other turns and larger second look); an answer far from
+        the prediction is rejected anyway. Estimators without such searches return themselves."""
         return self
 
     def settings(self) -> dict[str, Any]:

@@ -8,6 +8,8 @@ match rescues the doubted pairs of the regressing cascade (:class:`~udh_cli.esti
 
 from __future__ import annotations
 
+import copy
+
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -62,6 +64,13 @@ class MatcherEstimator(Estimator):
 
     def model_files(self) -> list[str]:
         return [str(self.network.path)]
+
+    def near_prior(self) -> "MatcherEstimator":
+        """The same matcher (its network not loaded again) at B's own heading and the first side only: the other
+        turns and the second look search for what a pre-warped pair's prediction settled."""
+        twin = copy.copy(self)
+        twin.headings, twin.escalate_side = 1, None
+        return twin
 
     def _estimate(self, pair):
         found = global_match(self.network, pair.a, pair.b, self.side, self.headings, self.refine_side, self.escalate_side)

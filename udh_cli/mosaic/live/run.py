@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
+import signal
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
@@ -80,7 +81,7 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                              initializer=die_with_parent, initargs=(os.getpid(),)) as refresher:
         def start_refresh(source: Path):
-            return refresher.submit(_live_run, source, output, config, cache_file, None, options)
+            return refresher.submit(_refresh_in_worker, source, output, config, cache_file, options)
 
         report = follow_mosaic(folder, output, run, follow, reporter, exclude=lambda: {p.resolve() for p in files.own_files()},
                                on_frames=on_frames if look is not None else None, start_refresh=start_refresh)
@@ -93,6 +94,17 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     rewrite_report_page(written, sidecar.parent)  # it too names the folder, and says how the flight went
     record_written(*[p for p in (sidecar, files.report_page) if p.is_file()], run=output.name)  # the next run's to replace
     return report
+
+
+def _refresh_in_worker(source: Path, output: Path, config: MosaicConfig, cache_file: Path, options: dict[str, Any]) -> dict[str, Any]:
+    """A refresh in the refresher process, which ignores Ctrl-C while idle (:func:`~udh_cli.processes.die_with_parent`,
+    or it would print a traceback): while it refreshes, Ctrl-C stops it as it stops the main run, so that the
+    flight's end never waits for a whole refresh."""
+    idle = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return _live_run(source, output, config, cache_file, None, options)
+    finally:
+        signal.signal(signal.SIGINT, idle)
 
 
 def _live_run(source: Path, output: Path, config: MosaicConfig, cache_file: Path, reporter: Reporter | None, options: dict[str, Any]) -> dict[str, Any]:

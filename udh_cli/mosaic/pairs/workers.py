@@ -79,8 +79,8 @@ def judge_opinions(opinions: Sequence[Estimator], acceptance, pairs: Sequence[Im
         out[i].append(judged)
     doubted = [i for i in range(len(pairs)) if not out[i] or out[i][-1][2] is not None]
     marked = set(confirming)
-    # A pre-warped pair the prediction did not confirm asks the opinions without their searches for B's heading
-    # or position (Estimator.near_prior): a loop pair must land near its prediction to be kept at all.
+    # A pre-warped pair the prediction did not confirm asks the opinions without their far searches
+    # (Estimator.near_prior): a loop pair must land near its prediction to be kept at all.
     for group, asked in (([i for i in doubted if i not in marked], opinions),
                          ([i for i in doubted if i in marked], [opinion.near_prior() for opinion in opinions] if marked else [])):
         for opinion in asked:

@@ -29,19 +29,17 @@ class Thresholds:
 
     Attributes:
         min_alignment: least photometric score (the lower of intensity and gradient NCC over 4 x 4 tiles at
-            256 px, :data:`~udh_cli.estimators.verify.VERIFIER`) of a verified answer: on the hard real-pair
-            benchmark's calibration draws one answer over 10 px off scored above it (a pair ``auto`` fails too),
-            while answers 10-20 px off scored up to 0.53, however many cells matched them.
+            256 px, :data:`~udh_cli.estimators.verify.VERIFIER`) of a verified answer: the one measure that told
+            answers 10-20 px off from right ones on the hard real-pair benchmark, however many cells matched them
+            (docs/estimators.md, "The verdict").
         min_alignment_supported: the same floor for a supported answer: the mosaic's own alignment check
             (``Acceptance.min_verified``); wrong seneca answers' gradient NCC stayed below it 95 % of the time.
         min_alignment_matched: the supported floor for an answer hundreds of cells support: right consecutive
             brighton-beach pairs that 330-440 cells matched scored 0.026-0.058 (surf, moving water), yet 0 means
             that nothing aligns (no overlap, or flat tiles only).
-        min_match_tile_levels: tile levels that must accept a global match's answer for it to be verified. Why:
-            cells at 384 px agree on homographies 10-30 px off at A's corners under strong perspective (no
-            inlier count or share told them apart), and the tile levels are evidence independent of the cells
-            and of the score: on the hard benchmark's draws they accepted a level for 46 of the 47 right
-            matches that scored above ``min_alignment``, and for 3 of the 5 wrong ones.
+        min_match_tile_levels: tile levels that must accept a global match's answer for it to be verified: cells
+            at 384 px agree on homographies tens of px off at A's corners under strong perspective, and the tiles,
+            up to full resolution, are evidence independent of the cells and of the score.
         max_round_trip: largest error of ``b_from_a @ a_from_b`` against the identity where A covers B, as a share
             of the network's input side (12.8 px of 128): the network re-run from B to A must come back to A. On
             right consecutive pairs of seneca and brighton-beach at 800 px it came back up to 0.085 of the side
@@ -53,9 +51,8 @@ class Thresholds:
             share of A's longer side (16 px of 800): a cell of the match is 4 px at 384 px, 8 px of 800.
         unverified_confidence: factor on the confidence of an answer that fails a check, so that it ranks below
             every answer that passed (confidence 0 stays for "no answer").
-        verified_confidence: a verified answer's confidence c becomes ``v + (1 - v) * c``: on the hard
-            benchmark's calibration draws 34 of its 35 verified answers were right while the network's score
-            put them at 0.5-0.96, so that the reliability diagram lies closer to its diagonal.
+        verified_confidence: a verified answer's confidence c becomes ``v + (1 - v) * c``: verified answers are
+            right far more often than the network's score says, and the reliability diagram should show it.
     """
 
     min_alignment: float = 0.55

@@ -10,6 +10,7 @@ candidate evidence measured here from the answer alone:
 
 * ``align_512``: the photometric score at 512 px instead of 256;
 * ``ecc_move_px``: how far one ECC level at 400 px moves a corner of A from the answer (px of the 800-px A);
+* ``ecc_overlap_move_px``: the same at 200 px, measured at the points of a 9 x 9 grid over A that land in B;
 * ``orb_inliers``, ``orb_disagreement_px``: ORB at 400 px, its inliers and its largest corner distance from the answer.
 
 ``--summary`` prints, for each method, the wrong answers the verdict called verified and what the file records.
@@ -40,8 +41,9 @@ FINE_VERIFIER = Verifier(side=512)
 CHECK_SIDE = 400  # px of the ECC step and the ORB opinion: cheap at drone frame sizes
 
 
-def ecc_move_px(pair: PreparedPair, b_from_a: np.ndarray, side: int = CHECK_SIDE) -> float:
-    """Largest corner move (px of A) that one ECC level at ``side`` px makes from ``b_from_a``; inf if it fails."""
+def ecc_move_px(pair: PreparedPair, b_from_a: np.ndarray, side: int = CHECK_SIDE, overlap: bool = False) -> float:
+    """Largest move (px of A) that one ECC level at ``side`` px makes from ``b_from_a``, at A's corners or (``overlap``)
+    at the points of a 9 x 9 grid over A that land in B; inf if it fails."""
     scale = min(1.0, side / max(*pair.a.size, *pair.b.size))
     work_a, work_b = scaled_size(pair.a.size, scale), scaled_size(pair.b.size, scale)
     start = geometry.rescale_homography(b_from_a, pair.a.size, work_a, pair.b.size, work_b)
@@ -51,7 +53,15 @@ def ecc_move_px(pair: PreparedPair, b_from_a: np.ndarray, side: int = CHECK_SIDE
     except EstimationFailed:
         return float("inf")
     full = geometry.rescale_homography(moved, work_a, pair.a.size, work_b, pair.b.size)
-    return float(geometry.corner_errors(full, b_from_a, *pair.a.size).max())
+    if not overlap:
+        return float(geometry.corner_errors(full, b_from_a, *pair.a.size).max())
+    grid = np.stack(np.meshgrid(np.linspace(0, pair.a.size[0] - 1, 9), np.linspace(0, pair.a.size[1] - 1, 9)), -1).reshape(-1, 2)
+    in_b = geometry.transform_points(b_from_a, grid)
+    inside = np.isfinite(in_b).all(1) & (in_b >= 0).all(1) & (in_b <= np.array(pair.b.size) - 1).all(1)
+    if inside.sum() < 3:
+        return float("inf")
+    moves = np.linalg.norm(geometry.transform_points(full, grid[inside]) - in_b[inside], axis=1)
+    return float(moves.max()) if np.isfinite(moves).all() else float("inf")
 
 
 def orb_opinion(orb, pair: PreparedPair, b_from_a: np.ndarray, side: int = CHECK_SIDE) -> tuple[int, float]:
@@ -86,6 +96,7 @@ def measure(methods: list[str], sources: list[Path], prefix: str | None, n: int,
                         row["error_px"] = float(geometry.mace(h, truth, *pair.a.size))
                         row["align_512"] = FINE_VERIFIER.score(pair.a, pair.b, h)
                         row["ecc_move_px"] = ecc_move_px(pair, h)
+                        row["ecc_overlap_move_px"] = ecc_move_px(pair, h, side=200, overlap=True)
                         row["orb_inliers"], row["orb_disagreement_px"] = orb_opinion(orb, pair, h)
                     else:
                         row["error_px"] = float(geometry.mace(np.eye(3), truth, *pair.a.size))

@@ -145,11 +145,12 @@ def test_each_stricter_check_leaves_a_near_miss_supported_but_unverified(evidenc
     assert passed.verified and passed.verified_by == by
 
 
-def test_a_supported_answer_ranks_below_a_verified_one_on_the_same_side_of_the_mosaic_floor():
+def test_either_tier_keeps_an_answer_on_its_side_of_the_mosaic_floor_and_supported_ranks_below_verified():
     high = Evidence(alignment=0.45, round_trip=0.01, tiles_confirm=True)
     assert judge(high, 0.9).confidence == pytest.approx(MIN_CONFIDENCE + (0.9 - MIN_CONFIDENCE) * THRESHOLDS.unverified_confidence)
     assert judge(high, 0.9).confidence < judge(Evidence(**{**high.__dict__, "alignment": 0.6}), 0.9).confidence == pytest.approx(0.95)
     assert judge(high, 0.15).confidence == pytest.approx(0.075)  # below the floor it stays below
+    assert judge(Evidence(**{**high.__dict__, "alignment": 0.6}), 0.15).confidence == 0.15  # verified or not
     match = Evidence(alignment=0.45, round_trip=0.01, match_inliers=450, is_match=True)
     assert judge(match, 0.1).confidence == pytest.approx(MIN_CONFIDENCE + (0.75 - MIN_CONFIDENCE) * THRESHOLDS.unverified_confidence)
 

@@ -52,7 +52,8 @@ class Thresholds:
         unverified_confidence: factor on the confidence of an answer that fails a check, so that it ranks below
             every answer that passed (confidence 0 stays for "no answer").
         verified_confidence: a verified answer's confidence c becomes ``v + (1 - v) * c``: verified answers are
-            right far more often than the network's score says, and the reliability diagram should show it.
+            right far more often than the network's score says, and the reliability diagram should show it (one
+            scored under the mosaic's floor keeps its score, so that the floor still decides).
     """
 
     min_alignment: float = 0.55
@@ -136,18 +137,13 @@ def judge(evidence: Evidence, confidence: float, thresholds: Thresholds = THRESH
     if supported and evidence.match_tile_levels is not None:
         stricter["match tiles"] = evidence.match_tile_levels >= thresholds.min_match_tile_levels
     failed = tuple(name for name, passed in stricter.items() if not passed)
-    if failed:
-        return Verdict(False, by, failed, _squeezed(confidence, thresholds.unverified_confidence))
-    return Verdict(True, by, (), thresholds.verified_confidence + (1.0 - thresholds.verified_confidence) * confidence)
-
-
-def _squeezed(confidence: float, factor: float) -> float:
-    """A supported answer's confidence: below every verified answer's of the same evidence, yet on the same side of
-    :data:`~udh_cli.estimators.base.MIN_CONFIDENCE` (the mosaic's floor) as before, so that the mosaic, which
-    checks supported answers itself, takes the same ones."""
-    if confidence < MIN_CONFIDENCE:
-        return confidence * factor
-    return MIN_CONFIDENCE + (confidence - MIN_CONFIDENCE) * factor
+    # Either tier keeps an answer on its side of the mosaic's confidence floor, so the mosaic takes the same answers.
+    below = confidence < MIN_CONFIDENCE
+    if failed:  # below every verified answer of the same evidence
+        factor = thresholds.unverified_confidence
+        return Verdict(False, by, failed, confidence * factor if below else MIN_CONFIDENCE + (confidence - MIN_CONFIDENCE) * factor)
+    lift = thresholds.verified_confidence
+    return Verdict(True, by, (), confidence if below else lift + (1.0 - lift) * confidence)
 
 
 def round_trip_error(b_from_a: np.ndarray, a_from_b: np.ndarray, side: int, grid: int = 5) -> float:

@@ -375,7 +375,9 @@ def test_a_confident_match_outranks_what_the_tiles_confirmed_and_is_kept_as_matc
     estimate = estimator.estimate(a, b)
     assert estimate.stage == "match" and estimate.verified_by == "matches"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 1e-6
-    assert len(tile_calls) == 1  # the confident match is not tiled
+    # The confident match's answer is not tiled; the judge runs the tiles on it once, as evidence only, and as
+    # none of their levels accepts it here, it is supported by its matches, not verified.
+    assert len(tile_calls) == 2 and not estimate.verified and estimate.details["verdict_failed"] == ["match tiles"]
     # Below the confident support, the answer the tile levels confirmed stands.
     tile_calls.clear()
     monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 40, 500, 0))

@@ -10,7 +10,9 @@ import udh_cli.estimators.deep as deep
 from conftest import textured_image, warped_pair
 from udh_cli import geometry
 from udh_cli.estimators import create_estimator
+from udh_cli.estimators.base import MIN_CONFIDENCE
 from udh_cli.estimators.judge import THRESHOLDS, Evidence, disagreement, judge, round_trip_error
+from udh_cli.estimators.matching import MatchResult
 from udh_cli.estimators.tiles import TileResult
 from udh_cli.models_catalog import SHIPPED_MODELS, models_dir
 
@@ -21,7 +23,7 @@ def test_an_answer_all_evidence_agrees_on_is_verified():
     verdict = judge(RIGHT, 0.8)
     assert verdict.verified and verdict.failed == () and verdict.verified_by == "matches" and verdict.confidence >= 0.8
     alone = judge(Evidence(alignment=0.9, round_trip=0.005), 0.8)
-    assert alone.verified and alone.verified_by == "alignment" and alone.confidence == 0.8
+    assert alone.verified and alone.verified_by == "alignment" and alone.confidence == pytest.approx(0.5 + 0.5 * 0.8)
 
 
 @pytest.mark.parametrize("change, check", [
@@ -46,8 +48,10 @@ def test_a_weak_match_is_no_opinion_and_a_confident_one_lowers_the_alignment_flo
     weak = Evidence(alignment=0.9, round_trip=0.005, match_inliers=THRESHOLDS.match_evidence_inliers - 1, match_disagreement=0.5)
     assert judge(weak, 0.8).verified  # as many cells as frames of different flights reach: says nothing
     matched = Evidence(alignment=0.2, round_trip=0.005, match_inliers=400, match_disagreement=0.0, is_match=True)
-    assert judge(matched, 0.5).verified_by == "matches"  # surf and trees lower right answers' alignment
-    assert not judge(Evidence(alignment=0.0, round_trip=0.005, match_inliers=400, is_match=True), 0.5).verified
+    supported = judge(matched, 0.5)  # surf and trees lower right answers' alignment: supported, not verified
+    assert not supported.verified and supported.verified_by == "matches" and supported.failed == ("fine alignment",)
+    nothing = judge(Evidence(alignment=0.0, round_trip=0.005, match_inliers=400, is_match=True), 0.5)
+    assert not nothing.verified and nothing.verified_by is None
 
 
 def test_round_trip_and_disagreement_are_shares_of_the_side():
@@ -124,3 +128,65 @@ def test_an_unjudged_network_leaves_the_verdict_to_its_caller(network):
     from udh_cli.estimators.refined import AutoOptions
 
     assert AutoOptions().build().start.judged is False
+
+
+@pytest.mark.parametrize("evidence, failed, by", [
+    # A global match 10-20 px off at A's corners: hundreds of cells agree, the photometry does not.
+    (Evidence(alignment=0.45, round_trip=0.01, match_inliers=900, is_match=True), ("fine alignment",), "matches"),
+    # One that aligns where the cells are, yet no tile level up to full resolution accepts it.
+    (Evidence(alignment=0.7, round_trip=0.01, match_inliers=900, is_match=True, match_tile_levels=0), ("match tiles",), "matches"),
+    # A tile-confirmed cascade answer a few px off on repetitive texture.
+    (Evidence(alignment=0.45, round_trip=0.01, tiles_confirm=True), ("fine alignment",), "alignment"),
+])
+def test_each_stricter_check_leaves_a_near_miss_supported_but_unverified(evidence, failed, by):
+    verdict = judge(evidence, 0.9)
+    assert not verdict.verified and verdict.failed == failed and verdict.verified_by == by
+    passed = judge(Evidence(**{**evidence.__dict__, "alignment": THRESHOLDS.min_alignment, "match_tile_levels": 1}), 0.9)
+    assert passed.verified and passed.verified_by == by
+
+
+def test_either_tier_keeps_an_answer_on_its_side_of_the_mosaic_floor_and_supported_ranks_below_verified():
+    high = Evidence(alignment=0.45, round_trip=0.01, tiles_confirm=True)
+    assert judge(high, 0.9).confidence == pytest.approx(MIN_CONFIDENCE + (0.9 - MIN_CONFIDENCE) * THRESHOLDS.unverified_confidence)
+    assert judge(high, 0.9).confidence < judge(Evidence(**{**high.__dict__, "alignment": 0.6}), 0.9).confidence == pytest.approx(0.95)
+    assert judge(high, 0.15).confidence == pytest.approx(0.075)  # below the floor it stays below
+    assert judge(Evidence(**{**high.__dict__, "alignment": 0.6}), 0.15).confidence == 0.15  # verified or not
+    match = Evidence(alignment=0.45, round_trip=0.01, match_inliers=450, is_match=True)
+    assert judge(match, 0.1).confidence == pytest.approx(MIN_CONFIDENCE + (0.75 - MIN_CONFIDENCE) * THRESHOLDS.unverified_confidence)
+
+
+def test_a_tile_confirmed_answer_3_px_off_is_supported_not_verified_and_the_mosaic_still_checks_it(network, monkeypatch):
+    """The tile stage monkeypatched to confirm an answer 3 px off (of 320): the old verdict verified it (alignment
+    0.38 over the 0.3 floor); now it is returned unverified, supported by its alignment, and the mosaic, which
+    cross-checks every pair in its joint solve, applies its own photometric check instead of rejecting it."""
+    from udh_cli.mosaic.pairs.types import Acceptance
+
+    truth = geometry.translation(6.0, -4.0)
+    a, b = warped_pair(truth, seed=5)
+    near = geometry.translation(3.0, 0.0) @ truth
+    monkeypatch.setattr(deep, "refine_pairs_with_tiles", lambda network, pairs, *args, **kwargs: [TileResult(near, 2, 1.0, 0.5, 2)] * len(pairs))
+    found = network.estimate(a, b)
+    assert THRESHOLDS.min_alignment_supported <= found.details["alignment"] < THRESHOLDS.min_alignment
+    assert not found.verified and found.verified_by == "alignment" and found.details["verdict_failed"] == ["fine alignment"]
+    score, doubt = Acceptance().judge(found, a, b)
+    assert doubt is None and score == pytest.approx(found.details["alignment"], abs=1e-3)
+
+
+def test_a_confident_global_match_no_tile_level_accepts_is_not_verified(monkeypatch):
+    """A global match of 900 cells (monkeypatched) 1 px off where B's tiles, run on it as evidence, accept no level
+    (monkeypatched tile stage): supported by its matches, so a mosaic takes it, but not verified."""
+    if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
+        pytest.skip("shipped unsupervised model not built yet")
+    estimator = create_estimator("unsupervised", device="cpu", search=0, heading_search=0)
+    if estimator.matcher is None:
+        pytest.skip("no shipped matcher network")
+    truth = geometry.translation(6.0, -4.0)
+    a, b = warped_pair(truth, seed=5)
+    answer = geometry.translation(1.0, 0.0) @ truth
+    monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(answer, 900, 1000, 0))
+    monkeypatch.setattr(deep, "refine_pairs_with_tiles", lambda network, pairs, starts, *args, **kwargs:
+                        [TileResult(np.asarray(h), 0, 0.0, float("nan"), 2) for h in starts])
+    found = estimator.estimate(a, b)
+    assert found.stage == "match" and geometry.mace(found.homography, answer, 320, 240) < 1e-6
+    assert found.details["alignment"] >= THRESHOLDS.min_alignment and found.details["match_tile_levels"] == 0
+    assert not found.verified and found.verified_by == "matches" and found.details["verdict_failed"] == ["match tiles"]

@@ -35,7 +35,9 @@ class Estimate:
             judged by the estimator).
         verified: True for a confirmed answer, False for the best found but unconfirmed, None when the
             estimator does not judge its answers (callers then judge by ``confidence``).
-        verified_by: what confirmed it: "alignment" (the photometric score) or "matches" (RANSAC's support).
+        verified_by: what confirmed it: "alignment" (the photometric score) or "matches" (RANSAC's support); on
+            an unverified answer, what still supports it (a network's answer that failed only its judge's stricter
+            checks), or None.
         stage: which stage or opinion produced the answer, e.g. "network", "sift", "escalated", "mirrored".
     """
 

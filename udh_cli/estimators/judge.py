@@ -2,8 +2,11 @@
 
 Each piece of evidence is measured by the estimator that has it (:class:`Evidence`); every threshold of the
 verdict lives in :class:`Thresholds`, one reason each; :func:`judge` says whether the answer is verified, by
-what, and which checks it failed. An answer that fails is kept, unverified and with a lower confidence: the
-caller (a mosaic, ``udh estimate``'s exit code 3) decides what to do with a doubted answer.
+what, and which checks it failed. Two tiers: an answer is **verified** (one to build a map on) when it also passes
+the stricter checks (a finer photometric floor; for a global match, tile levels that accept it); an answer that
+passes only the looser ones is **supported**: unverified, with ``verified_by`` naming what supports it, so that a
+mosaic may still take it after its own checks. An answer that fails is kept, unverified and with a lower
+confidence: the caller (a mosaic, ``udh estimate``'s exit code 3) decides what to do with a doubted answer.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
+from udh_cli.estimators.base import MIN_CONFIDENCE
 from udh_cli.estimators.matching import CONFIDENT_INLIERS
 from udh_cli.estimators.tiles import TileRefinement
 from udh_cli.estimators.verify import VERIFIER
@@ -25,11 +29,17 @@ class Thresholds:
 
     Attributes:
         min_alignment: least photometric score (the lower of intensity and gradient NCC over 4 x 4 tiles at
-            256 px, :data:`~udh_cli.estimators.verify.VERIFIER`): the mosaic's own alignment check
+            256 px, :data:`~udh_cli.estimators.verify.VERIFIER`) of a verified answer: the one measure that told
+            answers 10-20 px off from right ones on the hard real-pair benchmark, however many cells matched them
+            (docs/estimators.md, "The verdict").
+        min_alignment_supported: the same floor for a supported answer: the mosaic's own alignment check
             (``Acceptance.min_verified``); wrong seneca answers' gradient NCC stayed below it 95 % of the time.
-        min_alignment_matched: the same floor for an answer hundreds of cells support: right consecutive
+        min_alignment_matched: the supported floor for an answer hundreds of cells support: right consecutive
             brighton-beach pairs that 330-440 cells matched scored 0.026-0.058 (surf, moving water), yet 0 means
             that nothing aligns (no overlap, or flat tiles only).
+        min_match_tile_levels: tile levels that must accept a global match's answer for it to be verified: cells
+            at 384 px agree on homographies tens of px off at A's corners under strong perspective, and the tiles,
+            up to full resolution, are evidence independent of the cells and of the score.
         max_round_trip: largest error of ``b_from_a @ a_from_b`` against the identity where A covers B, as a share
             of the network's input side (12.8 px of 128): the network re-run from B to A must come back to A. On
             right consecutive pairs of seneca and brighton-beach at 800 px it came back up to 0.085 of the side
@@ -41,14 +51,20 @@ class Thresholds:
             share of A's longer side (16 px of 800): a cell of the match is 4 px at 384 px, 8 px of 800.
         unverified_confidence: factor on the confidence of an answer that fails a check, so that it ranks below
             every answer that passed (confidence 0 stays for "no answer").
+        verified_confidence: a verified answer's confidence c becomes ``v + (1 - v) * c``: verified answers are
+            right far more often than the network's score says, and the reliability diagram should show it (one
+            scored under the mosaic's floor keeps its score, so that the floor still decides).
     """
 
-    min_alignment: float = 0.3
+    min_alignment: float = 0.55
+    min_alignment_supported: float = 0.3
     min_alignment_matched: float = 0.02
+    min_match_tile_levels: int = 1
     max_round_trip: float = 0.1
     match_evidence_inliers: int = 40
     max_match_disagreement: float = 0.02
     unverified_confidence: float = 0.5
+    verified_confidence: float = 0.5
 
 
 THRESHOLDS = Thresholds()
@@ -70,6 +86,8 @@ class Evidence:
         match_inliers: cells that support the pair's global match (None: none was made or it found nothing).
         match_disagreement: corner distance between the answer and that match, share of A's longer side.
         is_match: the answer is the global match's own (not refined by anything else).
+        match_tile_levels: tile levels that accepted a match's answer, run on it as evidence only (None: not a
+            match's answer, or B had no room for tiles).
     """
 
     alignment: float
@@ -78,12 +96,14 @@ class Evidence:
     match_inliers: int | None = None
     match_disagreement: float | None = None
     is_match: bool = False
+    match_tile_levels: int | None = None
 
 
 @dataclass(frozen=True)
 class Verdict:
     """``verified`` when no check failed and at least two passed; ``verified_by`` names the strongest evidence
-    ("matches" for a match hundreds of cells support, else "alignment"); ``failed`` the checks it failed."""
+    ("matches" for a match hundreds of cells support, else "alignment"), for a verified answer or a supported one
+    (unverified: it failed only the stricter checks); ``failed`` the checks it failed."""
 
     verified: bool
     verified_by: str | None
@@ -96,7 +116,7 @@ def judge(evidence: Evidence, confidence: float, thresholds: Thresholds = THRESH
     counted_match = evidence.match_inliers is not None and evidence.match_inliers >= thresholds.match_evidence_inliers
     confident_match = counted_match and evidence.match_inliers >= CONFIDENT_INLIERS
     supported = confident_match and (evidence.is_match or (evidence.match_disagreement or 0.0) <= thresholds.max_match_disagreement)
-    floor = thresholds.min_alignment_matched if supported else thresholds.min_alignment
+    floor = thresholds.min_alignment_matched if supported else thresholds.min_alignment_supported
     checks = {"alignment": evidence.alignment >= floor}
     if supported:
         checks["matches"] = True  # hundreds of cells agree on it, as RANSAC's inliers verify SIFT's answers
@@ -108,12 +128,22 @@ def judge(evidence: Evidence, confidence: float, thresholds: Thresholds = THRESH
     if counted_match and evidence.match_disagreement is not None and not evidence.is_match:
         checks["match agrees"] = bool(evidence.match_disagreement <= thresholds.max_match_disagreement)
     failed = tuple(name for name, passed in checks.items() if not passed)
-    verified = not failed and len(checks) >= 2
-    if not verified:
+    if failed or len(checks) < 2:
         return Verdict(False, None, failed, confidence * thresholds.unverified_confidence)
+    by = "matches" if supported else "alignment"
     if supported:
-        return Verdict(True, "matches", (), max(confidence, evidence.match_inliers / (evidence.match_inliers + CONFIDENT_INLIERS)))
-    return Verdict(True, "alignment", (), confidence)
+        confidence = max(confidence, evidence.match_inliers / (evidence.match_inliers + CONFIDENT_INLIERS))
+    stricter = {"fine alignment": evidence.alignment >= thresholds.min_alignment}
+    if supported and evidence.match_tile_levels is not None:
+        stricter["match tiles"] = evidence.match_tile_levels >= thresholds.min_match_tile_levels
+    failed = tuple(name for name, passed in stricter.items() if not passed)
+    # Either tier keeps an answer on its side of the mosaic's confidence floor, so the mosaic takes the same answers.
+    below = confidence < MIN_CONFIDENCE
+    if failed:  # below every verified answer of the same evidence
+        factor = thresholds.unverified_confidence
+        return Verdict(False, by, failed, confidence * factor if below else MIN_CONFIDENCE + (confidence - MIN_CONFIDENCE) * factor)
+    lift = thresholds.verified_confidence
+    return Verdict(True, by, (), confidence if below else lift + (1.0 - lift) * confidence)
 
 
 def round_trip_error(b_from_a: np.ndarray, a_from_b: np.ndarray, side: int, grid: int = 5) -> float:
@@ -143,14 +173,15 @@ def disagreement(b_from_a: np.ndarray, other: np.ndarray, size_a: tuple[int, int
     return error / max(size_a) if np.isfinite(error) else float("inf")
 
 
-def judge_answers(estimator, pairs, small_a, small_b, fulls, scores, tiled, matched, seen_match) -> list:
+def judge_answers(estimator, pairs, small_a, small_b, fulls, scores, tiled, matched, seen_match,
+                  thresholds: Thresholds = THRESHOLDS) -> list:
     """The :func:`judge` of every answer of a :class:`~udh_cli.estimators.deep.DeepEstimator` (None where there is
     none), with the evidence it measured as a dict for the details: the photometric score at 256 px; the round
     trip, the cascade's last round (the refinement network where there is one) on the swapped S x S pair from the
     answer's inverse, one call for all pairs, where the network sees at least :data:`MIN_NETWORK_OVERLAP` of B;
-    the tile levels; a global match. Why the last round: the refinement network is trained on small residuals;
-    on right answers of turned real pairs its round trip stayed under 2.6 px of 128, the coarse network's reached
-    14 px (docs/estimators.md, "The verdict").
+    the tile levels; a global match, and the tile levels run on its answer where they can decide the verdict. Why
+    the last round: the refinement network is trained on small residuals; on right answers of turned real pairs its
+    round trip stayed under 2.6 px of 128, the coarse network's reached 14 px (docs/estimators.md, "The verdict").
 
     Args:
         pairs: the prepared pairs; small_a, small_b: (N, S, S) their network inputs.
@@ -164,6 +195,13 @@ def judge_answers(estimator, pairs, small_a, small_b, fulls, scores, tiled, matc
     seen = [i for i in answered if _overlap(small[i], s) >= MIN_NETWORK_OVERLAP]
     back = estimator.predict_small(small_b[seen], small_a[seen], estimator.rounds()[-1:], np.stack([np.linalg.inv(small[i]) for i in seen])) if seen else []
     round_trips = {i: round_trip_error(small[i], a_from_b, s) for i, a_from_b in zip(seen, back)}
+    alignments = {i: VERIFIER.score(pairs[i].a, pairs[i].b, fulls[i]) for i in answered}
+    # The tile levels as evidence on a match's own answer (kept as the match left it), only where the verdict
+    # can turn on them: a confident match that aligns well enough to be verified, with room for tiles in B.
+    retile = [i for i in answered if matched[i] is not None and tiled[i] is None and estimator.tiles
+              and matched[i].inliers >= CONFIDENT_INLIERS and alignments[i] >= thresholds.min_alignment
+              and TileRefinement().can_confirm(pairs[i].b.size, s)]
+    match_tiles = dict(zip(retile, estimator._tiles([pairs[i] for i in retile], [small[i] for i in retile]))) if retile else {}
     out = []
     for i, (pair, full) in enumerate(zip(pairs, fulls)):
         if full is None:
@@ -171,14 +209,16 @@ def judge_answers(estimator, pairs, small_a, small_b, fulls, scores, tiled, matc
             continue
         match = seen_match[i]
         can_confirm = tiled[i] is not None and TileRefinement().can_confirm(pair.b.size, s)
-        evidence = Evidence(alignment=VERIFIER.score(pair.a, pair.b, full), round_trip=round_trips.get(i),
+        evidence = Evidence(alignment=alignments[i], round_trip=round_trips.get(i),
                             tiles_confirm=tiled[i].confirms() if can_confirm else None,
                             match_inliers=match.inliers if match is not None else None,
                             match_disagreement=disagreement(full, match.b_from_a, pair.a.size) if match is not None else None,
-                            is_match=matched[i] is not None and tiled[i] is None)
+                            is_match=matched[i] is not None and tiled[i] is None,
+                            match_tile_levels=match_tiles[i].levels_used if match_tiles.get(i) is not None else None)
         measured = {"alignment": round(evidence.alignment, 3), "round_trip": None if evidence.round_trip is None else round(evidence.round_trip, 4),
-                    "match_disagreement": None if evidence.match_disagreement is None else round(evidence.match_disagreement, 4)}
-        out.append((measured, judge(evidence, scores[i])))
+                    "match_disagreement": None if evidence.match_disagreement is None else round(evidence.match_disagreement, 4),
+                    "match_tile_levels": evidence.match_tile_levels}
+        out.append((measured, judge(evidence, scores[i], thresholds)))
     return out
 
 

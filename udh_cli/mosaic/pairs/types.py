@@ -45,10 +45,13 @@ class Acceptance:
             was at most 0.47 (95 % below 0.28). Not for every method: right SIFT pairs of brighton-beach
             (surf and sand) scored 0.19-0.30 and were split off. 0 turns the check off (not the rule below).
 
-    An answer its own method marks unconfirmed (``Estimate.verified`` False: a network's tile levels did not
-    confirm it) is doubted whatever these say, unless the method verifies itself (``auto`` keeps its best
-    unconfirmed answer and says so). An answer verified by its matches (``verified_by`` "matches": a network's
-    global match that hundreds of cells support) skips the photometric check, as SIFT's RANSAC-verified ones do. Why: in a network-only mosaic of seneca 46 of the 75 pairs accepted
+    An answer its own method marks unconfirmed with nothing supporting it (``Estimate.verified`` False and no
+    ``verified_by``: a network's tile levels did not confirm it) is doubted whatever these say, unless the method
+    verifies itself (``auto`` keeps its best unconfirmed answer and says so). An answer the network's judge left
+    unverified but supported (``verified_by`` set: it failed only the judge's stricter checks) is judged here like a
+    verified one: the joint solve cross-checks every pair. An answer its matches verify or support (``verified_by``
+    "matches": a network's global match that hundreds of cells support) skips the photometric check, as SIFT's
+    RANSAC-verified ones do. Why: in a network-only mosaic of seneca 46 of the 75 pairs accepted
     without this were over 20 px off (against ``auto``'s), with it 1 of 28 (docs/mosaic.md, 2026-11-25).
     """
 
@@ -62,9 +65,9 @@ class Acceptance:
             return None, estimate.failure
         if estimate.confidence < self.min_confidence:
             return None, f"confidence {estimate.confidence:.2f} < {self.min_confidence}"
-        if verified_by_method or (estimate.verified and estimate.verified_by == "matches"):
-            return None, None  # RANSAC's support verified it (SIFT, ORB, a network's global match)
-        if estimate.verified is False:  # the method itself could not confirm it (the networks' tile stage)
+        if verified_by_method or estimate.verified_by == "matches":
+            return None, None  # RANSAC's support verified or supports it (SIFT, ORB, a network's global match)
+        if estimate.verified is False and estimate.verified_by is None:  # nothing supports it (the networks' tile stage)
             return None, f"{estimate.method}: its answer is unconfirmed (for a network: its tile levels did not agree on it)"
         if self.min_verified <= 0:
             return None, None

@@ -72,6 +72,12 @@ def has_shipped(name: str, precision: str | None = "fp32") -> bool:
     return {"int8": has_int8, "fp32": has_fp32, None: has_int8 or has_fp32}[precision]
 
 
+def has_refinement_stage(name: str, model: str | None, refine_model: str | None) -> bool:
+    """Whether the learned method ``name`` gets a refinement stage: a ``refine_model`` file is given, or no
+    ``model`` file is and a shipped ``<name>-refine`` network exists (at either precision)."""
+    return refine_model is not None or (model is None and has_shipped(f"{name}-refine", precision=None))
+
+
 def shipped_onnx(name: str, precision: str | None = "fp32") -> Path:
     """The ONNX file of the shipped network ``name`` ("unsupervised", "unsupervised-refine", "supervised") at
     ``precision``: "fp32", "int8" (an error when no int8 copy is shipped) or ``None`` (int8 where shipped)."""

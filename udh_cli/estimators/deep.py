@@ -137,7 +137,7 @@ class DeepEstimator(Estimator):
     match_headings: int = field(init=False, repr=False, default=MATCH_HEADINGS)  # B's turns the global match tries
 
     def __post_init__(self) -> None:
-        from udh_cli.models_catalog import PRECISIONS, check_precision, has_shipped, shipped_onnx
+        from udh_cli.models_catalog import PRECISIONS, check_precision, has_refinement_stage, has_shipped, shipped_onnx
 
         if self.iterations < 1 or self.batch_size < 1:  # 0 rounds would answer the identity as if estimated
             raise UdhError(f"method '{self.name}': iterations ({self.iterations}) and batch_size ({self.batch_size}) must be at least 1")
@@ -216,12 +216,8 @@ class DeepEstimator(Estimator):
         return twin
 
     def near_prior(self) -> "DeepEstimator":
-        """The same estimator and loaded networks without the shift search (shifts up to half the frame), and with
-        the global match at B's own heading and its first side only (:meth:`Estimator.near_prior`). Why the match
-        stays: on brighton-beach it answers loop pairs the cascade cannot (1,200-4,000 cells at 384 px, heading
-        0); on copr its other turns and the escalation to 768 px cost 0.1-0.4 s a doubted loop pair and rescued
-        none (docs/mosaic.md, "Loop-closure pairs from the chain's prediction"). The heading search stays: it is
-        cheap and answered a brighton-beach loop pair."""
+        """These networks without the shift search, the global match at B's heading and first side only; the match
+        and the heading search answer loop pairs the cascade cannot (docs/mosaic.md, "Loop-closure pairs ...")."""
         twin = copy.copy(self)
         twin.search, twin.match_headings, twin.match_escalate_side = 0, 1, None
         return twin
@@ -418,14 +414,6 @@ class DeepEstimator(Estimator):
         and the turn, degrees, each came from."""
         angles = heading_angles(self.heading_search, (0.0, 180.0) if self.headings == 2 else (0.0,))
         return best_hypotheses(self, heading_hypotheses(small_a, small_b, angles), small_a, small_b, HEADING_FINALISTS)
-
-
-def has_refinement_stage(name: str, model: str | None, refine_model: str | None) -> bool:
-    """Whether the learned method ``name`` gets a refinement stage: a ``refine_model`` file is given, or no
-    ``model`` file is and a shipped ``<name>-refine`` network exists (at either precision)."""
-    from udh_cli.models_catalog import has_shipped
-
-    return refine_model is not None or (model is None and has_shipped(f"{name}-refine", precision=None))
 
 
 def _safe_dlt(offsets: np.ndarray, size: int) -> np.ndarray:

@@ -27,7 +27,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimate, Estimator, json_ready
-from udh_cli.estimators.deep import has_refinement_stage
+from udh_cli.models_catalog import has_refinement_stage
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.estimators.registry import create_estimator
 from udh_cli.estimators.views import VIEWS, ViewEstimator

@@ -365,3 +365,8 @@ def test_the_mosaic_command_loads_when_invoked():
     loaded = modules_loaded_by("mosaic", "--help")
     assert "udh_cli.mosaic.config" in loaded and "udh_cli.cli_mosaic" in loaded
     assert not {"onnxruntime", "torch"} & loaded
+
+
+def test_estimate_help_states_the_licence_of_the_shipped_weights(monkeypatch, capfd):
+    code, out, _ = run_main(monkeypatch, capfd, "estimate", "--help")
+    assert code == 0 and "research use only" in " ".join(out.split()) and "models/README.md" in out

@@ -130,6 +130,8 @@ def estimate(
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold]).
 
     Exit codes: 0 a verified answer; 3 an answer that did not verify (printed, may be wrong); 1 no answer or bad input.
+
+    Licence of the weights: the shipped networks (unsupervised, supervised, auto's start) were trained on research-only images (RSSCN7, BSDS500): research use only; for other use, train your own on permissive images (models/README.md, "Data and licenses").
     """
     from udh_cli.api import estimate_report
 

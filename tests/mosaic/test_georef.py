@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -191,6 +192,35 @@ def test_a_georeferenced_mosaic_is_also_a_north_up_cloud_optimised_geotiff(tmp_p
             east, north = to_utm.transform(record["gps"]["longitude"], record["gps"]["latitude"])
             row, column = dataset.index(east, north)
             assert alpha[row, column] == 255
+
+
+def test_the_geotiff_is_drawn_from_the_mosaic_in_hand_and_equals_the_one_read_back(tmp_path, monkeypatch):
+    """The north-up GeoTIFF comes from the assembled image the run holds, never from decoding the staged PNG; with
+    no room to hold it (a budget of 0) the file is read back, to the same pixels."""
+    rasterio = pytest.importorskip("rasterio")
+    import cv2
+
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+    from udh_cli.mosaic import run as mosaic_run
+    from udh_cli.mosaic.render.canvases import KEPT_IMAGES_BYTES, kept_images
+    from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
+
+    folder = tmp_path / "flight"
+    write_flight(folder, FlightConfig(frame_size=(320, 240), strips=2, frames_per_strip=4, focal_px=300.0), seed=6,
+                 gps=GpsConfig(-33.9, 151.2, metres_per_pixel=0.1, heading_deg=30.0, noise_m=0.3))
+    read_back = []
+    real_imread = cv2.imread
+    monkeypatch.setattr(cv2, "imread", lambda path, *args: read_back.append(Path(path)) or real_imread(path, *args))
+    runs = {}
+    for name, budget in (("held", KEPT_IMAGES_BYTES), ("read", 0)):
+        monkeypatch.setattr(mosaic_run, "kept_images", lambda plan, wanted, budget=budget: kept_images(plan, wanted, budget))
+        (tmp_path / name).mkdir()
+        run_mosaic(folder, tmp_path / name / "map.png", MosaicConfig(method="sift", overlap_per_frame=1))
+        runs[name] = [p for p in read_back if p.parent == tmp_path / name]
+        read_back.clear()
+    assert runs["held"] == [] and len(runs["read"]) == 1  # the staged PNG is decoded only where there was no room to hold it
+    with rasterio.open(tmp_path / "held" / "map.cog.tif") as held, rasterio.open(tmp_path / "read" / "map.cog.tif") as read:
+        assert held.transform == read.transform and np.array_equal(held.read(), read.read())
 
 
 def test_a_split_flight_becomes_one_map_with_gps(tmp_path):

@@ -17,6 +17,7 @@ from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.config import MosaicConfig, acceptance, check_config, run_estimators, with_workers
 from udh_cli.mosaic.georef.gcp import GcpFile, read_gcp_file, undistorted_observations
 from udh_cli.mosaic.georef.gcp_scale import infer_gcp_scale
+from udh_cli.mosaic.georef.geotiff import has_rasterio
 from udh_cli.mosaic.georef.place import georeference
 from udh_cli.mosaic.inputs.frames import FrameSet, gps_fixes, open_frames
 from udh_cli.mosaic.inputs.lens import Lens, read_cameras
@@ -28,7 +29,7 @@ from udh_cli.mosaic.pairs.cache import PairCache
 from udh_cli.mosaic.pairs.plan import estimate_sequence
 from udh_cli.mosaic.pairs.types import PairResult
 from udh_cli.mosaic.pairs.workers import open_runner
-from udh_cli.mosaic.render.canvases import CanvasPlan, DrawnPart, composite_part, on_canvas, plan_canvases, warn_about_earlier_output
+from udh_cli.mosaic.render.canvases import CanvasPlan, DrawnPart, composite_part, kept_images, on_canvas, plan_canvases, warn_about_earlier_output
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.report_page import write_report_page
 from udh_cli.mosaic.sidecar import build_sidecar, relative_to
@@ -95,7 +96,8 @@ def run_mosaic(
     plan = plan_canvases(frameset, parts, files, config.drawing())
     staged = StagedFiles(files.output, overwrite)  # the images of every part appear together, or none of them does
     try:
-        drawn = [composite_part(frameset, part, config.drawing(), reporter, staged) for part in plan.parts]
+        keep = kept_images(plan, wanted=has_rasterio() and (gcps is not None or bool(gps_fixes(frameset.frames))))  # for the GeoTIFFs
+        drawn = [composite_part(frameset, part, config.drawing(), reporter, staged, part.number in keep) for part in plan.parts]
         warn_about_earlier_output(files, plan, reporter)
         report = _write_report(frameset, plan, drawn, solved.pairs, solved.loops, truth, config, opinions, reporter, staged, files, gcps,
                                gcp_image_width, cache, started)
@@ -193,7 +195,8 @@ def _write_report(frameset: FrameSet, plan: CanvasPlan, drawn: list[DrawnPart], 
     report = build_sidecar(frameset, plan, drawn, on_map, pairs, loops, truth, config, opinions, reporter, files.sidecar.parent)
     if gcps is not None or gps_fixes(frameset.frames):
         with reporter.stage("georeferencing", 1) as advance:  # world files and the north-up GeoTIFFs
-            placement = georeference(frameset, on_map, staged, reporter, files, gcps, gcp_image_width, config.gcp_sigma_m > 0)
+            images = {part.plan.number: part.image for part in drawn if part.image is not None}
+            placement = georeference(frameset, on_map, staged, reporter, files, gcps, gcp_image_width, config.gcp_sigma_m > 0, images)
             advance(1)
         for entry in report["parts"]:
             entry.update(placement.parts.get(entry["part"], {}))

@@ -172,9 +172,7 @@ def _require_rasterio() -> None:
 
 BLOCK = 512  # side of a GeoTIFF block, pixels (GDAL's and the COG's usual)
 STRIP_ROWS = BLOCK  # rows of the north-up grid drawn at a time: one block high
-# DEFLATE's fastest level: brighton-beach's 28 MB COG took 17 % less CPU to write than at GDAL's default 6, for a
-# file 1.5 % larger (docs/benchmarks.md, "Rendering").
-COG_DEFLATE_LEVEL = 1
+COG_DEFLATE_LEVEL = 1  # DEFLATE's fastest: a sixth less CPU than GDAL's 6 for a slightly larger file (docs/mosaic.md, "Georeferencing from GPS")
 
 
 def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, pixel: float, epsg: int, path: Path) -> None:

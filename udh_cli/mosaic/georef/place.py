@@ -6,7 +6,7 @@ from __future__ import annotations
 import importlib.util
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import cv2
 import numpy as np
@@ -44,13 +44,16 @@ class Placement:
 
 
 def georeference(frameset: FrameSet, parts: list[PartOnCanvas], staged: StagedFiles, reporter: Reporter, files: RunFiles,
-                 gcps: GcpFile | None = None, gcp_image_width: int | None = None, gcps_in_solve: bool = False) -> Placement:
+                 gcps: GcpFile | None = None, gcp_image_width: int | None = None, gcps_in_solve: bool = False,
+                 images: Mapping[int, np.ndarray] | None = None) -> Placement:
     """World and projection files for every written part placed by ground-control points (``gcps``) or else
     by its frames' GPS (see :mod:`.gcp`, :mod:`.gps`), staged with the images; returns what the sidecar
-    records of them. ``gcps_in_solve``: the points also anchored the solve."""
+    records of them. ``gcps_in_solve``: the points also anchored the solve. ``images``: part number -> its
+    (H, W, 4) BGRA mosaic as written, drawn into the GeoTIFFs instead of reading the staged file back."""
     placement = Placement()
+    images = images or {}
     if gcps is not None:
-        _georeference_by_gcps(frameset, parts, placement, staged, reporter, gcps, gcp_image_width, gcps_in_solve)
+        _georeference_by_gcps(frameset, parts, placement, staged, reporter, gcps, gcp_image_width, gcps_in_solve, images)
         return placement
     with_gps = {f.index: f.metadata for f in frameset.frames if f.metadata is not None and f.metadata.has_gps}
     if not with_gps:
@@ -76,15 +79,16 @@ def georeference(frameset: FrameSet, parts: list[PartOnCanvas], staged: StagedFi
         if found.frames_rejected:
             names = ", ".join(frameset.frames[i].name for i in found.frames_rejected)
             reporter.warn(f"{part.file.name}: the GPS of {names} disagrees with the other frames' by far (a bad fix); left out of the georeference")
-        _write_georeference(part, found, staged, entry, reporter)
+        _write_georeference(part, found, staged, entry, reporter, images.get(part.number))
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} from {len(found.frames_used)} frames' GPS, "
                       f"{found.residual_rms_m:.1f} m RMS, {found.pixel_size_m * 100:.1f} cm per pixel")
     if len(placed) > 1 and has_rasterio():
-        placement.map = _write_combined_map(placed, staged, reporter, files.combined_map)
+        placement.map = _write_combined_map(placed, staged, reporter, files.combined_map, images)
     return placement
 
 
-def _write_combined_map(placed: list, staged: StagedFiles, reporter: Reporter, path: Path) -> dict[str, Any] | None:
+def _write_combined_map(placed: list, staged: StagedFiles, reporter: Reporter, path: Path,
+                        images: Mapping[int, np.ndarray]) -> dict[str, Any] | None:
     """The parts of a split run in one north-up GeoTIFF, each placed by its own frames' GPS: GPS ties together
     what no estimated pair could. The largest part is drawn on top; the others' frames rest on GPS alone.
     Returns the sidecar's ``map``, or None for none."""
@@ -94,7 +98,7 @@ def _write_combined_map(placed: list, staged: StagedFiles, reporter: Reporter, p
         reporter.warn(f"{len(placed) - len(same_zone)} part(s) lie in another UTM zone than EPSG:{epsg} and are left out of the one map")
     layers = []
     for part, found in same_zone:
-        image = _staged_bgra(staged, part)
+        image = _staged_bgra(staged, part, images.get(part.number))
         if image is None:
             reporter.warn(f"{part.file.name}: its image could not be read back; left out of the one map")
             continue
@@ -115,9 +119,11 @@ def _write_combined_map(placed: list, staged: StagedFiles, reporter: Reporter, p
     return entry
 
 
-def _staged_bgra(staged: StagedFiles, part: PartOnCanvas) -> MosaicImage | None:
-    """A part's mosaic as written this run (its staged file): a streamed TIFF read window by window, else the
-    image read whole as (H, W, 4) BGRA; None if it cannot be read."""
+def _staged_bgra(staged: StagedFiles, part: PartOnCanvas, image: np.ndarray | None = None) -> MosaicImage | None:
+    """A part's mosaic as written this run: ``image`` (H, W, 4) BGRA when the caller holds it, else its staged
+    file, a streamed TIFF read window by window or the image read whole; None if it cannot be read."""
+    if image is not None:
+        return MosaicImage(array=image)
     temporary = staged.temporary_of(part.file)
     if temporary is None:
         return None
@@ -132,7 +138,8 @@ def _staged_bgra(staged: StagedFiles, part: PartOnCanvas) -> MosaicImage | None:
     return MosaicImage(array=image if image.shape[2] == 4 else cv2.cvtColor(image, cv2.COLOR_BGR2BGRA))  # a JPEG mosaic has no alpha
 
 
-def _write_georeference(part: PartOnCanvas, found, staged: StagedFiles, entry: dict[str, Any], reporter: Reporter) -> None:
+def _write_georeference(part: PartOnCanvas, found, staged: StagedFiles, entry: dict[str, Any], reporter: Reporter,
+                        image: np.ndarray | None = None) -> None:
     """Stage a georeferenced part's world file, .prj, GDAL PAM file and north-up COG (when rasterio is installed)."""
     names = MosaicFiles(part.file)
     atomic_write_bytes(staged.path_for(names.world_file), world_file_text(found).encode())
@@ -141,7 +148,7 @@ def _write_georeference(part: PartOnCanvas, found, staged: StagedFiles, entry: d
     if not has_rasterio():
         reporter.warn("no north-up GeoTIFF: it needs rasterio (pip install rasterio; from the udh checkout: pip install '.[geo]')")
         return
-    mosaic = _staged_bgra(staged, part)
+    mosaic = _staged_bgra(staged, part, image)
     if mosaic is None:
         reporter.warn(f"{part.file.name}: its image could not be read back for the GeoTIFF; written without one")
         return
@@ -155,7 +162,7 @@ def _write_georeference(part: PartOnCanvas, found, staged: StagedFiles, entry: d
 
 
 def _georeference_by_gcps(frameset: FrameSet, parts: list[PartOnCanvas], placement: Placement, staged: StagedFiles, reporter: Reporter,
-                          gcps: GcpFile, gcp_image_width: int | None, in_solve: bool) -> None:
+                          gcps: GcpFile, gcp_image_width: int | None, in_solve: bool, images: Mapping[int, np.ndarray]) -> None:
     for part in parts:
         frames = {f.name: (f.size, part.mosaic_from_frame.get(f.index)) for f in frameset.frames}
         entry = placement.parts[part.number] = {}
@@ -175,7 +182,7 @@ def _georeference_by_gcps(frameset: FrameSet, parts: list[PartOnCanvas], placeme
                               f"reported and left out of the fit")
         for line in found.skipped[:5]:
             reporter.warn(f"GCP skipped: {line}")
-        _write_georeference(part, found, staged, entry, reporter)
+        _write_georeference(part, found, staged, entry, reporter, images.get(part.number))
         used = sum(p["used"] for p in found.points.values())
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} by {used} ground-control points, "
                       f"{found.checkpoint_rms_m:.2f} m RMS at checkpoints (each point left out of the fit in turn"

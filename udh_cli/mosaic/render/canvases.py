@@ -3,7 +3,7 @@ composited tile by tile with exposure gains and seams, and its image and preview
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +23,8 @@ from udh_cli.mosaic.render.seams import find_seams
 from udh_cli.mosaic.render.small import draw_small
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.solve.parts import Part
+
+KEPT_IMAGES_BYTES = 512 * 2**20  # parts' images held for the georeferencing at most (kept_images)
 
 
 @dataclass(frozen=True)
@@ -74,12 +76,29 @@ class CanvasPlan:
 
 @dataclass(frozen=True)
 class DrawnPart:
-    """A part as written (staged): its plan, its preview (None without one) and each frame's mean exposure gain
-    per channel (B, G, R)."""
+    """A part as written (staged): its plan, its preview (None without one), each frame's mean exposure gain
+    per channel (B, G, R), and ``image``, the (H, W, 4) BGRA mosaic as written when the caller asked to keep it
+    (None otherwise, and for a streamed TIFF)."""
 
     plan: PlannedPart
     preview: Path | None
     gains: dict[int, list[float]]
+    image: np.ndarray | None = field(default=None, repr=False)
+
+
+def kept_images(plan: "CanvasPlan", wanted: bool, budget_bytes: int = KEPT_IMAGES_BYTES) -> set[int]:
+    """The numbers of the parts whose assembled image :func:`composite_part` keeps for the georeferencing after it
+    (``wanted``), in plan order while their BGRA bytes together stay within ``budget_bytes``; a streamed TIFF is
+    never held whole. Why: the north-up GeoTIFF is drawn from the image in hand instead of decoding the staged
+    file again; the budget bounds what a split flight holds at once."""
+    kept, total = set(), 0
+    for part in plan.parts if wanted else []:
+        width, height = part.canvas.size
+        if streams_to_file(part.file) or total + 4 * width * height > budget_bytes:
+            continue
+        kept.add(part.number)
+        total += 4 * width * height
+    return kept
 
 
 def plan_canvases(frameset: FrameSet, parts: list[Part], files: RunFiles, settings: Drawing) -> CanvasPlan:
@@ -108,8 +127,10 @@ def plan_canvases(frameset: FrameSet, parts: list[Part], files: RunFiles, settin
     return CanvasPlan(planned, dropped)
 
 
-def composite_part(frameset: FrameSet, plan: PlannedPart, settings: Drawing, reporter: Reporter, staged: StagedFiles) -> DrawnPart:
-    """Composite one part and write its image and preview under the temporary names of ``staged``."""
+def composite_part(frameset: FrameSet, plan: PlannedPart, settings: Drawing, reporter: Reporter, staged: StagedFiles,
+                   keep_image: bool = False) -> DrawnPart:
+    """Composite one part and write its image and preview under the temporary names of ``staged``; with
+    ``keep_image`` (and an image assembled whole) the :class:`DrawnPart` holds it."""
     to_mosaic = {i: plan.mosaic_from_frame(i) for i in plan.frames}
     suffix = "" if plan.number == 1 else f" part {plan.number}"
     gains, seams = None, None
@@ -135,11 +156,13 @@ def composite_part(frameset: FrameSet, plan: PlannedPart, settings: Drawing, rep
             else:
                 write_image(staged.path_for(plan.file), mosaic)
             advance(1)
+        kept = mosaic if keep_image else None
         del mosaic
     preview = MosaicFiles(plan.file).preview if settings.preview else None
     if preview is not None:
         write_image(staged.path_for(preview), drawer.image())
-    return DrawnPart(plan, preview, {i: mean_gain(gains[i]) if gains is not None else [1.0, 1.0, 1.0] for i in plan.frames})
+    return DrawnPart(plan, preview, {i: mean_gain(gains[i]) if gains is not None else [1.0, 1.0, 1.0] for i in plan.frames},
+                     kept if not streams_to_file(plan.file) else None)
 
 
 def _drawn(tiles, drawer: "compositing.PreviewDrawer"):

@@ -173,3 +173,16 @@ def test_a_damaged_video_skips_the_frames_its_decoder_reports_and_says_so(tmp_pa
         if line.startswith("warning: skipping "):
             assert line.split()[2].rstrip(":") in named
     assert report["summary"]["placed"] == report["summary"]["frames"] < 20
+
+
+def test_a_dangling_link_removed_while_it_is_examined_is_named_not_a_traceback(tmp_path, monkeypatch):
+    from udh_cli.mosaic.inputs import frames as frames_module
+
+    link = tmp_path / "zz_dangling.jpg"
+    link.symlink_to(tmp_path / "gone.jpg")
+
+    def removed_meanwhile(path):
+        raise FileNotFoundError(2, "No such file or directory", str(path))
+
+    monkeypatch.setattr(frames_module.os, "readlink", removed_meanwhile)
+    assert frames_module.not_a_file(link) == "a symbolic link to a missing file; copy the frame there or remove the link"

@@ -294,7 +294,11 @@ def not_a_file(path: Path) -> str | None:
         if exc.errno == errno.ELOOP:
             return "a loop of symbolic links; point the link at the frame itself"
         if path.is_symlink():
-            return f"a symbolic link to {os.readlink(path)}, which does not exist; copy the frame there or remove the link"
+            try:
+                target = os.readlink(path)
+            except OSError:  # the link itself went away meanwhile
+                return "a symbolic link to a missing file; copy the frame there or remove the link"
+            return f"a symbolic link to {target}, which does not exist; copy the frame there or remove the link"
         return f"cannot be read ({exc.strerror or exc}); check its permissions"
     if stat.S_ISDIR(mode):
         return ""

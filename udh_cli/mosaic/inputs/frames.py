@@ -361,14 +361,20 @@ def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens
     try:
         with reporter.stage("reading video", total) as advance:
             number = 0
+            damaged_dropped: str | None = None  # a frame --every dropped was damaged: the next kept one is decoded from it
             while True:
                 ok, image, damage = read_video_frame(capture)
                 if not ok:
                     break
-                if damage is not None and number % every == 0:
-                    skipped.append({"file": f"{path.name}#{number}", "reason": f"damaged (the decoder says: {damage})"})
-                    reporter.warn(f"skipping {path.name}#{number}: damaged (the decoder says: {damage})")
-                elif number % every == 0:
+                if number % every != 0:
+                    if damage is not None and damaged_dropped is None:
+                        damaged_dropped = f"decoded from the damaged #{number} (the decoder says: {damage})"
+                elif damage is not None or damaged_dropped is not None:
+                    reason = f"damaged (the decoder says: {damage})" if damage is not None else damaged_dropped
+                    skipped.append({"file": f"{path.name}#{number}", "reason": reason})
+                    reporter.warn(f"skipping {path.name}#{number}: {reason}")
+                    damaged_dropped = None
+                else:
                     if lens is not None:
                         lens.check((image.shape[1], image.shape[0]), f"{path.name}#{number}")
                     frames.append(Frame(len(frames), f"{path.name}#{number}", (image.shape[1], image.shape[0]),

@@ -214,3 +214,28 @@ def test_a_staged_folder_left_by_a_killed_run_is_removed_by_the_next_one(tmp_pat
     assert not dead.exists() and live.is_dir()
     assert (tmp_path / "flight" / "frame_000.jpg").read_bytes() == b"a whole flight"
     live.rmdir()
+
+
+def test_the_handshake_connects_with_the_tls_settings_of_dasks_config_as_client_does(monkeypatch):
+    pytest.importorskip("distributed")
+    import dask
+    import distributed.comm
+    from distributed.security import Security
+
+    from udh_cli.mosaic.pairs.workers import _handshake
+
+    seen: list[dict] = []
+
+    class Comm:
+        async def close(self):
+            pass
+
+    async def connect(address, timeout=None, **connection_args):
+        seen.append({"address": address, **connection_args})
+        return Comm()
+
+    monkeypatch.setattr(distributed.comm, "connect", connect)
+    with dask.config.set({"distributed.comm.require-encryption": True}):
+        _handshake("tls://scheduler.example:8786", 1.0)
+        expected = Security().get_connection_args("client")  # what Client passes, from the same config
+    assert seen == [{"address": "tls://scheduler.example:8786", **expected}] and expected["require_encryption"] is True

@@ -162,7 +162,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     # ANYDEPTH keeps 16-bit data; ANYCOLOR keeps grey as grey. Without IGNORE_ORIENTATION, EXIF is applied.
     messages: list[str] = []
     try:
-        with _native_messages_silenced(messages):
+        with native_messages_silenced(messages):
             image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     except cv2.error:  # e.g. beyond OpenCV's pixel limit, or a codec that rejects the stream outright
         image = None
@@ -222,7 +222,7 @@ DAMAGE_MESSAGES = ("Corrupt JPEG data", "Premature end of JPEG file", "Invalid J
 
 
 @contextlib.contextmanager
-def _native_messages_silenced(captured: list[str] | None = None, fds: tuple[int, ...] = (2,)):
+def native_messages_silenced(captured: list[str] | None = None, fds: tuple[int, ...] = (2,)):
     """Mute what the C codecs print on stderr while decoding a broken file ("libpng error: ...",
     "Corrupt JPEG data", OpenCV's WARN log): the user gets one clear line from udh instead. The lines printed
     are appended to ``captured`` when it is given. ``fds``: the descriptors muted (OpenCV's FFmpeg log goes to
@@ -422,7 +422,7 @@ def encode_image(path: str | os.PathLike, image: np.ndarray) -> bytes:
     messages: list[str] = []
     try:
         # OpenCV's TIFF encoder goes through a temporary file, and libtiff prints its write errors (a full disk).
-        with _native_messages_silenced(messages):
+        with native_messages_silenced(messages):
             ok, encoded = cv2.imencode(suffix, image)
     except cv2.error:
         ok = False

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import IMAGE_SUFFIXES, _native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
+from udh_cli.images import IMAGE_SUFFIXES, native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
 from udh_cli.mosaic.inputs.lens import Lens
 from udh_cli.mosaic.inputs.metadata import FrameMetadata, read_metadata
 from udh_cli.mosaic.outputs.staging import earlier_outputs
@@ -325,7 +325,7 @@ def _open_capture(path: Path) -> cv2.VideoCapture:
     takes them as the decoder's damage reports. One decoding thread, so that a report comes with its own frame."""
     if "OPENCV_FFMPEG_LOGLEVEL" not in os.environ and "OPENCV_FFMPEG_DEBUG" not in os.environ:
         os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "16"  # AV_LOG_ERROR: damaged packets, nothing chattier
-    with _native_messages_silenced(fds=(1, 2)):
+    with native_messages_silenced(fds=(1, 2)):
         capture = cv2.VideoCapture(str(path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, 1])
         capture.isOpened()  # FFmpeg probes the file while opening; its complaints are muted with it
     return capture
@@ -337,7 +337,7 @@ def read_video_frame(capture: cv2.VideoCapture) -> tuple[bool, np.ndarray | None
     Why: FFmpeg conceals a damaged packet (the smeared block a mosaic would draw) and says so only in its log;
     its lines are caught here, off the terminal, as the frame's damage."""
     messages: list[str] = []
-    with _native_messages_silenced(messages, fds=(1, 2)):
+    with native_messages_silenced(messages, fds=(1, 2)):
         ok, image = capture.read()
     # Only FFmpeg's own lines: a progress bar redrawn meanwhile by another thread is caught too, and is no damage.
     reported = [" ".join(line[match.end():].split()) for line in messages if (match := _FFMPEG_LINE.match(line))]

@@ -83,7 +83,10 @@ def _decoded_bytes_per_pixel(header, start: bytes) -> int:
     elif start.startswith(b"\x89PNG") and len(start) > 24:
         bits = start[24]  # IHDR's bit depth
     elif header.format == "TIFF":
-        bits = max(header.tag_v2.get(258, (8,)) or (8,))
+        try:
+            bits = max(int(sample) for sample in header.tag_v2.get(258, (8,)))  # BitsPerSample
+        except (TypeError, ValueError):  # a forged tag: count the widest sample OpenCV makes
+            bits = 32
     else:
         bits = 16 if header.mode.startswith("I;16") else 8
     return channels * (2 if bits == 16 else 4 if bits > 16 else 1)

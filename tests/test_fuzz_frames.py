@@ -173,3 +173,55 @@ def test_a_damaged_video_skips_the_frames_its_decoder_reports_and_says_so(tmp_pa
         if line.startswith("warning: skipping "):
             assert line.split()[2].rstrip(":") in named
     assert report["summary"]["placed"] == report["summary"]["frames"] < 20
+
+
+def test_a_dangling_link_removed_while_it_is_examined_is_named_not_a_traceback(tmp_path, monkeypatch):
+    from udh_cli.mosaic.inputs import frames as frames_module
+
+    link = tmp_path / "zz_dangling.jpg"
+    link.symlink_to(tmp_path / "gone.jpg")
+
+    def removed_meanwhile(path):
+        raise FileNotFoundError(2, "No such file or directory", str(path))
+
+    monkeypatch.setattr(frames_module.os, "readlink", removed_meanwhile)
+    assert frames_module.not_a_file(link) == "a symbolic link to a missing file; copy the frame there or remove the link"
+
+
+def test_damage_in_a_frame_every_drops_skips_the_next_kept_frame_decoded_from_it(tmp_path, monkeypatch):
+    from udh_cli.mosaic.inputs import frames as frames_module
+    from udh_cli.mosaic.report import Reporter
+
+    from conftest import textured_image
+
+    class Capture:  # the decoded frames are scripted: only what the decoder reports matters here
+        def isOpened(self):
+            return True
+
+        def get(self, prop):
+            return 10
+
+        def release(self):
+            pass
+
+    damaged = {3: "error while decoding MB 4 5", 6: "concealing 40 DC errors"}  # 3 is dropped by --every 2, 6 is kept
+    decoded = iter(range(11))
+
+    def read_video_frame(capture):
+        number = next(decoded)
+        if number == 10:
+            return False, None, None
+        return True, textured_image(96, 64, seed=number), damaged.get(number)
+
+    monkeypatch.setattr(frames_module, "_open_capture", lambda path: Capture())
+    monkeypatch.setattr(frames_module, "read_video_frame", read_video_frame)
+    video = tmp_path / "flight.mp4"
+    video.write_bytes(b"\0" * 64)
+    reporter = Reporter(quiet=True)
+    frameset = frames_module._open_video(video, 64, 2, reporter, None)
+    assert [f.name for f in frameset.frames] == ["flight.mp4#0", "flight.mp4#2", "flight.mp4#8"]
+    assert [entry["file"] for entry in frameset.skipped] == ["flight.mp4#4", "flight.mp4#6"]
+    assert frameset.skipped[0]["reason"] == "decoded from the damaged #3 (the decoder says: error while decoding MB 4 5)"
+    assert frameset.skipped[1]["reason"] == "damaged (the decoder says: concealing 40 DC errors)"
+    assert reporter.warnings[0] == "skipping flight.mp4#4: decoded from the damaged #3 (the decoder says: error while decoding MB 4 5)"
+    assert [f.video_frame for f in frameset.frames] == [0, 2, 8]

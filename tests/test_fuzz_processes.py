@@ -214,3 +214,52 @@ def test_a_staged_folder_left_by_a_killed_run_is_removed_by_the_next_one(tmp_pat
     assert not dead.exists() and live.is_dir()
     assert (tmp_path / "flight" / "frame_000.jpg").read_bytes() == b"a whole flight"
     live.rmdir()
+
+
+def test_the_handshake_connects_with_the_tls_settings_of_dasks_config_as_client_does(monkeypatch):
+    pytest.importorskip("distributed")
+    import dask
+    import distributed.comm
+    from distributed.security import Security
+
+    from udh_cli.mosaic.pairs.workers import _handshake
+
+    seen: list[dict] = []
+
+    class Comm:
+        async def close(self):
+            pass
+
+    async def connect(address, timeout=None, **connection_args):
+        seen.append({"address": address, **connection_args})
+        return Comm()
+
+    monkeypatch.setattr(distributed.comm, "connect", connect)
+    with dask.config.set({"distributed.comm.require-encryption": True}):
+        _handshake("tls://scheduler.example:8786", 1.0)
+        expected = Security().get_connection_args("client")  # what Client passes, from the same config
+    assert seen == [{"address": "tls://scheduler.example:8786", **expected}] and expected["require_encryption"] is True
+
+
+def test_a_folder_of_another_container_sharing_the_host_name_is_kept_though_its_pid_is_dead_here(tmp_path, monkeypatch):
+    from udh_cli import processes
+    from udh_cli.files import staged_folder
+
+    if not processes._pid_namespace():
+        pytest.skip("no pid namespace to tell containers apart here")
+    dead_pid = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True).stdout.strip()
+    with monkeypatch.context() as other_container:  # same host name and boot, its own pid namespace (Docker --network host)
+        other_container.setattr(processes.os, "readlink", lambda path: "pid:[4026599999]")
+        theirs = processes._host_tag()
+    with monkeypatch.context() as after_a_reboot:
+        after_a_reboot.setattr(processes, "_boot_id", lambda: "another boot")
+        rebooted = processes._host_tag()
+    ours = processes._host_tag()
+    assert len({theirs, rebooted, ours}) == 3
+    other = tmp_path / f".flight.{dead_pid}-{theirs}-abcd.staged"  # a live run's there: its pid means nothing here
+    dead = tmp_path / f".flight.{dead_pid}-{ours}-abcd.staged"
+    other.mkdir()
+    dead.mkdir()
+    with staged_folder(tmp_path / "flight") as staging:
+        (staging / "frame_000.jpg").write_bytes(b"a whole flight")
+    assert other.is_dir() and not dead.exists()

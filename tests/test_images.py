@@ -306,10 +306,13 @@ def test_an_encoder_failure_is_one_line_with_the_codecs_words_off_stderr(tmp_pat
     assert capfd.readouterr().err == "" and list(tmp_path.iterdir()) == []
 
 
-def test_an_image_is_decoded_only_when_the_memory_free_can_hold_it(tmp_path, monkeypatch):
+@pytest.mark.parametrize(("image", "pixel_bytes"), [(np.zeros((480, 640), np.uint8), 1), (np.zeros((480, 640, 4), np.uint8), 3),
+                                                  (np.zeros((480, 640, 3), np.uint16), 6)], ids=["grey8", "rgba8", "colour16"])
+def test_an_image_is_decoded_only_when_the_memory_free_can_hold_what_the_decode_makes(image, pixel_bytes, tmp_path, monkeypatch):
     path = tmp_path / "a.png"
-    cv2.imwrite(str(path), np.zeros((480, 640), np.uint8))
-    monkeypatch.setenv("UDH_MEMORY_BUDGET", str(640 * 480 * 8 - 1))
+    cv2.imwrite(str(path), image)
+    needed = 640 * 480 * pixel_bytes + path.stat().st_size  # the decoded pixels (alpha dropped) and the file's bytes
+    monkeypatch.setenv("UDH_MEMORY_BUDGET", str(needed - 1))
 
     def forbidden(*args, **kwargs):
         raise AssertionError("decoded although it cannot fit")
@@ -318,5 +321,6 @@ def test_an_image_is_decoded_only_when_the_memory_free_can_hold_it(tmp_path, mon
     with pytest.raises(UdhError, match=r"decoding its 640x480 pixels needs about .* downscale the image"):
         images.read_image(path)
     monkeypatch.undo()
-    monkeypatch.setenv("UDH_MEMORY_BUDGET", str(640 * 480 * 8))
-    assert images.read_image(path).shape == (480, 640)
+    monkeypatch.setenv("UDH_MEMORY_BUDGET", str(needed))
+    decoded = images.read_image(path)
+    assert decoded.shape[:2] == (480, 640) and decoded.nbytes == 640 * 480 * pixel_bytes

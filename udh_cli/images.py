@@ -48,6 +48,14 @@ def image_size_from_header(data: bytes | np.ndarray) -> tuple[int, int] | None:
     Pillow reads only the header here (``Image.open`` is lazy). Why not OpenCV: ``cv2.imdecode`` allocates
     the whole image before it can say how large it is, and a 1 MB PNG can declare 32,000 x 32,000 pixels.
     """
+    header = _image_header(data)
+    return None if header is None else header[:2]
+
+
+def _image_header(data: bytes | np.ndarray) -> tuple[int, int, int] | None:
+    """``(width, height, bytes a pixel)`` of an encoded image from its header, None if unknown; the bytes a
+    pixel are what :func:`read_image`'s decode makes of it: grey 1 channel, else 3 (alpha is dropped), each
+    sample 1, 2 or 4 bytes as stored."""
     import io
 
     from PIL import Image, UnidentifiedImageError
@@ -59,11 +67,29 @@ def image_size_from_header(data: bytes | np.ndarray) -> tuple[int, int] | None:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Pillow's "Corrupt EXIF data" while it reads the DPI: not the size
                 with Image.open(io.BytesIO(bytes(data))) as header:
-                    return header.size
+                    return (*header.size, _decoded_bytes_per_pixel(header, bytes(data[:32])))
         except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
             return None
         finally:
             Image.MAX_IMAGE_PIXELS = saved
+
+
+def _decoded_bytes_per_pixel(header, start: bytes) -> int:
+    """Bytes a pixel of ``cv2.imdecode(ANYDEPTH | ANYCOLOR)`` for the Pillow image ``header`` whose file starts
+    with ``start``. Why not Pillow's mode alone: it says "RGB" for 16-bit colour PNG and TIFF."""
+    channels = 1 if header.mode in ("1", "L", "I", "F") or header.mode.startswith("I;16") else 3
+    if header.mode in ("I", "F"):
+        bits = 32
+    elif start.startswith(b"\x89PNG") and len(start) > 24:
+        bits = start[24]  # IHDR's bit depth
+    elif header.format == "TIFF":
+        try:
+            bits = max(int(sample) for sample in header.tag_v2.get(258, (8,)))  # BitsPerSample
+        except (TypeError, ValueError):  # a forged tag: count the widest sample OpenCV makes
+            bits = 32
+    else:
+        bits = 16 if header.mode.startswith("I;16") else 8
+    return channels * (2 if bits == 16 else 4 if bits > 16 else 1)
 
 
 def max_file_bytes() -> int:
@@ -139,7 +165,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     # ANYDEPTH keeps 16-bit data; ANYCOLOR keeps grey as grey. Without IGNORE_ORIENTATION, EXIF is applied.
     messages: list[str] = []
     try:
-        with _native_messages_silenced(messages):
+        with native_messages_silenced(messages):
             image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     except cv2.error:  # e.g. beyond OpenCV's pixel limit, or a codec that rejects the stream outright
         image = None
@@ -161,10 +187,10 @@ def check_declared_pixels(path: str | os.PathLike, data: bytes) -> None:
     """Refuse, before a pixel is decoded, an encoded image (``data``, the file ``path``'s bytes) whose header
     declares more pixels than :func:`max_pixels`, than a JPEG's coded data can hold (:data:`MAX_JPEG_PIXELS_PER_BYTE`;
     header segments such as EXIF or comments do not count), or than the memory free can decode."""
-    size = image_size_from_header(data)
-    if size is None:
+    header = _image_header(data)
+    if header is None:
         return
-    width, height = size
+    width, height, pixel_bytes = header
     limit = max_pixels()
     if width * height > limit:
         raise UdhError(f"{path}: the image declares {width}x{height} pixels, over the {limit / 1e6:.0f} MP limit; "
@@ -174,8 +200,8 @@ def check_declared_pixels(path: str | os.PathLike, data: bytes) -> None:
                        f"it is truncated or damaged; copy the whole file again")
     from udh_cli.budget import check_memory
 
-    # The decoded colour image (3 bytes a pixel) and a grey float copy of it (4), as the readers make.
-    check_memory(8 * width * height, f"{path}: decoding its {width}x{height} pixels", "downscale the image")
+    # Only what the decode itself holds (the pixels and the file's bytes): a caller making larger copies checks those.
+    check_memory(pixel_bytes * width * height + len(data), f"{path}: decoding its {width}x{height} pixels", "downscale the image")
 
 
 def jpeg_coded_bytes(data: bytes) -> int:
@@ -199,7 +225,7 @@ DAMAGE_MESSAGES = ("Corrupt JPEG data", "Premature end of JPEG file", "Invalid J
 
 
 @contextlib.contextmanager
-def _native_messages_silenced(captured: list[str] | None = None, fds: tuple[int, ...] = (2,)):
+def native_messages_silenced(captured: list[str] | None = None, fds: tuple[int, ...] = (2,)):
     """Mute what the C codecs print on stderr while decoding a broken file ("libpng error: ...",
     "Corrupt JPEG data", OpenCV's WARN log): the user gets one clear line from udh instead. The lines printed
     are appended to ``captured`` when it is given. ``fds``: the descriptors muted (OpenCV's FFmpeg log goes to
@@ -399,7 +425,7 @@ def encode_image(path: str | os.PathLike, image: np.ndarray) -> bytes:
     messages: list[str] = []
     try:
         # OpenCV's TIFF encoder goes through a temporary file, and libtiff prints its write errors (a full disk).
-        with _native_messages_silenced(messages):
+        with native_messages_silenced(messages):
             ok, encoded = cv2.imencode(suffix, image)
     except cv2.error:
         ok = False

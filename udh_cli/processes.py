@@ -5,7 +5,7 @@ first, so that it ends when its parent does, SIGKILL included; otherwise it woul
 holding the terminal's output and the resource tracker with it.
 
 Temporary folders: :func:`run_temp_folder` names a folder with the process that owns it (its pid and a tag of
-this host), so that :func:`remove_dead_runs_folders` can remove what a killed run left, and never a live run's.
+this host, boot and pid namespace), so that :func:`remove_dead_runs_folders` can remove what a killed run left, and never a live run's.
 """
 
 from __future__ import annotations
@@ -41,8 +41,27 @@ def die_with_parent(parent_pid: int) -> None:
 
 
 def _host_tag() -> str:
-    """Eight hex digits naming this machine, so that a folder on a shared disk is judged only by its own host."""
-    return hashlib.sha256(socket.gethostname().encode(errors="replace")).hexdigest()[:8]
+    """Eight hex digits naming where a pid means one process: the host name, its boot and its pid namespace (where
+    the system says them, else the host name alone). Why all three: a folder on a shared disk is judged only where
+    its pid means the same; two containers sharing a host name (Docker ``--network host``) do not share pids."""
+    identity = [socket.gethostname(), _boot_id(), _pid_namespace()]
+    return hashlib.sha256("\n".join(identity).encode(errors="replace")).hexdigest()[:8]
+
+
+def _boot_id() -> str:
+    """Linux's id of this boot; "" where there is none."""
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        return ""
+
+
+def _pid_namespace() -> str:
+    """This process's pid namespace on Linux (``pid:[4026531836]``); "" where there is none."""
+    try:
+        return os.readlink("/proc/self/ns/pid")
+    except OSError:  # no /proc: not Linux
+        return ""
 
 
 def run_temp_folder(parent: Path, prefix: str, suffix: str = "") -> Path:
@@ -73,9 +92,10 @@ def remove_dead_runs_folders(parent: Path, prefix: str) -> list[Path]:
         entries = list(os.scandir(parent))
     except OSError:
         return removed
+    here = _host_tag()
     for entry in entries:
         match = pattern.match(entry.name)
-        if match is None or match.group(2) != _host_tag() or not entry.is_dir(follow_symlinks=False):
+        if match is None or match.group(2) != here or not entry.is_dir(follow_symlinks=False):
             continue
         if not _alive(int(match.group(1))):
             shutil.rmtree(entry.path, ignore_errors=True)

@@ -19,3 +19,7 @@ def __getattr__(name: str):
 
         return getattr(importlib.import_module("udh_cli.estimators.base"), name)
     raise AttributeError(f"module 'udh_cli.estimators' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)  # the names loaded on first use too, which the module's namespace does not hold

@@ -206,7 +206,7 @@ class Trainer:
         self.best_val = float(saved.get("best_val", math.inf))
         running_loss, running_steps = saved.get("running_loss", 0.0), saved.get("running_steps", 0)
         if isinstance(running_loss, float) and math.isfinite(running_loss) and isinstance(running_steps, int) and running_steps >= 0:
-            self.running_loss, self.running_steps = running_loss, running_steps  # else a checkpoint from before they were kept
+            self.running_loss, self.running_steps = running_loss, running_steps  # else not a sum to trust: it starts at zero
         self.elapsed_before = float(saved.get("elapsed_s", 0.0))
         self.trained_before = dict(saved.get("trained_before", {}))
         self._truncate_metrics(self.step)

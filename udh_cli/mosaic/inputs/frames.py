@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import IMAGE_SUFFIXES, _native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
+from udh_cli.images import IMAGE_SUFFIXES, native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
 from udh_cli.mosaic.inputs.lens import Lens
 from udh_cli.mosaic.inputs.metadata import FrameMetadata, read_metadata
 from udh_cli.mosaic.outputs.staging import earlier_outputs
@@ -294,7 +294,11 @@ def not_a_file(path: Path) -> str | None:
         if exc.errno == errno.ELOOP:
             return "a loop of symbolic links; point the link at the frame itself"
         if path.is_symlink():
-            return f"a symbolic link to {os.readlink(path)}, which does not exist; copy the frame there or remove the link"
+            try:
+                target = os.readlink(path)
+            except OSError:  # the link itself went away meanwhile
+                return "a symbolic link to a missing file; copy the frame there or remove the link"
+            return f"a symbolic link to {target}, which does not exist; copy the frame there or remove the link"
         return f"cannot be read ({exc.strerror or exc}); check its permissions"
     if stat.S_ISDIR(mode):
         return ""
@@ -321,7 +325,7 @@ def _open_capture(path: Path) -> cv2.VideoCapture:
     takes them as the decoder's damage reports. One decoding thread, so that a report comes with its own frame."""
     if "OPENCV_FFMPEG_LOGLEVEL" not in os.environ and "OPENCV_FFMPEG_DEBUG" not in os.environ:
         os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "16"  # AV_LOG_ERROR: damaged packets, nothing chattier
-    with _native_messages_silenced(fds=(1, 2)):
+    with native_messages_silenced(fds=(1, 2)):
         capture = cv2.VideoCapture(str(path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, 1])
         capture.isOpened()  # FFmpeg probes the file while opening; its complaints are muted with it
     return capture
@@ -333,7 +337,7 @@ def read_video_frame(capture: cv2.VideoCapture) -> tuple[bool, np.ndarray | None
     Why: FFmpeg conceals a damaged packet (the smeared block a mosaic would draw) and says so only in its log;
     its lines are caught here, off the terminal, as the frame's damage."""
     messages: list[str] = []
-    with _native_messages_silenced(messages, fds=(1, 2)):
+    with native_messages_silenced(messages, fds=(1, 2)):
         ok, image = capture.read()
     # Only FFmpeg's own lines: a progress bar redrawn meanwhile by another thread is caught too, and is no damage.
     reported = [" ".join(line[match.end():].split()) for line in messages if (match := _FFMPEG_LINE.match(line))]
@@ -357,14 +361,20 @@ def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens
     try:
         with reporter.stage("reading video", total) as advance:
             number = 0
+            damaged_dropped: str | None = None  # a frame --every dropped was damaged: the next kept one is decoded from it
             while True:
                 ok, image, damage = read_video_frame(capture)
                 if not ok:
                     break
-                if damage is not None and number % every == 0:
-                    skipped.append({"file": f"{path.name}#{number}", "reason": f"damaged (the decoder says: {damage})"})
-                    reporter.warn(f"skipping {path.name}#{number}: damaged (the decoder says: {damage})")
-                elif number % every == 0:
+                if number % every != 0:
+                    if damage is not None and damaged_dropped is None:
+                        damaged_dropped = f"decoded from the damaged #{number} (the decoder says: {damage})"
+                elif damage is not None or damaged_dropped is not None:
+                    reason = f"damaged (the decoder says: {damage})" if damage is not None else damaged_dropped
+                    skipped.append({"file": f"{path.name}#{number}", "reason": reason})
+                    reporter.warn(f"skipping {path.name}#{number}: {reason}")
+                    damaged_dropped = None
+                else:
                     if lens is not None:
                         lens.check((image.shape[1], image.shape[0]), f"{path.name}#{number}")
                     frames.append(Frame(len(frames), f"{path.name}#{number}", (image.shape[1], image.shape[0]),

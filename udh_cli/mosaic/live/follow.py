@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import DAMAGE_MESSAGES, IMAGE_SUFFIXES, _native_messages_silenced, check_declared_pixels
+from udh_cli.images import DAMAGE_MESSAGES, IMAGE_SUFFIXES, native_messages_silenced, check_declared_pixels
 from udh_cli.mosaic.report import Reporter
 from udh_cli.processes import remove_dead_runs_folders, run_temp_folder
 
@@ -143,7 +143,7 @@ def decodes_whole(path: Path, size: int) -> bool:
     except UdhError:
         return True  # whole as far as its end marker says; never decoded here: the run's reader refuses it, saying why
     messages: list[str] = []
-    with _native_messages_silenced(messages):  # a JPEG cut after its thumbnail decodes, but says it ended early
+    with native_messages_silenced(messages):  # a JPEG cut after its thumbnail decodes, but says it ended early
         decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
     damaged = any(line.lstrip().startswith(DAMAGE_MESSAGES) for line in messages)
     return decoded is not None and decoded.size > 0 and not damaged

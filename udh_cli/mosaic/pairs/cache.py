@@ -211,8 +211,8 @@ def _read(path: Path, reporter: Reporter) -> dict[str, dict]:
     if len(records) < len(data["pairs"]):
         reporter.warn(f"--resume: {len(data['pairs']) - len(records)} entries of the pair cache {path} are damaged; their pairs are estimated again")
     unsealed = [key for key, record in records.items() if "digest" not in record]
-    if unsealed:  # a cache of a udh before digests: its pairs are estimated again, once, without a warning for each
-        reporter.warn(f"--resume: {len(unsealed)} entries of the pair cache {path} have no digest (an older udh wrote them); "
+    if unsealed:  # records without a digest cannot be checked: estimated again, with one warning for them all
+        reporter.warn(f"--resume: {len(unsealed)} entries of the pair cache {path} have no digest to check them by; "
                       f"their pairs are estimated again")
         for key in unsealed:
             del records[key]

@@ -262,13 +262,17 @@ def _handshake(scheduler: str, timeout_s: float) -> None:
 
     Why: ``distributed``'s connect bounds the TCP connection but not the handshake after it, so a server that
     accepts and never answers would hold the run for ever. It runs on a thread of its own, whose event loop is
-    its own even when the caller's thread runs one (a notebook)."""
+    its own even when the caller's thread runs one (a notebook). It connects as ``Client`` does: with the client
+    role's TLS settings from Dask's config (``distributed.comm.tls.*``), so that a ``tls://`` scheduler accepts it."""
     import asyncio
 
     from distributed.comm import connect
+    from distributed.security import Security
+
+    connection_args = Security().get_connection_args("client")
 
     async def exchange() -> None:
-        comm = await asyncio.wait_for(connect(scheduler, timeout=timeout_s), timeout_s)
+        comm = await asyncio.wait_for(connect(scheduler, timeout=timeout_s, **connection_args), timeout_s)
         await comm.close()
 
     failure: list[BaseException] = []

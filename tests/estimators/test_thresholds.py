@@ -15,7 +15,7 @@ from udh_cli.mosaic.pairs.types import Acceptance
 PACKAGE = Path(__file__).resolve().parents[2] / "udh_cli"
 # The names that once held their own copy of a threshold: each now reads the table.
 READERS = {"MIN_CONFIDENCE", "CONFIDENT_INLIERS", "CONFIRMING_LEVELS", "MIN_NETWORK_OVERLAP", "CONFIRM_MIN_SCORE",
-           "CONFIRM_MIN_START", "CONFIRM_MAX_MOVE", "min_confidence", "min_verified", "min_score", "trusted_inliers"}
+           "CONFIRM_MIN_START", "CONFIRM_MAX_MOVE", "min_confidence", "min_verified", "min_score", "trusted_inliers", "search_below"}
 
 
 def test_every_reader_takes_its_number_from_the_table():
@@ -27,6 +27,7 @@ def test_every_reader_takes_its_number_from_the_table():
         t.min_cascade_score, t.min_prediction_start, t.max_prediction_move)
     assert confirm.PREDICTION_CHECK.min_score == t.min_cascade_score and confirm.cascade_ecc().max_move == t.max_prediction_move
     assert (matching.CONFIDENT_INLIERS, tiles.CONFIRMING_LEVELS) == (t.confident_inliers, t.confirming_tile_levels)
+    assert deep.DeepEstimator.search_below == t.network_search_below
     assert deep.NETWORK_CHECK.min_overlap == judge.MIN_NETWORK_OVERLAP == t.min_network_overlap
     assert judge.Thresholds is Thresholds and judge.THRESHOLDS is THRESHOLDS
 

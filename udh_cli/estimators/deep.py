@@ -115,7 +115,7 @@ class DeepEstimator(Estimator):
     tile_coarse_model: str | None = None
     refine_rounds: int | None = None
     search: int | None = 0
-    search_below: float = 0.5
+    search_below: float = THRESHOLDS.network_search_below
     precision: str | None = None
     flight_model: str | None = None
     headings: int = 1

@@ -49,6 +49,8 @@ class Thresholds:
         min_confidence: least confidence of an answer that carries no verification of its own to count as
             verified, and the mosaic's floor (``Acceptance.min_confidence``): low on purpose, it drops only what an
             estimator itself calls hopeless (docs/mosaic.md).
+        network_search_below: a network's own score (``deep.NETWORK_CHECK``) under which its answer is doubted
+            and the searches run (``DeepEstimator.search_below``): a cheap trigger, the verdict comes after.
         min_network_overlap: least share of B that A must cover at the network's S x S input for its own score
             (``deep.NETWORK_CHECK``) and the round trip to say anything: below it the network sees mostly the
             pre-warp's border.
@@ -80,6 +82,7 @@ class Thresholds:
     unverified_confidence: float = 0.5
     verified_confidence: float = 0.5
     min_confidence: float = 0.2
+    network_search_below: float = 0.5
     min_network_overlap: float = 0.3
     confident_inliers: int = 150
     confirming_tile_levels: int = 2

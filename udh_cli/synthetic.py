@@ -35,7 +35,7 @@ from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES, read_image, to_gray_u8
 
 if TYPE_CHECKING:
-    from udh_cli.flight_motion import MotionConfig
+    from udh_cli.generator_settings import MotionConfig
 
 SOURCE_SIZE = (320, 240)  # (width, height) every source image is resized to, as in DeTone et al.
 

@@ -15,6 +15,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.pair import ImageLike, PreparedPair
+from udh_cli.estimators.thresholds import THRESHOLDS
 
 
 @dataclass(frozen=True)
@@ -181,9 +182,8 @@ def require_ok(estimate: Estimate) -> Estimate:
     return estimate
 
 
-# Below this confidence an answer that carries no verification of its own counts as unverified. It is the
-# mosaic's acceptance floor (Acceptance.min_confidence): what udh would not build a map on.
-MIN_CONFIDENCE = 0.2
+# Below this confidence an answer that carries no verification of its own counts as unverified.
+MIN_CONFIDENCE = THRESHOLDS.min_confidence
 
 
 def is_verified(estimate: Estimate) -> bool:

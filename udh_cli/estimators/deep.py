@@ -16,6 +16,7 @@ from udh_cli.flight_motion import PREWARP_BORDER
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.hypotheses import HEADING_COUNT, best_hypotheses, cascade_headings, heading_angles, heading_hypotheses, shift_hypotheses
 from udh_cli.estimators.judge import judge_answers
+from udh_cli.estimators.thresholds import THRESHOLDS
 from udh_cli.estimators.tiles import TileRefinement, refine_pairs_with_tiles
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel, OnnxMatcher
@@ -32,9 +33,8 @@ PIPELINE_SEARCH = 2  # the search of the whole learned pipeline (unsupervised wi
 # turns for a strip's end, each only while no turn has found enough agreeing cells.
 MATCH_HEADINGS = 4
 # How the networks judge their own answers, on their S x S input (Verifier.score_grey, at the size given): the
-# one Verifier, whole (a tile of a 4 x 4 grid at 128 px holds too few pixels to correlate) and with at least
-# 30 % overlap: the check that the heading choice, the search and its search_below were tuned with.
-NETWORK_CHECK = Verifier(tiles=1, min_overlap=0.3)
+# one Verifier, whole (a tile of a 4 x 4 grid at 128 px holds too few pixels to correlate); the search was tuned on it.
+NETWORK_CHECK = Verifier(tiles=1, min_overlap=THRESHOLDS.min_network_overlap)
 
 
 @dataclass
@@ -115,7 +115,7 @@ class DeepEstimator(Estimator):
     tile_coarse_model: str | None = None
     refine_rounds: int | None = None
     search: int | None = 0
-    search_below: float = 0.5
+    search_below: float = THRESHOLDS.network_search_below
     precision: str | None = None
     flight_model: str | None = None
     headings: int = 1

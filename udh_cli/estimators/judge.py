@@ -1,7 +1,7 @@
 """The one judge of a learned answer: "verified" only when independent evidence agrees.
 
 Each piece of evidence is measured by the estimator that has it (:class:`Evidence`); every threshold of the
-verdict lives in :class:`Thresholds`, one reason each; :func:`judge` says whether the answer is verified, by
+verdict lives in :class:`~udh_cli.estimators.thresholds.Thresholds`, one reason each; :func:`judge` says whether the answer is verified, by
 what, and which checks it failed. Two tiers: an answer is **verified** (one to build a map on) when it also passes
 the stricter checks (a finer photometric floor; for a global match, tile levels that accept it); an answer that
 passes only the looser ones is **supported**: unverified, with ``verified_by`` naming what supports it, so that a
@@ -17,60 +17,13 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
-from udh_cli.estimators.base import MIN_CONFIDENCE
-from udh_cli.estimators.matching import CONFIDENT_INLIERS
+from udh_cli.estimators.thresholds import THRESHOLDS, Thresholds
 from udh_cli.estimators.tiles import TileRefinement
 from udh_cli.estimators.verify import VERIFIER
 
 
-@dataclass(frozen=True)
-class Thresholds:
-    """Every threshold of the verdict, one reason each (measurements: docs/estimators.md, "The verdict").
-
-    Attributes:
-        min_alignment: least photometric score (the lower of intensity and gradient NCC over 4 x 4 tiles at
-            256 px, :data:`~udh_cli.estimators.verify.VERIFIER`) of a verified answer: the one measure that told
-            answers 10-20 px off from right ones on the hard real-pair benchmark, however many cells matched them
-            (docs/estimators.md, "The verdict").
-        min_alignment_supported: the same floor for a supported answer: the mosaic's own alignment check
-            (``Acceptance.min_verified``); wrong seneca answers' gradient NCC stayed below it 95 % of the time.
-        min_alignment_matched: the supported floor for an answer hundreds of cells support: right consecutive
-            brighton-beach pairs that 330-440 cells matched scored 0.026-0.058 (surf, moving water), yet 0 means
-            that nothing aligns (no overlap, or flat tiles only).
-        min_match_tile_levels: tile levels that must accept a global match's answer for it to be verified: cells
-            at 384 px agree on homographies tens of px off at A's corners under strong perspective, and the tiles,
-            up to full resolution, are evidence independent of the cells and of the score.
-        max_round_trip: largest error of ``b_from_a @ a_from_b`` against the identity where A covers B, as a share
-            of the network's input side (12.8 px of 128): the network re-run from B to A must come back to A. On
-            right consecutive pairs of seneca and brighton-beach at 800 px it came back up to 0.085 of the side
-            (the network at 128 px on half-overlapping frames), on right turned pairs up to 0.02: it catches gross
-            errors (a wrong heading, no overlap, a network stuck on one answer), not a few pixels.
-        match_evidence_inliers: fewest cells of a global match for it to count as an opinion at all: pairs of
-            frames from different flights reached up to 34 (docs/estimators.md, "The global match").
-        max_match_disagreement: largest corner distance between the answer and a global match that counts, as a
-            share of A's longer side (16 px of 800): a cell of the match is 4 px at 384 px, 8 px of 800.
-        unverified_confidence: factor on the confidence of an answer that fails a check, so that it ranks below
-            every answer that passed (confidence 0 stays for "no answer").
-        verified_confidence: a verified answer's confidence c becomes ``v + (1 - v) * c``: verified answers are
-            right far more often than the network's score says, and the reliability diagram should show it (one
-            scored under the mosaic's floor keeps its score, so that the floor still decides).
-    """
-
-    min_alignment: float = 0.55
-    min_alignment_supported: float = 0.3
-    min_alignment_matched: float = 0.02
-    min_match_tile_levels: int = 1
-    max_round_trip: float = 0.1
-    match_evidence_inliers: int = 40
-    max_match_disagreement: float = 0.02
-    unverified_confidence: float = 0.5
-    verified_confidence: float = 0.5
-
-
-THRESHOLDS = Thresholds()
-# Least share of B that A must cover at the network's S x S input for the round trip to say anything: the check
-# the networks' own score uses (deep.NETWORK_CHECK); below it the network sees mostly the pre-warp's border.
-MIN_NETWORK_OVERLAP = 0.3
+# Least share of B that A must cover at the network's S x S input for the round trip to say anything.
+MIN_NETWORK_OVERLAP = THRESHOLDS.min_network_overlap
 
 
 @dataclass(frozen=True)
@@ -114,7 +67,7 @@ class Verdict:
 def judge(evidence: Evidence, confidence: float, thresholds: Thresholds = THRESHOLDS) -> Verdict:
     """The verdict on an answer of ``confidence`` (in [0, 1]) given ``evidence``."""
     counted_match = evidence.match_inliers is not None and evidence.match_inliers >= thresholds.match_evidence_inliers
-    confident_match = counted_match and evidence.match_inliers >= CONFIDENT_INLIERS
+    confident_match = counted_match and evidence.match_inliers >= thresholds.confident_inliers
     supported = confident_match and (evidence.is_match or (evidence.match_disagreement or 0.0) <= thresholds.max_match_disagreement)
     floor = thresholds.min_alignment_matched if supported else thresholds.min_alignment_supported
     checks = {"alignment": evidence.alignment >= floor}
@@ -132,16 +85,17 @@ def judge(evidence: Evidence, confidence: float, thresholds: Thresholds = THRESH
         return Verdict(False, None, failed, confidence * thresholds.unverified_confidence)
     by = "matches" if supported else "alignment"
     if supported:
-        confidence = max(confidence, evidence.match_inliers / (evidence.match_inliers + CONFIDENT_INLIERS))
+        confidence = max(confidence, evidence.match_inliers / (evidence.match_inliers + thresholds.confident_inliers))
     stricter = {"fine alignment": evidence.alignment >= thresholds.min_alignment}
     if supported and evidence.match_tile_levels is not None:
         stricter["match tiles"] = evidence.match_tile_levels >= thresholds.min_match_tile_levels
     failed = tuple(name for name, passed in stricter.items() if not passed)
     # Either tier keeps an answer on its side of the mosaic's confidence floor, so the mosaic takes the same answers.
-    below = confidence < MIN_CONFIDENCE
+    floor_confidence = thresholds.min_confidence
+    below = confidence < floor_confidence
     if failed:  # below every verified answer of the same evidence
         factor = thresholds.unverified_confidence
-        return Verdict(False, by, failed, confidence * factor if below else MIN_CONFIDENCE + (confidence - MIN_CONFIDENCE) * factor)
+        return Verdict(False, by, failed, confidence * factor if below else floor_confidence + (confidence - floor_confidence) * factor)
     lift = thresholds.verified_confidence
     return Verdict(True, by, (), confidence if below else lift + (1.0 - lift) * confidence)
 
@@ -192,14 +146,14 @@ def judge_answers(estimator, pairs, small_a, small_b, fulls, scores, tiled, matc
     s = estimator.network.input_size
     answered = [i for i, full in enumerate(fulls) if full is not None]
     small = {i: geometry.rescale_homography(fulls[i], pairs[i].a.size, (s, s), pairs[i].b.size, (s, s)) for i in answered}
-    seen = [i for i in answered if _overlap(small[i], s) >= MIN_NETWORK_OVERLAP]
+    seen = [i for i in answered if _overlap(small[i], s) >= thresholds.min_network_overlap]
     back = estimator.predict_small(small_b[seen], small_a[seen], estimator.rounds()[-1:], np.stack([np.linalg.inv(small[i]) for i in seen])) if seen else []
     round_trips = {i: round_trip_error(small[i], a_from_b, s) for i, a_from_b in zip(seen, back)}
     alignments = {i: VERIFIER.score(pairs[i].a, pairs[i].b, fulls[i]) for i in answered}
     # The tile levels as evidence on a match's own answer (kept as the match left it), only where the verdict
     # can turn on them: a confident match that aligns well enough to be verified, with room for tiles in B.
     retile = [i for i in answered if matched[i] is not None and tiled[i] is None and estimator.tiles
-              and matched[i].inliers >= CONFIDENT_INLIERS and alignments[i] >= thresholds.min_alignment
+              and matched[i].inliers >= thresholds.confident_inliers and alignments[i] >= thresholds.min_alignment
               and TileRefinement().can_confirm(pairs[i].b.size, s)]
     match_tiles = dict(zip(retile, estimator._tiles([pairs[i] for i in retile], [small[i] for i in retile]))) if retile else {}
     out = []

@@ -14,6 +14,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.estimators.recent import RecentCache, pixels_digest
+from udh_cli.estimators.thresholds import THRESHOLDS
 
 MATCH_CELL = 4  # px of the described image per descriptor cell (the matcher's two 2x pools)
 # Inlier threshold of the robust fit, px of the described image: a match is a cell (4 px) against a cell, so a
@@ -30,11 +31,8 @@ DISTINCT_RATIO = 0.95
 TEXTURE_FLOOR = 0.01  # grey standard deviation ([0, 1]) under which a cell is flat (textured_cells): 2.5 of 255
 GUIDED_RADIUS = 2  # cells either way around the first answer that guided matching searches (8 px at its side)
 GUIDED_THRESHOLD_PX = 4.0  # the guided fit's inlier threshold: a cell
-# Inliers above which a match needs no second heading, and above which it verifies itself, as RANSAC verifies
-# SIFT's answers. With the shipped matcher, 200 pairs of frames from different flights (copr, brighton-beach,
-# seneca, boruszyn-kite) reached at most 27; right consecutive pairs of those flights had 185 to over 4,000. At
-# 100, seneca's network-only loops went from 2.06 to 2.93 px (docs/training.md).
-CONFIDENT_INLIERS = 150
+# Inliers above which a match needs no second heading, and above which it verifies itself.
+CONFIDENT_INLIERS = THRESHOLDS.confident_inliers
 HEADINGS = {1: (0,), 2: (0, 180), 4: (0, 180, 90, 270)}  # B's turns global_match tries, in order, by ``headings``
 # The second look at a larger side first compares every other cell of A each way (a quarter of the products) and
 # compares them all only where that quarter finds this many agreeing cells, a quarter of CONFIDENT_INLIERS. On

@@ -32,6 +32,7 @@ from udh_cli.estimators.pair import PreparedPair
 from udh_cli.estimators.registry import create_estimator
 from udh_cli.estimators.views import VIEWS, ViewEstimator
 from udh_cli.estimators.refine import PyramidEcc
+from udh_cli.estimators.thresholds import THRESHOLDS
 from udh_cli.estimators.verify import VERIFIER
 
 CLEAR_DROP = 0.05  # a refinement that lowers the score by more than this is discarded
@@ -53,18 +54,17 @@ class Policy:
 
     Attributes:
         min_score: an answer scoring below this is doubted: the lower of the intensity and gradient NCC at
-            256 px (:data:`~udh_cli.estimators.verify.VERIFIER`), where wrong answers' gradients stayed
-            below 0.7 and right ones above it.
+            256 px (:data:`~udh_cli.estimators.verify.VERIFIER`; ``THRESHOLDS.min_cascade_score``).
         trusted_inliers: an opinion with at least this many RANSAC inliers (SIFT's, ORB's) is verified by its
             matches: kept whatever its photometric score, with its matcher's confidence if that is higher, and
             no further opinion is asked; ECC may polish it by up to :data:`NEAR_PX` at each corner. With fewer
             inliers the opinions go on, and the matched answer is kept only if none verifies photometrically.
             Why: occluders, surf and moving water lower the photometric score of right answers, never the
-            agreement of 20 matches.
+            agreement of that many matches (``THRESHOLDS.trusted_inliers``).
     """
 
-    min_score: float = 0.7
-    trusted_inliers: int = 20
+    min_score: float = THRESHOLDS.min_cascade_score
+    trusted_inliers: int = THRESHOLDS.trusted_inliers
 
     def __post_init__(self) -> None:
         if not 0.0 < self.min_score <= 1.0:

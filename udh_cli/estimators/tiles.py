@@ -18,6 +18,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.estimators.pair import ImageLike, PreparedImage
+from udh_cli.estimators.thresholds import THRESHOLDS
 from udh_cli.images import scaled_size
 from udh_cli.onnx_model import OnnxHomographyModel
 
@@ -68,11 +69,8 @@ class TileRefinement:
         return min(size_b) >= tile and len(_tile_origins(size_b, tile)) >= self.min_tiles
 
 
-# Levels that must accept an answer for it to count as confirmed. Why two: on seneca's consecutive pairs at 800 px
-# (148, against auto's mosaic), of the answers one level accepted 9 in 10 were over 20 px off, of those two or
-# three accepted none; in a network-only mosaic of seneca, accepting one-level answers joined 46 wrong pairs
-# (over 20 px) to 14 right ones, requiring two joined 1 wrong to 16 right (docs/estimators.md, 2026-11-25).
-CONFIRMING_LEVELS = 2
+# Levels that must accept an answer for it to count as confirmed.
+CONFIRMING_LEVELS = THRESHOLDS.confirming_tile_levels
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from udh_cli import __version__
+from udh_cli.version import __version__
 from udh_cli.estimators import Estimator
 from udh_cli.mosaic.config import MosaicConfig
 from udh_cli.mosaic.georef.place import PartOnCanvas

@@ -317,9 +317,10 @@ def _reference_homographies(folder: Path) -> dict[tuple[str, str], np.ndarray]:
 
 def _sift_reference(gray_a: np.ndarray, gray_b: np.ndarray) -> np.ndarray | None:
     from udh_cli.estimators import create_estimator
+    from udh_cli.estimators.thresholds import THRESHOLDS
 
     estimate = create_estimator("sift").estimate(gray_a, gray_b)
-    return estimate.homography if estimate.ok and estimate.confidence > 0.2 else None
+    return estimate.homography if estimate.ok and estimate.confidence > THRESHOLDS.min_confidence else None
 
 
 def open_data(folders: list[Path], kind: str, config: PairConfig, real_fraction: float = DEFAULT_REAL_FRACTION,

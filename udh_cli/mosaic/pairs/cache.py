@@ -28,11 +28,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from udh_cli import __version__, geometry
+from udh_cli import geometry
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.estimators.base import TYPED_FIELDS
 from udh_cli.errors import UdhError
 from udh_cli.files import read_side_file
+from udh_cli.version import __version__
 from udh_cli.images import atomic_write_bytes
 from udh_cli.mosaic.inputs.frames import Frame
 from udh_cli.mosaic.pairs.types import ACCEPTANCE_REVISION, Acceptance, PairRequest, PairResult, full_resolution, work_inputs

@@ -21,19 +21,14 @@ from udh_cli.errors import EstimationFailed
 from udh_cli.estimators import Estimator
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.estimators.refine import PyramidEcc
-from udh_cli.estimators.refined import Policy
+from udh_cli.estimators.thresholds import THRESHOLDS
 from udh_cli.estimators.verify import VERIFIER
 
-# The score auto's cascade asks of its own answers: stricter than the mosaic's min_verified, because nothing but
-# this check stands between a cheap answer and the map (the loop's disagreement test cannot, since the answer
-# starts at the prediction it is tested against).
-CONFIRM_MIN_SCORE = Policy().min_score
-# A prediction that aligns the images this badly before any refinement is not a few pixels off, and ECC from it
-# fails after spending its budget: the cascade decides at once (docs/mosaic.md).
-CONFIRM_MIN_START = 0.2
-# A confirmation refines a guess a few pixels off: a corner moved further than this share of A's diagonal means
-# ECC left the prediction's basin, and the cascade decides instead.
-CONFIRM_MAX_MOVE = 0.03
+# The score auto's cascade asks of its own answers (Policy.min_score): the loop's disagreement test cannot stand
+# in, since the answer starts at the prediction it is tested against.
+CONFIRM_MIN_SCORE = THRESHOLDS.min_cascade_score
+CONFIRM_MIN_START = THRESHOLDS.min_prediction_start  # below it the cascade decides at once
+CONFIRM_MAX_MOVE = THRESHOLDS.max_prediction_move  # further and ECC left the prediction's basin: the cascade decides
 
 
 def cascade_ecc() -> PyramidEcc:

@@ -15,6 +15,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.estimators import Estimate
 from udh_cli.estimators.pair import ImageLike
+from udh_cli.estimators.thresholds import THRESHOLDS
 from udh_cli.estimators.verify import VERIFIER
 from udh_cli.mosaic.inputs.frames import Frame
 
@@ -55,8 +56,8 @@ class Acceptance:
     without this were over 20 px off (against ``auto``'s), with it 1 of 28 (docs/mosaic.md, 2026-11-25).
     """
 
-    min_confidence: float = 0.2
-    min_verified: float = 0.3
+    min_confidence: float = THRESHOLDS.min_confidence
+    min_verified: float = THRESHOLDS.min_alignment_supported
 
     def judge(self, estimate: Estimate, image_a: ImageLike, image_b: ImageLike,
               verified_by_method: bool = False) -> tuple[float | None, str | None]:

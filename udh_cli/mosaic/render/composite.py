@@ -37,12 +37,12 @@ MULTIBAND_LEVELS = 5
 TILE_SIDE = 2048  # canvas pixels per tile side; a canvas that fits in one tile is blended whole
 # Canvas pixels each tile also blends beyond its edges, then drops. Multiband blending mixes each band over a
 # reach that doubles per level (the 5th level's 5x5 kernel spans about 2^5 * 4 px): with 256 px the tiled
-# result differs from the whole canvas blended at once by at most 1 grey level (tests/mosaic/test_composite.py).
+# result differs from the whole canvas blended at once by at most 1 grey level (tests/mosaic/render/test_composite.py).
 TILE_MARGIN = {"feather": 0, "none": 0, "multiband": 256}
 # A streamed canvas costs no memory, but one this large (64k x 64k) comes from a homography gone astray, not a survey.
 MAX_STREAMED_PIXELS = 2**32
 # Canvas pixels of a frame fed to the multiband blender beyond those it owns: its bands reach as far as a tile's
-# margin does, so the frame cut there blends as the whole frame does, within 1 grey level (tests/mosaic/test_composite.py).
+# margin does, so the frame cut there blends as the whole frame does, within 1 grey level (tests/mosaic/render/test_composite.py).
 FEED_MARGIN = TILE_MARGIN["multiband"]
 TRUNCATE = 0.498  # subtracted before rounding, so that rounding truncates; under 0.5, so that whole values stay
 

@@ -45,7 +45,7 @@ GAUGE = (2, 3, 4, 5)  # the reference's parameters held fixed: its yaw, X, Y and
 ROTATION_STEP = 1e-6
 POSITION_STEP = 1e-6
 # Levenberg-Marquardt iterations at most. A solved focal length trades with the cameras' tilts along a shallow
-# valley, which needs about 200 (tests/mosaic/test_cameras.py); with it held the solve stops far sooner, once
+# valley, which needs about 200 (tests/mosaic/solve/test_cameras.py); with it held the solve stops far sooner, once
 # a step gains less than 1e-10 of the cost.
 ITERATIONS = 200
 

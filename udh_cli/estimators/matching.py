@@ -22,7 +22,7 @@ MATCH_CELL = 4  # px of the described image per descriptor cell (the matcher's t
 FIT_THRESHOLD_PX = 6.0
 MIN_MATCHES = 12  # fewer inliers than this and the fit is no answer
 # The global match compares every cell with every cell: its cost grows as the side's fourth power (768 px, 4:3:
-# 27,648 cells, about 3.5 GFLOP of similarities a direction), so its side is bounded; the guided refinement is not.
+# 27,648 cells a frame, 7.6e8 pairs of cells: about 98 GFLOP with 64-channel descriptors), so its side is bounded; the guided refinement is not.
 MAX_MATCH_SIDE = 768
 MIN_DESCRIBED_SIDE = 32  # px: the matcher's smallest input (OnnxMatcher.describe); smaller images get no match
 # Lowe's ratio for the global match's cells (mutual_matches). Chosen on consecutive pairs of copr, brighton-beach and

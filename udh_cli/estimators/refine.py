@@ -110,6 +110,7 @@ class PyramidEcc:
             except EstimationFailed:
                 if level == 0:
                     raise
+                correlation = float("nan")  # the clean-texture rule reads the level just before the finest only
                 continue  # a coarse level may lack texture; the finer ones still get their chance
             current = geometry.rescale_homography(refined, work_a, size_a, work_b, size_b)
         if self.robust_k > 0 and HAS_MASKED_ECC:

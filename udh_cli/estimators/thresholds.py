@@ -42,7 +42,7 @@ class Thresholds:
         max_match_disagreement: largest corner distance between the answer and a global match that counts, as a
             share of A's longer side (16 px of 800): a cell of the match is 4 px at 384 px, 8 px of 800.
         unverified_confidence: factor on the confidence of an answer that fails a check, so that it ranks below
-            every answer that passed (confidence 0 stays for "no answer").
+            the answers that passed on its side of the mosaic's floor (confidence 0 stays for "no answer").
         verified_confidence: a verified answer's confidence c becomes ``v + (1 - v) * c``: verified answers are
             right far more often than the network's score says, and the reliability diagram should show it (one
             scored under the mosaic's floor keeps its score, so that the floor still decides).

@@ -101,6 +101,7 @@ def run_mosaic(
         warn_about_earlier_output(files, plan, reporter)
         report = _write_report(frameset, plan, drawn, solved.pairs, solved.loops, truth, config, opinions, reporter, staged, files, gcps,
                                gcp_image_width, cache, started)
+        del drawn  # the images held for the GeoTIFFs
         published = staged.publish()
     finally:
         staged.discard()  # after a failure; nothing is left to discard after publish()

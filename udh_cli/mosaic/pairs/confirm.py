@@ -5,9 +5,9 @@ prediction is the identity between the two working images. When ECC started ther
 :data:`CONFIRM_MIN_SCORE` asks, that answer is the pair's; otherwise the pair goes to the mosaic's opinions (the
 whole cascade) as if it had never been tried. Why: the chain already puts most loop pairs within a few pixels,
 where the cascade's network and tile stages add time and nothing else. The refinement is the cascade's own
-(``auto``'s :class:`~udh_cli.estimators.refine.PyramidEcc`): from the prediction it lands where the cascade
-lands, where cheaper single ECC levels loosened the loops (docs/mosaic.md, "Loop-closure pairs from the
-chain's prediction", has the measurements).
+(``auto``'s :class:`~udh_cli.estimators.refine.PyramidEcc`), its finest level always at the full working side:
+from the prediction it lands where the cascade lands, where cheaper ECC levels loosened the loops
+(docs/mosaic.md, "Loop-closure pairs from the chain's prediction", has the measurements).
 """
 
 from __future__ import annotations
@@ -33,8 +33,7 @@ CONFIRM_MAX_MOVE = THRESHOLDS.max_prediction_move  # further and ECC left the pr
 
 def cascade_ecc() -> PyramidEcc:
     """The refinement that confirms a prediction: the cascade's ECC pyramid, held near its start, its finest level
-    always at the full working side: loop pairs hold the map together, and at 400 px the example flight's SIFT
-    mosaic moved from 0.061 to 0.068 px mean error (docs/benchmarks.md, Speed)."""
+    always at the full working side, because loop pairs hold the map together (docs/benchmarks.md, Speed)."""
     return PyramidEcc(max_move=CONFIRM_MAX_MOVE, clean_side=None)
 
 

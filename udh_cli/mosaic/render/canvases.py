@@ -83,7 +83,7 @@ class DrawnPart:
     plan: PlannedPart
     preview: Path | None
     gains: dict[int, list[float]]
-    image: np.ndarray | None = field(default=None, repr=False)
+    image: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 def kept_images(plan: "CanvasPlan", wanted: bool, budget_bytes: int = KEPT_IMAGES_BYTES) -> set[int]:

@@ -49,3 +49,33 @@ def test_no_module_restates_a_threshold_as_a_number():
             if isinstance(value, ast.Constant) and isinstance(value.value, (int, float)) and not isinstance(value.value, bool):
                 restated += [f"{path.relative_to(PACKAGE)}:{node.lineno} {t.id}" for t in targets if isinstance(t, ast.Name) and t.id in READERS]
     assert not restated, restated
+
+
+# Each reader by module and name, and the entry of the table it must read: equal numbers (0.2, 0.5) cannot show
+# a reader taking the wrong entry, the source can.
+EXPECTED_ENTRIES = {
+    ("estimators/base.py", "MIN_CONFIDENCE"): "min_confidence",
+    ("estimators/matching.py", "CONFIDENT_INLIERS"): "confident_inliers",
+    ("estimators/tiles.py", "CONFIRMING_LEVELS"): "confirming_tile_levels",
+    ("estimators/judge.py", "MIN_NETWORK_OVERLAP"): "min_network_overlap",
+    ("mosaic/pairs/confirm.py", "CONFIRM_MIN_SCORE"): "min_cascade_score",
+    ("mosaic/pairs/confirm.py", "CONFIRM_MIN_START"): "min_prediction_start",
+    ("mosaic/pairs/confirm.py", "CONFIRM_MAX_MOVE"): "max_prediction_move",
+    ("mosaic/pairs/types.py", "min_confidence"): "min_confidence",
+    ("mosaic/pairs/types.py", "min_verified"): "min_alignment_supported",
+    ("estimators/refined.py", "min_score"): "min_cascade_score",
+    ("estimators/refined.py", "trusted_inliers"): "trusted_inliers",
+    ("estimators/deep.py", "search_below"): "network_search_below",
+}
+
+
+def test_every_reader_names_its_own_entry_of_the_table():
+    read = {}
+    for path in PACKAGE.rglob("*.py"):
+        module = str(path.relative_to(PACKAGE))
+        for node in ast.walk(ast.parse(path.read_text())):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+            value = getattr(node, "value", None)
+            if isinstance(value, ast.Attribute) and isinstance(value.value, ast.Name) and value.value.id == "THRESHOLDS":
+                read.update({(module, t.id): value.attr for t in targets if isinstance(t, ast.Name) and (module, t.id) in EXPECTED_ENTRIES})
+    assert read == EXPECTED_ENTRIES

@@ -134,3 +134,11 @@ def test_tile_texture_is_the_deviation_of_every_fourth_pixel_of_each_tile():
     origins = np.array([[0, 0], [17, 33], [272, 172]])
     expected = [grey[y : y + 128 : 4, x : x + 128 : 4].std() for x, y in origins]
     np.testing.assert_allclose(_tile_texture(grey, origins, 128), expected, rtol=1e-5)
+
+
+def test_a_result_confirms_by_the_levels_asked_or_by_every_level_that_ran():
+    from udh_cli.estimators.tiles import CONFIRMING_LEVELS, TileResult
+
+    one_of_three = TileResult(np.eye(3), levels_used=1, agreeing=0.5, residual_px=1.0, levels_run=3)
+    assert CONFIRMING_LEVELS == 2 and not one_of_three.confirms() and one_of_three.confirms(1)
+    assert TileResult(np.eye(3), levels_used=1, agreeing=0.5, residual_px=1.0, levels_run=1).confirms(3)  # all that ran

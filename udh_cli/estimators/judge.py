@@ -164,7 +164,7 @@ def judge_answers(estimator, pairs, small_a, small_b, fulls, scores, tiled, matc
         match = seen_match[i]
         can_confirm = tiled[i] is not None and TileRefinement().can_confirm(pair.b.size, s)
         evidence = Evidence(alignment=alignments[i], round_trip=round_trips.get(i),
-                            tiles_confirm=tiled[i].confirms() if can_confirm else None,
+                            tiles_confirm=tiled[i].confirms(thresholds.confirming_tile_levels) if can_confirm else None,
                             match_inliers=match.inliers if match is not None else None,
                             match_disagreement=disagreement(full, match.b_from_a, pair.a.size) if match is not None else None,
                             is_match=matched[i] is not None and tiled[i] is None,

@@ -93,10 +93,9 @@ class TileResult:
     residual_px: float
     levels_run: int
 
-    def confirms(self) -> bool:
-        """Whether the answer is confirmed: accepted by :data:`CONFIRMING_LEVELS` levels, or by every level
-        that ran when fewer ran."""
-        return self.levels_used >= min(CONFIRMING_LEVELS, self.levels_run)
+    def confirms(self, levels: int = CONFIRMING_LEVELS) -> bool:
+        """Whether the answer is confirmed: accepted by ``levels`` levels, or by every level that ran when fewer ran."""
+        return self.levels_used >= min(levels, self.levels_run)
 
 
 def _level_sizes(size_a: tuple[int, int], size_b: tuple[int, int], side: int) -> tuple[tuple[int, int], tuple[int, int]]:

@@ -315,12 +315,16 @@ def _reference_homographies(folder: Path) -> dict[tuple[str, str], np.ndarray]:
     return found
 
 
+# Least SIFT confidence (its RANSAC inlier share) for a flight pair's reference to be trained against: a rule of the
+# training data, so that tuning the mosaic's acceptance floor never changes what the networks learn from.
+MIN_REFERENCE_CONFIDENCE = 0.2
+
+
 def _sift_reference(gray_a: np.ndarray, gray_b: np.ndarray) -> np.ndarray | None:
     from udh_cli.estimators import create_estimator
-    from udh_cli.estimators.thresholds import THRESHOLDS
 
     estimate = create_estimator("sift").estimate(gray_a, gray_b)
-    return estimate.homography if estimate.ok and estimate.confidence > THRESHOLDS.min_confidence else None
+    return estimate.homography if estimate.ok and estimate.confidence > MIN_REFERENCE_CONFIDENCE else None
 
 
 def open_data(folders: list[Path], kind: str, config: PairConfig, real_fraction: float = DEFAULT_REAL_FRACTION,

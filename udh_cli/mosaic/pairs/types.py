@@ -33,18 +33,13 @@ class Acceptance:
 
     Attributes:
         min_confidence: the estimator's own confidence (its meaning differs between methods). One floor for
-            all, low on purpose: it only drops what an estimator itself calls hopeless. On the consecutive pairs
-            of copr, brighton-beach and seneca (163, against SIFT references) 0.2 kept every right answer of the
-            networks, SIFT and ORB, and no floor up to 0.5 dropped more than a quarter of their wrong ones, whose
-            confidence ran to 0.88-1.0: the alignment check below and RANSAC's inliers tell right from wrong,
-            not the confidence (docs/mosaic.md).
+            all, low on purpose: it only drops what an estimator itself calls hopeless; the alignment check below
+            and RANSAC's inliers tell right from wrong, not the confidence (docs/mosaic.md, "Stages").
         min_verified: a photometric check for the methods that do not verify their answers themselves
-            (the networks, ECC; not SIFT/ORB, whose answers are RANSAC-verified, nor auto): the lower of
-            the intensity and gradient NCC of the aligned working images at 256 px
-            (:data:`udh_cli.estimators.verify.VERIFIER`, the check auto uses). Why: the networks' confidence stayed at 0.2-0.9
-            on wrong seneca pairs (smooth infrared fields correlate under a wrong shift); their gradient NCC
-            was at most 0.47 (95 % below 0.28). Not for every method: right SIFT pairs of brighton-beach
-            (surf and sand) scored 0.19-0.30 and were split off. 0 turns the check off (not the rule below).
+            (the networks, ECC; not SIFT/ORB, whose answers are RANSAC-verified, nor auto): the lower of the
+            intensity and gradient NCC of the aligned working images (:data:`udh_cli.estimators.verify.VERIFIER`).
+            Not for every method: right SIFT pairs over surf and sand score under it. 0 turns the check off (not
+            the rule below).
 
     An answer its own method marks unconfirmed with nothing supporting it (``Estimate.verified`` False and no
     ``verified_by``: a network's tile levels did not confirm it) is doubted whatever these say, unless the method

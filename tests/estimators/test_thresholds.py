@@ -38,16 +38,23 @@ def test_every_entry_has_its_reason():
     assert not missing, missing
 
 
-def test_no_module_restates_a_threshold_as_a_number():
-    restated = []
+def _assignments():
+    """(module path relative to udh_cli, line, assigned name, value node) of every plain or annotated assignment to
+    a name in udh_cli, thresholds.py left out."""
     for path in PACKAGE.rglob("*.py"):
         if path.name == "thresholds.py":
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
-            value = getattr(node, "value", None)
-            if isinstance(value, ast.Constant) and isinstance(value.value, (int, float)) and not isinstance(value.value, bool):
-                restated += [f"{path.relative_to(PACKAGE)}:{node.lineno} {t.id}" for t in targets if isinstance(t, ast.Name) and t.id in READERS]
+            for target in targets:
+                if isinstance(target, ast.Name):
+                    yield str(path.relative_to(PACKAGE)), node.lineno, target.id, getattr(node, "value", None)
+
+
+def test_no_module_restates_a_threshold_as_a_number():
+    restated = [f"{module}:{line} {name}" for module, line, name, value in _assignments()
+                if name in READERS and isinstance(value, ast.Constant) and isinstance(value.value, (int, float))
+                and not isinstance(value.value, bool)]
     assert not restated, restated
 
 
@@ -70,12 +77,7 @@ EXPECTED_ENTRIES = {
 
 
 def test_every_reader_names_its_own_entry_of_the_table():
-    read = {}
-    for path in PACKAGE.rglob("*.py"):
-        module = str(path.relative_to(PACKAGE))
-        for node in ast.walk(ast.parse(path.read_text())):
-            targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
-            value = getattr(node, "value", None)
-            if isinstance(value, ast.Attribute) and isinstance(value.value, ast.Name) and value.value.id == "THRESHOLDS":
-                read.update({(module, t.id): value.attr for t in targets if isinstance(t, ast.Name) and (module, t.id) in EXPECTED_ENTRIES})
+    read = {(module, name): value.attr for module, _, name, value in _assignments()
+            if (module, name) in EXPECTED_ENTRIES and isinstance(value, ast.Attribute)
+            and isinstance(value.value, ast.Name) and value.value.id == "THRESHOLDS"}
     assert read == EXPECTED_ENTRIES

@@ -81,8 +81,9 @@ def judge_opinions(opinions: Sequence[Estimator], acceptance, pairs: Sequence[Im
     marked = set(confirming)
     # A pre-warped pair the prediction did not confirm asks the opinions without their far searches
     # (Estimator.near_prior): a loop pair must land near its prediction to be kept at all.
+    prewarped = [i for i in doubted if i in marked]
     for group, asked in (([i for i in doubted if i not in marked], opinions),
-                         ([i for i in doubted if i in marked], [opinion.near_prior() for opinion in opinions] if marked else [])):
+                         (prewarped, [opinion.near_prior() for opinion in opinions] if prewarped else [])):
         for opinion in asked:
             if not group:
                 break

@@ -15,6 +15,7 @@ from udh_cli.mosaic.georef.geotiff import streams_to_file, write_tiled_tiff
 from udh_cli.mosaic.georef.place import PartOnCanvas
 from udh_cli.mosaic.inputs.frames import FrameSet
 from udh_cli.mosaic.outputs.files import MosaicFiles, RunFiles
+from udh_cli.mosaic.outputs.png_stream import StreamedPng, bands
 from udh_cli.mosaic.outputs.staging import StagedFiles
 from udh_cli.mosaic.render import composite as compositing
 from udh_cli.mosaic.render.decoded import DecodedFrames
@@ -145,12 +146,16 @@ def composite_part(frameset: FrameSet, plan: PlannedPart, settings: Drawing, rep
     tiles = compositing.composite_tiles(frameset, to_mosaic, plan.canvas.size, settings.blend, reporter, f"compositing{suffix}", gains, seams,
                                         workers=settings.workers, decoded=decoded)
     drawer = compositing.PreviewDrawer(plan.canvas.size)
+    kept = None
+    file_type = plan.file.suffix.lower()
     if streams_to_file(plan.file):  # blended and written tile by tile: the map's area costs no memory
         write_tiled_tiff(staged.path_for(plan.file), plan.canvas.size, _drawn(tiles, drawer))
+    elif file_type == ".png":  # each band compressed beside the next tiles' blending (png_stream)
+        kept = _write_png(staged.path_for(plan.file), plan.canvas.size, _drawn(tiles, drawer), reporter, settings.workers, keep_image)
     else:
         mosaic = compositing.assemble(_drawn(tiles, drawer), plan.canvas.size)
         with reporter.stage("writing", 1) as advance:
-            if plan.file.suffix.lower() in (".jpg", ".jpeg"):
+            if file_type in (".jpg", ".jpeg"):
                 reporter.warn(f"{plan.file.name}: JPEG has no alpha channel; uncovered areas are black (use .png or .tif to keep the mask)")
                 write_image(staged.path_for(plan.file), mosaic[..., :3])
             else:
@@ -161,8 +166,26 @@ def composite_part(frameset: FrameSet, plan: PlannedPart, settings: Drawing, rep
     preview = MosaicFiles(plan.file).preview if settings.preview else None
     if preview is not None:
         write_image(staged.path_for(preview), drawer.image())
-    return DrawnPart(plan, preview, {i: mean_gain(gains[i]) if gains is not None else [1.0, 1.0, 1.0] for i in plan.frames},
-                     kept if not streams_to_file(plan.file) else None)
+    return DrawnPart(plan, preview, {i: mean_gain(gains[i]) if gains is not None else [1.0, 1.0, 1.0] for i in plan.frames}, kept)
+
+
+def _write_png(path: Path, size: tuple[int, int], tiles, reporter: Reporter, threads: int, keep_image: bool) -> np.ndarray | None:
+    """Stream row-major ``tiles`` into a PNG at ``path``; with ``keep_image`` returns the (H, W, 4) BGRA canvas
+    assembled from them too. The "writing" stage times only what is left to compress after the last tile."""
+    kept = np.zeros((size[1], size[0], 4), np.uint8) if keep_image else None
+    png = StreamedPng(path, size, 4, threads)
+    try:
+        for top, band in bands(tiles, size):
+            png.add_rows(top, band)
+            if kept is not None:
+                kept[top : top + band.shape[0]] = band
+    except BaseException:
+        png.abandon()
+        raise
+    with reporter.stage("writing", 1) as advance:
+        png.close()
+        advance(1)
+    return kept
 
 
 def _drawn(tiles, drawer: "compositing.PreviewDrawer"):

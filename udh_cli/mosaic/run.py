@@ -29,6 +29,7 @@ from udh_cli.mosaic.pairs.cache import PairCache
 from udh_cli.mosaic.pairs.plan import estimate_sequence
 from udh_cli.mosaic.pairs.types import PairResult
 from udh_cli.mosaic.pairs.workers import open_runner
+from udh_cli.mosaic.render.decoded import DECODED_CACHE_BYTES
 from udh_cli.mosaic.render.canvases import CanvasPlan, DrawnPart, composite_part, kept_images, on_canvas, plan_canvases, warn_about_earlier_output
 from udh_cli.mosaic.report import Reporter
 from udh_cli.mosaic.report_page import write_report_page
@@ -85,7 +86,8 @@ def run_mosaic(
     started = time.perf_counter()
     truth = load_truth(source, ground_truth)
     opinions, spec = run_estimators(config, estimator, fallback)
-    frameset = open_frames(source, config.work_size, config.order, config.every, exclude=files.own_files(), reporter=reporter, lens=lens)
+    frameset = open_frames(source, config.work_size, config.order, config.every, exclude=files.own_files(), reporter=reporter, lens=lens,
+                           keep_decoded_bytes=DECODED_CACHE_BYTES)
     config = with_workers(config, len(frameset.frames))
     lens = _fit_lens(frameset, reporter) if camera is not None and str(camera) == CAMERA_ESTIMATE else lens
     gcps, gcp_image_width = _gcps_on_frames(gcps, gcp, source, frameset, lens, gcp_image_width, reporter)

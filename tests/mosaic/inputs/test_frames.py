@@ -198,3 +198,19 @@ def test_the_camera_make_is_named_once_and_the_original_size_is_read(tmp_path):
     Image.fromarray(textured_image(64, 48)).save(path, exif=exif)
     found = read_metadata(path)
     assert found.camera == "Canon EOS DIGITAL REBEL XSi" and (found.original_width, found.original_height) == (4272, 2848)
+
+
+def test_the_first_frames_decoded_while_reading_are_handed_over_once_as_full_images_gives_them(tmp_path):
+    for seed in range(4):
+        cv2.imwrite(str(tmp_path / f"f{seed}.png"), textured_image(160, 120, seed))
+    one_frame = cv2.imread(str(tmp_path / "f0.png"), cv2.IMREAD_UNCHANGED).nbytes
+    frameset = open_frames(tmp_path, 80, keep_decoded_bytes=2 * one_frame + 100)
+    assert sorted(frameset.decoded_while_reading) == [0, 1]  # the first ones, within the budget
+    assert open_frames(tmp_path, 80).decoded_while_reading == {}  # none unless asked
+    taken = frameset.take_decoded([1, 2, 3])
+    assert sorted(taken) == [1]
+    assert np.array_equal(taken[1], dict(frameset.full_images([1]))[1])
+    assert frameset.take_decoded([1]) == {} and sorted(frameset.decoded_while_reading) == [0]  # handed over once
+    (tmp_path / "f0.png").write_bytes(cv2.imencode(".png", textured_image(160, 120, 9))[1].tobytes())
+    with pytest.raises(UdhError, match="f0.png"):  # a frame replaced since it was read is refused, kept or not
+        frameset.take_decoded([0])

@@ -60,3 +60,14 @@ def test_a_cache_over_its_budget_drops_the_least_recently_used(placed_flight, mo
     assert list(decoded.kept) == [1, 2] and decoded.kept_bytes == 2 * one_frame
     assert [i for i, _ in decoded.get([1, 0])] == [0, 1]
     assert read == [0, 1, 2, 0]  # 1 was kept, 0 was read again
+
+
+def test_frames_decoded_before_are_not_read_again(placed_flight, monkeypatch):
+    frames, to_ground, size = placed_flight
+    alone = composite(frames, to_ground, size, "multiband", Reporter(quiet=True), tile_side=128)
+    first_two = dict(frames.full_images([0, 1]))
+    read = _counting_reads(monkeypatch)
+    decoded = DecodedFrames(frames, already=first_two)
+    given = composite(frames, to_ground, size, "multiband", Reporter(quiet=True), tile_side=128, decoded=decoded)
+    assert sorted(set(read)) == sorted(set(to_ground) - {0, 1})
+    assert np.array_equal(given, alone)

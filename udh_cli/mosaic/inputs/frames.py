@@ -1,7 +1,7 @@
 """Mosaic input: a folder of frames or a video, read once into small grey working copies.
 
-Full-resolution pixels are not kept: compositing reads them again one frame at a time
-(:meth:`FrameSet.full_images`), so memory holds only the working copies, ``N * work_w * work_h`` bytes.
+Full-resolution pixels are kept only for the first frames, within a budget the caller gives, until the rendering
+takes them; compositing reads the others again one at a time (:meth:`FrameSet.full_images`).
 """
 
 from __future__ import annotations
@@ -73,10 +73,26 @@ class FrameSet:
     lens: Lens | None = None  # every frame is undistorted by it as it is read (:mod:`.lens`)
     lens_fit: dict | None = None  # how the lens was estimated from the flight (``--camera estimate``, :mod:`.lens_fit`)
     source_stamp: tuple[int, int, int] | None = None  # a video's :func:`file_stamp` when its frames were read
+    # Full-resolution frames decoded while reading (the first ones, up to open_frames' budget), undistorted, until
+    # the rendering takes them (take_decoded): a frame so kept is decoded once for the whole run.
+    decoded_while_reading: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
 
     @property
     def is_video(self) -> bool:
         return bool(self.frames) and self.frames[0].video_frame is not None
+
+    def take_decoded(self, indices: Iterable[int]) -> dict[int, np.ndarray]:
+        """The frames of ``indices`` decoded while reading, as :meth:`full_images` gives them ((H, W, 3) BGR uint8),
+        handed over: the set no longer holds them. A file changed on disk since is refused, as there."""
+        taken = {}
+        for index in sorted(set(indices) & set(self.decoded_while_reading)):
+            if not self.is_video:
+                _check_unchanged(self.frames[index].path, self.frames[index].stamp)
+            image = self.decoded_while_reading.pop(index)
+            taken[index] = image if self.is_video else display_u8(image, self.value_range)
+        if self.is_video and taken:
+            _check_unchanged(self.source, self.source_stamp)
+        return taken
 
     def full_images(self, indices: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(index, (H, W, 3) BGR uint8)`` at full resolution for ``indices``, in sequence order.
@@ -194,6 +210,7 @@ def open_frames(
     exclude: Iterable[Path] = (),
     reporter: Reporter | None = None,
     lens: Lens | None = None,
+    keep_decoded_bytes: int = 0,
 ) -> FrameSet:
     """Read a folder of frames or a video into a :class:`FrameSet`.
 
@@ -205,6 +222,8 @@ def open_frames(
         exclude: files to leave out (the run's own outputs, when they are written into the folder).
         lens: a camera model: every frame is undistorted by it as it is read (:mod:`.lens`); frames of another
             shape than its calibration are refused.
+        keep_decoded_bytes: keep the first frames' full-resolution decodes up to this many bytes, for the
+            rendering to take (:meth:`FrameSet.take_decoded`) instead of decoding them again; 0: keep none.
 
     Corrupt frames and non-image files are skipped with a warning and listed in ``skipped``.
     Raises :class:`UdhError` when fewer than two usable frames remain or the video cannot be decoded.
@@ -217,13 +236,30 @@ def open_frames(
         raise UdhError(f"--every {every}: give a positive number of frames")
     if not source.exists():
         raise UdhError(f"{source}: no such folder or video; check the path")
-    frames = _open_video(source, work_size, every, reporter, lens) if source.is_file() else _open_folder(source, work_size, order, exclude, reporter, lens)
+    kept = _DecodeKeeper(keep_decoded_bytes)
+    frames = (_open_video(source, work_size, every, reporter, lens, kept) if source.is_file()
+              else _open_folder(source, work_size, order, exclude, reporter, lens, kept))
     _check_sizes(frames, reporter)
     frames.lens = lens
     return frames
 
 
-def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Path], reporter: Reporter, lens: Lens | None) -> FrameSet:
+class _DecodeKeeper:
+    """Full-resolution decodes kept while reading, the first ones up to ``budget_bytes``."""
+
+    def __init__(self, budget_bytes: int) -> None:
+        self.budget_bytes, self.kept, self.kept_bytes, self.full = budget_bytes, {}, 0, budget_bytes <= 0
+
+    def offer(self, index: int, image: np.ndarray) -> None:
+        if not self.full and self.kept_bytes + image.nbytes <= self.budget_bytes:
+            self.kept[index] = image
+            self.kept_bytes += image.nbytes
+        else:  # the first frame over the budget closes it: the kept frames stay the first ones, as the rendering reads them
+            self.full = True
+
+
+def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Path], reporter: Reporter, lens: Lens | None,
+                 kept: _DecodeKeeper) -> FrameSet:
     excluded = {Path(p).resolve() for p in exclude}
     try:
         listing = list(folder.iterdir())
@@ -273,13 +309,15 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
                 continue
             if lens is not None:
                 lens.check((image.shape[1], image.shape[0]), path.name)
-            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(_undistorted(image, lens), work_size), path, None,
+            image = _undistorted(image, lens)
+            kept.offer(len(frames), image)
+            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(image, work_size), path, None,
                                 metadata[path].capture_time if order == "time" else None, metadata[path], stamp))
             advance(1)
     if len(frames) < 2:
         found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"
         raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames{_subfolder_hint(folder)}")
-    return FrameSet(folder, frames, skipped, stretch_work_copies(frames))
+    return FrameSet(folder, frames, skipped, stretch_work_copies(frames), decoded_while_reading=kept.kept)
 
 
 def not_a_file(path: Path) -> str | None:
@@ -348,7 +386,7 @@ def read_video_frame(capture: cv2.VideoCapture) -> tuple[bool, np.ndarray | None
 _FFMPEG_LINE = re.compile(r"\s*\[(?:OPENCV:FFMPEG:\d+|[\w,\-]+ @ 0x[0-9a-fA-F]+)\]")
 
 
-def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens: Lens | None) -> FrameSet:
+def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens: Lens | None, kept: _DecodeKeeper) -> FrameSet:
     if path.suffix.lower() in IMAGE_SUFFIXES:
         raise UdhError(f"{path}: is a single image; give a folder of frames or a video")
     stamp = file_stamp(path)
@@ -377,8 +415,10 @@ def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens
                 else:
                     if lens is not None:
                         lens.check((image.shape[1], image.shape[0]), f"{path.name}#{number}")
+                    image = _undistorted(image, lens)
+                    kept.offer(len(frames), image)
                     frames.append(Frame(len(frames), f"{path.name}#{number}", (image.shape[1], image.shape[0]),
-                                        work_copy(_undistorted(image, lens), work_size), None, number))
+                                        work_copy(image, work_size), None, number))
                 number += 1
                 advance(1)
     finally:
@@ -389,7 +429,7 @@ def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens
         reporter.warn(f"{path.name}: the decoder stopped after {number} of the {total} frames the video lists; it is damaged or cut short")
     if len(frames) < 2:
         raise UdhError(f"{path}: only {len(frames)} frame kept of {number} (--every {every}); a mosaic needs at least two")
-    return FrameSet(path, frames, skipped, stretch_work_copies(frames), source_stamp=stamp)
+    return FrameSet(path, frames, skipped, stretch_work_copies(frames), source_stamp=stamp, decoded_while_reading=kept.kept)
 
 
 def _check_sizes(frames: FrameSet, reporter: Reporter) -> None:

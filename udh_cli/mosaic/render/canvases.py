@@ -135,7 +135,8 @@ def composite_part(frameset: FrameSet, plan: PlannedPart, settings: Drawing, rep
     to_mosaic = {i: plan.mosaic_from_frame(i) for i in plan.frames}
     suffix = "" if plan.number == 1 else f" part {plan.number}"
     gains, seams = None, None
-    decoded = DecodedFrames(frameset)  # the small copies' decoded frames, kept for the first tiles
+    # The frames decoded while reading, then the small copies' decodes, kept for the tiles.
+    decoded = DecodedFrames(frameset, already=frameset.take_decoded(plan.frames))
     want_seams = settings.seams != "central" and settings.blend != "feather"
     if settings.exposure != "none" or want_seams:
         small = draw_small(frameset, to_mosaic, plan.canvas.scale, reporter, f"small copies{suffix}", decoded)

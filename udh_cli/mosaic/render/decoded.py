@@ -18,13 +18,14 @@ DECODED_CACHE_BYTES = 256 * 2**20  # decoded full-resolution frames kept for the
 class DecodedFrames:
     """Full-resolution frames as :meth:`FrameSet.full_images` gives them, the most recently used kept up to
     ``budget_bytes`` (0: :data:`DECODED_CACHE_BYTES`): a frame reaching several tiles is mostly decoded once.
+    ``already``: frames decoded before, by index, kept first.
     Threads may share it: the frames are decoded outside its lock, so two threads may rarely decode one frame."""
 
-    def __init__(self, frames: FrameSet, budget_bytes: int = 0) -> None:
+    def __init__(self, frames: FrameSet, budget_bytes: int = 0, already: dict[int, np.ndarray] | None = None) -> None:
         self.frames = frames
         self.budget_bytes = budget_bytes or DECODED_CACHE_BYTES
-        self.kept: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.kept_bytes = 0
+        self.kept: OrderedDict[int, np.ndarray] = OrderedDict(sorted((already or {}).items()))  # e.g. FrameSet.take_decoded's
+        self.kept_bytes = sum(image.nbytes for image in self.kept.values())
         self.lock = threading.Lock()
 
     def get(self, indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:

@@ -19,7 +19,7 @@ from udh_cli.mosaic.georef.gcp import GcpFile, read_gcp_file, undistorted_observ
 from udh_cli.mosaic.georef.gcp_scale import infer_gcp_scale
 from udh_cli.mosaic.georef.geotiff import has_rasterio
 from udh_cli.mosaic.georef.place import georeference
-from udh_cli.mosaic.inputs.frames import FrameSet, gps_fixes, open_frames
+from udh_cli.mosaic.inputs.frames import FrameSet, frames_listed, gps_fixes, open_frames
 from udh_cli.mosaic.inputs.lens import Lens, read_cameras
 from udh_cli.mosaic.inputs.lens_fit import CAMERA_ESTIMATE, undistort_by_fitted_lens
 from udh_cli.mosaic.outputs.files import RunFiles, check_output
@@ -28,7 +28,7 @@ from udh_cli.mosaic.outputs.staging import (StagedFiles, check_always_written_ar
 from udh_cli.mosaic.pairs.cache import PairCache
 from udh_cli.mosaic.pairs.plan import estimate_sequence
 from udh_cli.mosaic.pairs.types import PairResult
-from udh_cli.mosaic.pairs.workers import open_runner
+from udh_cli.mosaic.pairs.workers import closed_after, open_runner
 from udh_cli.mosaic.render.decoded import DECODED_CACHE_BYTES
 from udh_cli.mosaic.render.canvases import CanvasPlan, DrawnPart, composite_part, kept_images, on_canvas, plan_canvases, warn_about_earlier_output
 from udh_cli.mosaic.report import Reporter
@@ -86,13 +86,16 @@ def run_mosaic(
     started = time.perf_counter()
     truth = load_truth(source, ground_truth)
     opinions, spec = run_estimators(config, estimator, fallback)
-    frameset = open_frames(source, config.work_size, config.order, config.every, exclude=files.own_files(), reporter=reporter, lens=lens,
-                           keep_decoded_bytes=DECODED_CACHE_BYTES)
-    config = with_workers(config, len(frameset.frames))
-    lens = _fit_lens(frameset, reporter) if camera is not None and str(camera) == CAMERA_ESTIMATE else lens
-    gcps, gcp_image_width = _gcps_on_frames(gcps, gcp, source, frameset, lens, gcp_image_width, reporter)
-    cache = PairCache.open(files.pair_cache, frameset.frames, opinions, acceptance(config), resume, reporter, keep=resume or cache_dir is not None)
-    pairs, parts = _pairs_and_parts(frameset, opinions, spec, config, reporter, cache, resume)
+    config = with_workers(config, frames_listed(source, config.every))
+    # Opened before the frames are read, so that worker processes start while they are.
+    runner = open_runner(opinions, acceptance(config), spec, config.workers, config.scheduler, warn=reporter.warn)
+    with closed_after(runner):
+        frameset = open_frames(source, config.work_size, config.order, config.every, exclude=files.own_files(), reporter=reporter,
+                               lens=lens, keep_decoded_bytes=DECODED_CACHE_BYTES)
+        lens = _fit_lens(frameset, reporter) if camera is not None and str(camera) == CAMERA_ESTIMATE else lens
+        gcps, gcp_image_width = _gcps_on_frames(gcps, gcp, source, frameset, lens, gcp_image_width, reporter)
+        cache = PairCache.open(files.pair_cache, frameset.frames, opinions, acceptance(config), resume, reporter, keep=resume or cache_dir is not None)
+        pairs, parts = _pairs_and_parts(frameset, opinions, runner, config, reporter, cache, resume)
     anchors = solve_anchors(frameset, config.gcp_sigma_m, config.gps_sigma_m, reporter, gcps, gcp_image_width)
     solved = solve_parts(frameset, parts, pairs, config.global_solve(), reporter, anchors)
     plan = plan_canvases(frameset, parts, files, config.drawing())
@@ -159,13 +162,12 @@ def _gcps_on_frames(gcps: GcpFile | None, gcp: str | Path | None, source: Path, 
     return gcps, gcp_image_width
 
 
-def _pairs_and_parts(frameset: FrameSet, opinions, spec, config: MosaicConfig, reporter: Reporter, cache: PairCache,
+def _pairs_and_parts(frameset: FrameSet, opinions, runner, config: MosaicConfig, reporter: Reporter, cache: PairCache,
                      resume: bool) -> tuple[list[PairResult], list[Part]]:
-    """Every pair estimate of the run (consecutive, bridges, GPS bridges, loop closure) and the parts they chain
-    into; the pair cache is saved after them, and an interruption says how to go on from it."""
-    runner = open_runner(opinions, acceptance(config), spec, config.workers, config.scheduler, warn=reporter.warn)
+    """Every pair estimate of the run (consecutive, bridges, GPS bridges, loop closure), by ``runner``
+    (:mod:`.pairs.workers`), and the parts they chain into; the pair cache is saved after them, and an
+    interruption says how to go on from it."""
     batch = (acceptance(config), config.batch_size)
-    aborted = True
     try:
         pairs = estimate_sequence(frameset, opinions, *batch, reporter, cache, runner)
         parts = chain_parts(frameset, pairs)
@@ -174,15 +176,12 @@ def _pairs_and_parts(frameset: FrameSet, opinions, spec, config: MosaicConfig, r
         if any(p.ok for p in bridged):
             parts = chain_parts(frameset, pairs)
         pairs += close_loops(frameset, parts, pairs, opinions, config.loop_closure(), *batch, reporter, cache, runner)
-        aborted = False
     except KeyboardInterrupt:
         if cache.entries and cache.keep:
             reporter.warn(f"interrupted: the finished pair estimates are kept in {cache.path}; add --resume to the same command to go on from them")
         elif cache.entries:
             reporter.warn("interrupted: run with --resume to keep the pair estimates, so that a rerun goes on from them")
         raise
-    finally:
-        runner.close(abort=aborted)
     cache.save(prune=True)
     if resume:
         reporter.info(f"{cache.hits} of {cache.requests} pair estimates taken from {cache.path}")

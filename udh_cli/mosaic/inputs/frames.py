@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 
 from udh_cli.errors import UdhError
-from udh_cli.images import IMAGE_SUFFIXES, native_messages_silenced, read_image, scaled_size, to_bgr_u8, to_gray_float, to_gray_u8
+from udh_cli.images import IMAGE_SUFFIXES, native_messages_silenced, read_image, scaled_size, to_gray_float, to_gray_u8
+from udh_cli.mosaic.inputs.display import display_u8, flight_value_range, to_display
 from udh_cli.mosaic.inputs.lens import Lens
 from udh_cli.mosaic.inputs.metadata import FrameMetadata, read_metadata
 from udh_cli.mosaic.outputs.staging import earlier_outputs
@@ -155,27 +156,6 @@ def work_copy(image: np.ndarray, work_size: int) -> np.ndarray:
     return cv2.resize(grey, scaled_size((w, h), scale), interpolation=cv2.INTER_AREA)
 
 
-DISPLAY_PERCENTILES = (0.1, 99.9)  # the grey range of 16-bit frames kept in 8 bits; outliers (hot pixels) clip
-
-
-def flight_value_range(works: list[np.ndarray]) -> tuple[float, float]:
-    """One (low, high) grey range for every frame of a 16-bit or float flight, from all their work copies.
-
-    Why one range: thermal and raw frames fill a sliver of their 16 bits (7000-8000 of 65535), so 8 bits of
-    the whole range hold a few grey levels; stretching each frame on its own would give neighbours different
-    greys for the same ground, and seams in the mosaic.
-    """
-    sample = np.concatenate([w[:: max(1, w.shape[0] // 200), :: max(1, w.shape[1] // 200)].ravel() for w in works])
-    low, high = (float(v) for v in np.percentile(sample, DISPLAY_PERCENTILES))
-    return (low, high) if high > low else (low, low + 1e-6)
-
-
-def to_display(grey_or_colour: np.ndarray, value_range: tuple[float, float]) -> np.ndarray:
-    """Float data in [0, 1] of its type's range -> uint8 with ``value_range`` mapped to 0-255."""
-    low, high = value_range
-    return np.clip((grey_or_colour - low) / (high - low) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-
-
 def stretch_work_copies(frames: list[Frame]) -> tuple[float, float] | None:
     """Turn float work copies (16-bit or float frames) into uint8 with one flight-wide range; returns the
     range, or None when every frame is 8-bit already."""
@@ -186,15 +166,6 @@ def stretch_work_copies(frames: list[Frame]) -> tuple[float, float] | None:
     for frame in floats:
         frame.work = to_display(frame.work, value_range)
     return value_range
-
-
-def display_u8(image: np.ndarray, value_range: tuple[float, float] | None) -> np.ndarray:
-    """A full-resolution frame as (H, W, 3) uint8 BGR for compositing, with the flight's range for 16-bit data."""
-    if image.dtype == np.uint8 or value_range is None:
-        return to_bgr_u8(image)
-    from udh_cli.images import _unit_float
-
-    return to_bgr_u8(to_display(_unit_float(image), value_range))
 
 
 def _natural_key(name: str) -> list:
@@ -242,6 +213,21 @@ def open_frames(
     _check_sizes(frames, reporter)
     frames.lens = lens
     return frames
+
+
+def frames_listed(source: Path, every: int = 1) -> int:
+    """About how many frames :func:`open_frames` will read, known before reading them: a folder's image files, or
+    a video's frame count over ``every`` (0 when the file does not say)."""
+    if source.is_dir():
+        try:
+            return sum(1 for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
+        except OSError:  # reading the folder says why, in one line
+            return 0
+    capture = _open_capture(source)
+    try:
+        return int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0) // max(1, every)
+    finally:
+        capture.release()
 
 
 class _DecodeKeeper:

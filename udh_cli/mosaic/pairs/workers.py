@@ -19,10 +19,11 @@ import re
 import sys
 import threading
 from collections import deque
+from contextlib import contextmanager
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -138,6 +139,11 @@ def _worker_estimators(spec: EstimatorSpec) -> tuple[Estimator, ...]:
         return _WORKER_ESTIMATORS[key]
 
 
+def warm_up_worker(spec: EstimatorSpec) -> None:
+    """Build ``spec``'s estimators in this worker before its first batch (:class:`PoolRunner`)."""
+    _worker_estimators(spec)
+
+
 def judge_on_worker(spec: EstimatorSpec, pairs: Sequence[ImagePair], from_prediction: Sequence[bool] | None = None) -> list[Attempts]:
     """A worker's job: :func:`judge_opinions` with the spec's estimators."""
     return judge_opinions(_worker_estimators(spec), spec.acceptance, list(pairs), from_prediction)
@@ -204,6 +210,11 @@ class PoolRunner:
         # spawn, not fork: a forked onnxruntime or OpenCV thread pool can hang its child.
         self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                         initializer=die_with_parent, initargs=(os.getpid(),))
+        # Start every worker now, each building its estimators, while this process reads the frames: starting one
+        # (Python, onnxruntime, the networks) takes about a second, which the first pairs would otherwise wait for.
+        # A warm-up's error is left to the first batch, which meets it again and says it.
+        for _ in range(workers):
+            self.pool.submit(warm_up_worker, self.spec)
 
     def submit(self, pairs: Sequence[ImagePair], from_prediction: Sequence[bool] | None = None) -> Future:
         return self.pool.submit(judge_on_worker, self.spec, list(pairs), from_prediction)
@@ -344,6 +355,17 @@ def open_runner(opinions: Sequence[Estimator], acceptance, spec: EstimatorSpec |
     if spec is None or workers <= 1:
         return LocalRunner(opinions, acceptance)
     return PoolRunner(spec, workers)
+
+
+@contextmanager
+def closed_after(runner: LocalRunner | PoolRunner | DaskRunner) -> Iterator[None]:
+    """Close ``runner`` when the block ends; abandon its batches in flight when it ends by an error or interrupt."""
+    try:
+        yield
+    except BaseException:
+        runner.close(abort=True)
+        raise
+    runner.close()
 
 
 def in_order(jobs: Sequence[Callable[[], Future]], window: int):

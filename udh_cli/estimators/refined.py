@@ -13,6 +13,9 @@ a :class:`Policy` that chooses between them), composed by the ``build()`` of the
   whichever answer verifies best, with two exceptions for the fallback's RANSAC matches: an answer at least
   ``trusted_inliers`` of them agree on is kept at once, and when no answer verifies photometrically the one
   the matches support is kept. An answer that aligns nothing at all (score 0, not matched) is a failure.
+  An answer the matches verify stays verified only when the one judge agrees
+  (:func:`~udh_cli.estimators.judge.judge_matched`: it aligns at all, and the network's tile levels accept it);
+  otherwise it is returned supported: unverified, ``verified_by`` "matches".
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimate, Estimator, json_ready
+from udh_cli.estimators.judge import judge_matched
 from udh_cli.models_catalog import has_refinement_stage
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.estimators.registry import create_estimator
@@ -107,6 +111,7 @@ class Cascade(Estimator):
         refiner: the ECC pyramid and its iteration budget.
         opinions: the second opinions, cheapest first.
         policy: how answers are judged and chosen.
+        tiles_from: the network whose tile stage is evidence on an answer the matches verify (None: none).
 
     Its confidence is the NCC score of the aligned images (or, for an answer matches verify, the higher of that
     and the matcher's confidence).
@@ -118,6 +123,7 @@ class Cascade(Estimator):
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     opinions: tuple[Opinion, ...] = ()
     policy: Policy = field(default_factory=Policy)
+    tiles_from: Estimator | None = None
 
     def __post_init__(self) -> None:
         if self.start is None:
@@ -201,7 +207,7 @@ class Cascade(Estimator):
                 other_details["refinement_kept"] = False
             details[opinion.key] = {"method": opinion.estimator.name, "score": other_score, **other_details}
             if matched:
-                supported = (other, max(other_score, found.confidence), opinion.stage)
+                supported = (other, max(other_score, found.confidence), opinion.stage, other_score)
                 if found.inliers >= policy.trusted_inliers:
                     homography, score, doubted = supported[0], supported[1], False
                     details["used"], details["verified_by"] = opinion.stage, "matches"
@@ -223,6 +229,10 @@ class Cascade(Estimator):
         # False: the best answer found, unconfirmed (a low score or a diverged ECC, and no matches agree on it).
         verified = homography is not None and (not doubted or "verified_by" in details)
         verified_by = details.pop("verified_by", "alignment" if verified else None)
+        if verified and verified_by == "matches":
+            measured, verdict = judge_matched(self.tiles_from, pair, homography, supported[3], score)
+            verified = verdict.verified
+            details.update(measured, verdict_failed=list(verdict.failed))
         stage = details.pop("used", "network")
         elapsed = first_ms + (time.perf_counter() - started) * 1e3
         return self._checked(homography, score, elapsed, failure, details, pair.a.shape, verified=verified,
@@ -312,7 +322,7 @@ class UnsupervisedEccOptions:
         if longer is not None:
             opinions.append(Opinion("escalated", longer, "escalated"))
         opinions += [Opinion(view, ViewEstimator(longer or network, view), view) for view in self.views]
-        return Cascade(self.name, network, self.refiner, tuple(opinions), policy)
+        return Cascade(self.name, network, self.refiner, tuple(opinions), policy, tiles_from=network)
 
 
 @dataclass

@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Sequence
+from typing import Any, ClassVar, NamedTuple, Sequence
 
 import numpy as np
 
@@ -83,6 +83,17 @@ class Policy:
         pair at 11.5 px scored 0.73; SIFT's answer scored 0.94). ``details`` at the top level describe the
         first answer; the second opinions are under their own keys."""
         return score < self.min_score or "refine_failure" in details
+
+
+class Matched(NamedTuple):
+    """An opinion's answer that RANSAC's matches support: ``b_from_a`` (3, 3), pixels of the pair; its confidence
+    (the higher of its photometric score and its matcher's confidence); the stage it came from; its photometric
+    score alone, in [0, 1]."""
+
+    b_from_a: np.ndarray
+    confidence: float
+    stage: str
+    alignment: float
 
 
 @dataclass(frozen=True)
@@ -193,7 +204,7 @@ class Cascade(Estimator):
         # Second opinions, cheapest first, each only while the answer held is still doubted: SIFT settles most
         # doubtful clean pairs, so the longer cascade runs where it fails too (and on occluded pairs, whose
         # right answers also score low). Cascade first was as accurate at rho 45 but worse at rho 32.
-        supported = None  # a feature method's answer, with its matches' support but not trusted outright
+        supported: Matched | None = None  # a feature method's answer, with its matches' support but not trusted outright
         for opinion in self.opinions:
             if not doubted:
                 break
@@ -207,9 +218,9 @@ class Cascade(Estimator):
                 other_details["refinement_kept"] = False
             details[opinion.key] = {"method": opinion.estimator.name, "score": other_score, **other_details}
             if matched:
-                supported = (other, max(other_score, found.confidence), opinion.stage, other_score)
+                supported = Matched(other, max(other_score, found.confidence), opinion.stage, other_score)
                 if found.inliers >= policy.trusted_inliers:
-                    homography, score, doubted = supported[0], supported[1], False
+                    homography, score, doubted = supported.b_from_a, supported.confidence, False
                     details["used"], details["verified_by"] = opinion.stage, "matches"
                     break
             if other_score > score:
@@ -220,8 +231,8 @@ class Cascade(Estimator):
             # Nothing verified photometrically: a low score does not tell right from wrong (held-out occluded
             # pairs: right SIFT answers with 9-19 inliers scored 0.00-0.25, wrong mirrored views up to 0.36),
             # RANSAC's support does.
-            homography, score = supported[0], supported[1]
-            details["used"], details["verified_by"] = supported[2], "matches"
+            homography, score = supported.b_from_a, supported.confidence
+            details["used"], details["verified_by"] = supported.stage, "matches"
         failure = None if homography is not None else (start.failure or "no estimate")
         if homography is not None and score <= 0.0 and "verified_by" not in details:
             # No evidence at all: a score of 0 means constant tiles, too little overlap or anti-correlation.
@@ -230,7 +241,7 @@ class Cascade(Estimator):
         verified = homography is not None and (not doubted or "verified_by" in details)
         verified_by = details.pop("verified_by", "alignment" if verified else None)
         if verified and verified_by == "matches":
-            measured, verdict = judge_matched(self.tiles_from, pair, homography, supported[3], score)
+            measured, verdict = judge_matched(self.tiles_from, pair, homography, supported.alignment, score)
             verified = verdict.verified
             details.update(measured, verdict_failed=list(verdict.failed))
         stage = details.pop("used", "network")

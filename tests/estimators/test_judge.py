@@ -11,7 +11,8 @@ from conftest import textured_image, warped_pair
 from udh_cli import geometry
 from udh_cli.estimators import create_estimator
 from udh_cli.estimators.base import MIN_CONFIDENCE
-from udh_cli.estimators.judge import THRESHOLDS, Evidence, disagreement, judge, round_trip_error
+from udh_cli.estimators.judge import THRESHOLDS, Evidence, disagreement, judge, judge_matched, round_trip_error
+from udh_cli.estimators.pair import PreparedPair
 from udh_cli.estimators.matching import MatchResult
 from udh_cli.estimators.tiles import TileResult
 from udh_cli.models_catalog import SHIPPED_MODELS, models_dir
@@ -190,3 +191,45 @@ def test_a_confident_global_match_no_tile_level_accepts_is_not_verified(monkeypa
     assert found.stage == "match" and geometry.mace(found.homography, answer, 320, 240) < 1e-6
     assert found.details["alignment"] >= THRESHOLDS.min_alignment and found.details["match_tile_levels"] == 0
     assert not found.verified and found.verified_by == "matches" and found.details["verdict_failed"] == ["match tiles"]
+
+
+def matched_pair(seed: int = 5):
+    """A 640 x 480 pair with room for tiles, and its true ``b_from_a``."""
+    truth = geometry.homography_from_offsets(np.random.default_rng(seed).uniform(-20, 20, (4, 2)), 640, 480)
+    a, b = warped_pair(truth, 640, 480, seed=seed, margin=60)
+    return PreparedPair.of(a, b), truth
+
+
+def test_an_answer_the_matches_verify_stays_verified_only_where_the_tiles_accept_it(network):
+    """auto's SIFT answers: the right one keeps "verified" (three tile levels accept it); one 60 px off, scored as
+    well as wrong SIFT answers scored on the hard benchmark's parallax pairs (0.5), is caught by the tiles, which
+    accept no level, and returned supported by its matches."""
+    pair, truth = matched_pair()
+    measured, right = judge_matched(network, pair, truth, alignment=0.5, confidence=0.9)
+    assert right.verified and right.verified_by == "matches" and right.failed == () and measured["match_tile_levels"] == 3
+    wrong_answer = geometry.translation(60.0, 10.0) @ truth
+    measured, wrong = judge_matched(network, pair, wrong_answer, alignment=0.5, confidence=0.9)
+    assert not wrong.verified and wrong.verified_by == "matches" and wrong.failed == ("tiles",)
+    assert measured["match_tile_levels"] == 0 and wrong.confidence == 0.9  # the verdict changes, not the confidence
+
+
+def test_an_answer_the_matches_verify_that_aligns_nothing_is_not_verified_and_the_tiles_do_not_run(network, monkeypatch):
+    pair, truth = matched_pair()
+    monkeypatch.setattr("udh_cli.estimators.judge.refine_pairs_with_tiles", lambda *args, **kwargs: pytest.fail("tiles ran"))
+    measured, verdict = judge_matched(network, pair, truth, alignment=THRESHOLDS.min_alignment_matched / 2, confidence=0.9)
+    assert not verdict.verified and verdict.failed == ("aligns",) and measured["match_tile_levels"] is None
+    measured, verdict = judge_matched(None, pair, truth, alignment=0.5, confidence=0.9)  # no network: no tile check
+    assert verdict.verified and measured["match_tile_levels"] is None
+
+
+def test_the_tiles_do_not_judge_a_pair_with_no_room_for_them_nor_catch_an_answer_they_can_pull_to_the_plane(network):
+    """128 x 128 (the paper's patches): B has no room for tiles, so their silence says nothing and the answer stays
+    verified. On a planar scene the tiles pull an answer 30 px off (of 640) back to the plane and accept their levels:
+    they catch answers no plane near them explains (parallax, far off), not every error."""
+    truth = geometry.translation(4.0, -3.0)
+    small = PreparedPair.of(*warped_pair(truth, 128, 128, seed=5, margin=20))
+    measured, verdict = judge_matched(network, small, geometry.translation(30.0, 0.0) @ truth, alignment=0.5, confidence=0.9)
+    assert verdict.verified and measured["match_tile_levels"] is None
+    pair, truth = matched_pair()
+    measured, verdict = judge_matched(network, pair, geometry.translation(30.0, 0.0) @ truth, alignment=0.5, confidence=0.9)
+    assert verdict.verified and measured["match_tile_levels"] == 3

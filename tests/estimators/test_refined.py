@@ -19,7 +19,7 @@ from udh_cli.estimators.refined import (FALLBACK_OPTIONS, NEAR_PX, AutoOptions, 
                                        UnsupervisedEccOptions)
 from udh_cli.estimators.views import VIEWS, ViewEstimator
 from udh_cli.estimators.verify import VERIFIER
-from udh_cli.models_catalog import models_dir
+from udh_cli.models_catalog import SHIPPED_MODELS, models_dir
 from udh_cli.estimators.refine import PyramidEcc
 
 
@@ -496,3 +496,36 @@ def test_a_cascade_near_its_prior_takes_every_opinion_near_its_prior():
     assert near.start.label == "start near" and near.opinions[0].estimator.label == "sift near"
     assert near.opinions[1].estimator.inner.label == "view near" and near.opinions[1].key == "mirrored"
     assert cascade.start.label == "start" and near.policy == cascade.policy
+
+
+@dataclass
+class _Matches(Estimator):
+    """A stand-in for SIFT: ``answer`` with ``inliers`` RANSAC inliers."""
+
+    name: ClassVar[str] = "sift"
+    answer: np.ndarray | None = None
+    inliers: int = 100
+
+    def _estimate(self, pair):
+        return self.answer, 0.9, {"inliers": self.inliers}
+
+
+@pytest.mark.parametrize("off_px, verified, failed", [(0.0, True, []), (60.0, False, ["aligns"])])
+def test_auto_keeps_an_answer_its_matches_verify_and_verifies_it_only_when_the_judge_agrees(off_px, verified, failed):
+    """A network that fails, then a fallback whose 100 matches agree on an answer: the right one is verified (three
+    tile levels accept it), one 60 px off (of 640) that aligns nothing is kept as the same answer, supported by its
+    matches but not verified, and the mosaic still takes it."""
+    from udh_cli.mosaic.pairs.types import Acceptance
+
+    if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
+        pytest.skip("shipped unsupervised model not built yet")
+    network = create_estimator("unsupervised", device="cpu", search=0, heading_search=0, matcher_model="")
+    truth = geometry.homography_from_offsets(np.random.default_rng(5).uniform(-20, 20, (4, 2)), 640, 480)
+    a, b = warped_pair(truth, 640, 480, seed=5, margin=60)
+    answer = geometry.translation(off_px, off_px / 6) @ truth
+    auto = Cascade("auto", AlwaysFails(), PyramidEcc(), (Opinion("fallback", _Matches(answer), "sift"),), Policy(), tiles_from=network)
+    found = auto.estimate(a, b)
+    assert found.stage == "sift" and geometry.mace(found.homography, answer, 640, 480) < NEAR_PX
+    assert found.verified is verified and found.verified_by == "matches" and found.details["verdict_failed"] == failed
+    assert found.details["match_tile_levels"] == (3 if verified else None)
+    assert Acceptance().judge(found, a, b, auto.verifies_itself) == (None, None)

@@ -7,6 +7,7 @@ the stricter checks (a finer photometric floor; for a global match, tile levels 
 passes only the looser ones is **supported**: unverified, with ``verified_by`` naming what supports it, so that a
 mosaic may still take it after its own checks. An answer that fails is kept, unverified and with a lower
 confidence: the caller (a mosaic, ``udh estimate``'s exit code 3) decides what to do with a doubted answer.
+:func:`judge_matched` is the same verdict on an answer RANSAC's matches verify (``auto``'s SIFT opinion).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 
 from udh_cli import geometry
 from udh_cli.estimators.thresholds import THRESHOLDS, Thresholds
-from udh_cli.estimators.tiles import TileRefinement
+from udh_cli.estimators.tiles import TileRefinement, refine_pairs_with_tiles
 from udh_cli.estimators.verify import VERIFIER
 
 
@@ -98,6 +99,26 @@ def judge(evidence: Evidence, confidence: float, thresholds: Thresholds = THRESH
         return Verdict(False, by, failed, confidence * factor if below else floor_confidence + (confidence - floor_confidence) * factor)
     lift = thresholds.verified_confidence
     return Verdict(True, by, (), confidence if below else lift + (1.0 - lift) * confidence)
+
+
+def judge_matched(network, pair, b_from_a: np.ndarray, alignment: float, confidence: float,
+                  thresholds: Thresholds = THRESHOLDS) -> tuple[dict, Verdict]:
+    """The verdict on an answer RANSAC's matches verify, ``b_from_a`` ((3, 3), pixels of the prepared ``pair``)
+    with photometric score ``alignment``, and what was measured for it. Verified when something aligns
+    (``min_alignment_matched``) and the tile stage of ``network`` (a
+    :class:`~udh_cli.estimators.deep.DeepEstimator`; None: no tile check), run on the answer as evidence only,
+    accepts ``min_matched_tile_levels`` levels where B has room for tiles; otherwise supported by "matches":
+    unverified, and a mosaic takes it as before. The tiles run only where they can decide the verdict. The
+    confidence is kept: the verdict changes, not how much the matches say."""
+    checks = {"aligns": alignment >= thresholds.min_alignment_matched}
+    levels = None
+    if checks["aligns"] and network is not None and TileRefinement().can_confirm(pair.b.size, network.network.input_size):
+        found = refine_pairs_with_tiles(network.tile_network, [(pair.a, pair.b)], [b_from_a],
+                                        coarse_network=network.tile_coarse_network)[0]
+        levels = found.levels_used
+        checks["tiles"] = found.confirms(thresholds.min_matched_tile_levels)
+    failed = tuple(name for name, passed in checks.items() if not passed)
+    return {"match_tile_levels": levels}, Verdict(not failed, "matches", failed, confidence)
 
 
 def round_trip_error(b_from_a: np.ndarray, a_from_b: np.ndarray, side: int, grid: int = 5) -> float:

@@ -13,6 +13,9 @@ a :class:`Policy` that chooses between them), composed by the ``build()`` of the
   whichever answer verifies best, with two exceptions for the fallback's RANSAC matches: an answer at least
   ``trusted_inliers`` of them agree on is kept at once, and when no answer verifies photometrically the one
   the matches support is kept. An answer that aligns nothing at all (score 0, not matched) is a failure.
+  An answer the matches verify stays verified only when the one judge agrees
+  (:func:`~udh_cli.estimators.judge.judge_matched`: it aligns at all, and the network's tile levels accept it);
+  otherwise it is returned supported: unverified, ``verified_by`` "matches".
 """
 
 from __future__ import annotations
@@ -20,13 +23,14 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Sequence
+from typing import Any, ClassVar, NamedTuple, Sequence
 
 import numpy as np
 
 from udh_cli import geometry
 from udh_cli.errors import EstimationFailed, UdhError
 from udh_cli.estimators.base import Estimate, Estimator, json_ready
+from udh_cli.estimators.judge import judge_matched
 from udh_cli.models_catalog import has_refinement_stage
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.estimators.registry import create_estimator
@@ -81,6 +85,17 @@ class Policy:
         return score < self.min_score or "refine_failure" in details
 
 
+class Matched(NamedTuple):
+    """An opinion's answer that RANSAC's matches support: ``b_from_a`` (3, 3), pixels of the pair; its confidence
+    (the higher of its photometric score and its matcher's confidence); the stage it came from; its photometric
+    score alone, in [0, 1]."""
+
+    b_from_a: np.ndarray
+    confidence: float
+    stage: str
+    alignment: float
+
+
 @dataclass(frozen=True)
 class Opinion:
     """A second opinion of a :class:`Cascade`, asked while the answer held is doubted.
@@ -107,6 +122,7 @@ class Cascade(Estimator):
         refiner: the ECC pyramid and its iteration budget.
         opinions: the second opinions, cheapest first.
         policy: how answers are judged and chosen.
+        tiles_from: the network whose tile stage is evidence on an answer the matches verify (None: none).
 
     Its confidence is the NCC score of the aligned images (or, for an answer matches verify, the higher of that
     and the matcher's confidence).
@@ -118,6 +134,7 @@ class Cascade(Estimator):
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     opinions: tuple[Opinion, ...] = ()
     policy: Policy = field(default_factory=Policy)
+    tiles_from: Estimator | None = None
 
     def __post_init__(self) -> None:
         if self.start is None:
@@ -187,7 +204,7 @@ class Cascade(Estimator):
         # Second opinions, cheapest first, each only while the answer held is still doubted: SIFT settles most
         # doubtful clean pairs, so the longer cascade runs where it fails too (and on occluded pairs, whose
         # right answers also score low). Cascade first was as accurate at rho 45 but worse at rho 32.
-        supported = None  # a feature method's answer, with its matches' support but not trusted outright
+        supported: Matched | None = None  # a feature method's answer, with its matches' support but not trusted outright
         for opinion in self.opinions:
             if not doubted:
                 break
@@ -201,9 +218,9 @@ class Cascade(Estimator):
                 other_details["refinement_kept"] = False
             details[opinion.key] = {"method": opinion.estimator.name, "score": other_score, **other_details}
             if matched:
-                supported = (other, max(other_score, found.confidence), opinion.stage)
+                supported = Matched(other, max(other_score, found.confidence), opinion.stage, other_score)
                 if found.inliers >= policy.trusted_inliers:
-                    homography, score, doubted = supported[0], supported[1], False
+                    homography, score, doubted = supported.b_from_a, supported.confidence, False
                     details["used"], details["verified_by"] = opinion.stage, "matches"
                     break
             if other_score > score:
@@ -214,8 +231,8 @@ class Cascade(Estimator):
             # Nothing verified photometrically: a low score does not tell right from wrong (held-out occluded
             # pairs: right SIFT answers with 9-19 inliers scored 0.00-0.25, wrong mirrored views up to 0.36),
             # RANSAC's support does.
-            homography, score = supported[0], supported[1]
-            details["used"], details["verified_by"] = supported[2], "matches"
+            homography, score = supported.b_from_a, supported.confidence
+            details["used"], details["verified_by"] = supported.stage, "matches"
         failure = None if homography is not None else (start.failure or "no estimate")
         if homography is not None and score <= 0.0 and "verified_by" not in details:
             # No evidence at all: a score of 0 means constant tiles, too little overlap or anti-correlation.
@@ -223,6 +240,10 @@ class Cascade(Estimator):
         # False: the best answer found, unconfirmed (a low score or a diverged ECC, and no matches agree on it).
         verified = homography is not None and (not doubted or "verified_by" in details)
         verified_by = details.pop("verified_by", "alignment" if verified else None)
+        if verified and verified_by == "matches":
+            measured, verdict = judge_matched(self.tiles_from, pair, homography, supported.alignment, score)
+            verified = verdict.verified
+            details.update(measured, verdict_failed=list(verdict.failed))
         stage = details.pop("used", "network")
         elapsed = first_ms + (time.perf_counter() - started) * 1e3
         return self._checked(homography, score, elapsed, failure, details, pair.a.shape, verified=verified,
@@ -312,7 +333,7 @@ class UnsupervisedEccOptions:
         if longer is not None:
             opinions.append(Opinion("escalated", longer, "escalated"))
         opinions += [Opinion(view, ViewEstimator(longer or network, view), view) for view in self.views]
-        return Cascade(self.name, network, self.refiner, tuple(opinions), policy)
+        return Cascade(self.name, network, self.refiner, tuple(opinions), policy, tiles_from=network)
 
 
 @dataclass

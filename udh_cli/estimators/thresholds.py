@@ -25,8 +25,9 @@ class Thresholds:
         min_alignment_supported: the same floor for a supported answer, and the mosaic's alignment check
             (``Acceptance.min_verified``) for methods that do not verify themselves: wrong answers' gradient NCC
             stays below it.
-        min_alignment_matched: the supported floor for an answer hundreds of cells support: right pairs over
-            surf score barely above 0, yet 0 means nothing aligns.
+        min_alignment_matched: the supported floor for an answer hundreds of cells support, and the verified floor
+            for an answer RANSAC's matches verify: right pairs over surf score barely above 0, yet 0 means nothing
+            aligns.
         min_match_tile_levels: tile levels that must accept a global match's answer for it to be verified: cells
             at 384 px can agree on an answer tens of px off under strong perspective, the tiles are independent
             evidence.
@@ -53,6 +54,9 @@ class Thresholds:
             itself, as RANSAC verifies SIFT's answers: well above what frames of different flights reach.
         confirming_tile_levels: tile levels that must accept a network's answer for it to count as confirmed:
             answers one level accepted were mostly far off.
+        min_matched_tile_levels: tile levels that must accept an answer RANSAC's matches verify (``auto``'s SIFT
+            opinion) for it to stay verified, where B has room for tiles: SIFT's matches agree on answers 10-30 px
+            off under parallax and strong perspective, the tiles are evidence independent of the matches.
         min_cascade_score: photometric score below which a cascade (``Policy.min_score``) doubts its answer and
             a loop pair's prediction is not confirmed: nothing else stands between a cheap answer and the map.
         trusted_inliers: RANSAC inliers (SIFT's, ORB's) at which a cascade's opinion is verified by its matches:
@@ -77,6 +81,7 @@ class Thresholds:
     min_network_overlap: float = 0.3
     confident_inliers: int = 150
     confirming_tile_levels: int = 2
+    min_matched_tile_levels: int = 2
     min_cascade_score: float = 0.7
     trusted_inliers: int = 20
     min_prediction_start: float = 0.2

@@ -24,7 +24,7 @@ from udh_cli.mosaic.render.small import SmallPart
 
 SEAM_FINDERS = ("dp", "graphcut", "central")  # the --seams choices
 # Small-canvas pixels around two frames' overlap that the dp finder sees: more than its 2-px contour reach, so the
-# overlap's own contours are found as on whole frames; the boxes' union was mostly pixels neither frame shows.
+# overlap's own contours are found as on whole frames; the boxes' union is mostly pixels neither frame shows.
 DP_WINDOW_MARGIN = 8
 
 

@@ -76,7 +76,7 @@ def dp_seam_masks(images: list[np.ndarray], corners: list[tuple[int, int]], mask
     frame with them, so ``workers`` threads give the same masks as one."""
     masks = [mask.copy() for mask in masks]
     boxes = [(x, y, x + image.shape[1], y + image.shape[0]) for (x, y), image in zip(corners, images)]
-    pairs = [pair for pair in _finder_order(boxes) if _intersect(boxes[pair[0]], boxes[pair[1]]) is not None]
+    pairs = _finder_order(boxes)
 
     def resolve(pair: tuple[int, int]) -> None:
         overlap = _intersect(boxes[pair[0]], boxes[pair[1]])
@@ -96,17 +96,16 @@ def dp_seam_masks(images: list[np.ndarray], corners: list[tuple[int, int]], mask
 
 
 def _finder_order(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int]]:
-    """Every pair (i, j), i < j, as ``DpSeamFinder.find`` visits them: by the squared distance of the boxes'
-    centres (integer, as OpenCV rounds them), the farthest first. (Pairs at equal distances may come in
-    another order than OpenCV's, whose sort is not stable.)"""
-    centres = [(x0 + (x1 - x0) // 2, y0 + (y1 - y0) // 2) for x0, y0, x1, y1 in boxes]
-
-    def distance(pair: tuple[int, int]) -> int:
-        (ax, ay), (bx, by) = centres[pair[0]], centres[pair[1]]
-        return (ax - bx) ** 2 + (ay - by) ** 2
-
-    pairs = [(i, j) for i in range(len(boxes) - 1) for j in range(i + 1, len(boxes))]
-    return sorted(pairs, key=distance)[::-1]
+    """The pairs (i, j), i < j, whose canvas ``boxes`` (x0, y0, x1, y1) meet, as ``DpSeamFinder.find`` visits them:
+    by the squared distance of the boxes' centres (integer, as OpenCV rounds them), the farthest first. (Pairs at
+    equal distances may come in another order than OpenCV's, whose sort is not stable.)"""
+    box = np.asarray(boxes, np.int64).reshape(-1, 4)
+    centres = box[:, :2] + (box[:, 2:] - box[:, :2]) // 2
+    first, second = np.triu_indices(len(box), 1)  # (0, 1), (0, 2), ... as OpenCV lists them before sorting
+    meet = np.all(np.maximum(box[first, :2], box[second, :2]) < np.minimum(box[first, 2:], box[second, 2:]), axis=1)
+    first, second = first[meet], second[meet]
+    order = np.argsort(((centres[first] - centres[second]) ** 2).sum(1), kind="stable")[::-1]
+    return list(zip(first[order].tolist(), second[order].tolist()))
 
 
 def _run_in_pair_order(pairs: list[tuple[int, int]], run: Callable[[tuple[int, int]], None], workers: int) -> None:

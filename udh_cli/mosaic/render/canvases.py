@@ -142,7 +142,7 @@ def composite_part(frameset: FrameSet, plan: PlannedPart, settings: Drawing, rep
         small = draw_small(frameset, to_mosaic, plan.canvas.scale, reporter, f"small copies{suffix}", decoded)
         with reporter.stage("colour and seams", 1, f"colour and seams{suffix}") as advance:
             gains = exposure_gains(settings.exposure, small)
-            seams = find_seams(settings.seams, small) if want_seams else None
+            seams = find_seams(settings.seams, small, settings.workers) if want_seams else None
             advance(1)
     tiles = compositing.composite_tiles(frameset, to_mosaic, plan.canvas.size, settings.blend, reporter, f"compositing{suffix}", gains, seams,
                                         workers=settings.workers, decoded=decoded)

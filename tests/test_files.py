@@ -123,3 +123,24 @@ def test_a_set_is_written_all_or_none(tmp_path, monkeypatch):
         write_file_set(tmp_path, {"results.md": b"second\n", "results.json": b'{"second": 1}\n'})
     assert (tmp_path / "results.md").read_bytes() == b"first\n" and (tmp_path / "results.json").read_bytes() == b"{}\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == [MANIFEST_NAME, "results.json", "results.md"]  # no temporary left
+
+
+def test_a_set_interrupted_while_staging_leaves_the_earlier_set_and_no_temporary(tmp_path, monkeypatch):
+    from udh_cli import files
+
+    write_file_set(tmp_path, {"results.md": b"first\n", "results.json": b"{}\n"})
+    created, calls = files.create_new, []
+
+    def interrupted_on_the_second(path):
+        calls.append(path)
+        descriptor = created(path)
+        if len(calls) == 2:  # just created, as Ctrl-C or SIGTERM would find it
+            os.close(descriptor)
+            raise KeyboardInterrupt
+        return descriptor
+
+    monkeypatch.setattr(files, "create_new", interrupted_on_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        write_file_set(tmp_path, {"results.md": b"second\n", "results.json": b'{"second": 1}\n'})
+    assert (tmp_path / "results.md").read_bytes() == b"first\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [MANIFEST_NAME, "results.json", "results.md"]

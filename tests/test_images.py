@@ -160,10 +160,25 @@ def test_atomic_write_where_no_file_can_be_created(tmp_path, monkeypatch):
     def read_only(*args, **kwargs):
         raise OSError(30, "Read-only file system")
 
-    monkeypatch.setattr(images.tempfile, "mkstemp", read_only)
+    monkeypatch.setattr(images, "create_new", read_only)
     with pytest.raises(UdhError, match="out.bin: cannot create a file in .*Read-only file system"):
         atomic_write_bytes(tmp_path / "out.bin", b"x")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_interrupt_just_after_the_temporary_file_appears_leaves_nothing(tmp_path, monkeypatch):
+    # Ctrl-C or SIGTERM (handled as Ctrl-C) between the file's creation and its name reaching the writer.
+    created = images.create_new
+
+    def create_then_interrupt(path):
+        os.close(created(path))
+        raise KeyboardInterrupt
+
+    (tmp_path / "out.bin").write_bytes(b"old")
+    monkeypatch.setattr(images, "create_new", create_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        atomic_write_bytes(tmp_path / "out.bin", b"new")
+    assert [(p.name, p.read_bytes()) for p in tmp_path.iterdir()] == [("out.bin", b"old")]
 
 
 def test_atomic_write_to_a_missing_folder(tmp_path):

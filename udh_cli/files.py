@@ -17,12 +17,11 @@ import json
 import os
 import shutil
 import stat
-import tempfile
 from pathlib import Path
 from typing import Iterator
 
 from udh_cli.errors import UdhError
-from udh_cli.images import atomic_write_bytes, new_file_mode
+from udh_cli.images import atomic_write_bytes, create_new, new_file_mode, temporary_name
 
 MANIFEST_NAME = ".udh-written.json"
 MANIFEST_FORMAT = "udh-written/1"
@@ -182,16 +181,17 @@ def write_file_set(folder: str | os.PathLike, files: dict[str, bytes], overwrite
         targets = [check_replaceable(folder / name, overwrite) for name in files]
         try:
             for target, data in zip(targets, files.values()):
-                fd, temporary = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=folder)
-                staged[target] = Path(temporary)
-                with os.fdopen(fd, "wb") as handle:
+                staged[target] = temporary = temporary_name(target)  # named before it exists: an interrupt can remove it
+                with os.fdopen(create_new(temporary), "wb") as handle:
                     handle.write(data)
                     handle.flush()
                     os.fsync(handle.fileno())
                 os.chmod(temporary, new_file_mode(target))
-        except OSError as exc:
+        except BaseException as exc:
             for temporary in staged.values():
                 temporary.unlink(missing_ok=True)
+            if not isinstance(exc, OSError):
+                raise
             raise UdhError(f"{folder}: writing the results failed ({exc.strerror or exc}); nothing was replaced: check the "
                            f"free space and permissions") from None
         for target, temporary in staged.items():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import sys
 import tempfile
 import threading
@@ -18,7 +19,6 @@ from udh_cli.errors import UdhError
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 MIN_IMAGE_SIDE = 8  # pixels; below this no estimator can say anything useful
-
 
 _PILLOW_LOCK = threading.Lock()
 MAX_PIXELS_ENV = "UDH_MAX_PIXELS"
@@ -350,21 +350,31 @@ def to_bgr_u8(image: np.ndarray) -> np.ndarray:
     return gray_or_colour
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename.
+def temporary_name(path: Path) -> Path:
+    """``.NAME.<64 random bits>.part`` beside ``path``. Not ``mkstemp``: it names the file only once it exists, so an
+    interrupt (Ctrl-C, SIGTERM) in between would leave a file nobody knows to remove."""
+    return path.parent / f".{path.name}.{secrets.token_hex(8)}.part"
 
-    A reader never sees a half-written file, and an interrupted write leaves the old file (if any).
-    Raises :class:`UdhError` when the file cannot be written (read-only or full file system...).
-    """
+
+def create_new(path: Path) -> int:
+    """Create ``path`` (which must not exist) owner-only, as ``mkstemp`` does; returns its descriptor."""
+    return os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o600)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename: a reader never sees a
+    half-written file, and an interrupted write leaves the old file (if any). Raises :class:`UdhError` when the
+    file cannot be written (read-only or full file system...)."""
     path = check_output_path(path)
     folder = path.parent
     mode = new_file_mode(path)
+    tmp = temporary_name(path)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
-    except OSError as exc:
-        raise UdhError(f"{path}: cannot create a file in {folder} ({exc.strerror}); choose another output path") from None
-    try:
-        if hasattr(os, "fchmod"):  # mkstemp makes the file owner-only; give it the usual permissions
+        try:
+            fd = create_new(tmp)
+        except OSError as exc:
+            raise UdhError(f"{path}: cannot create a file in {folder} ({exc.strerror}); choose another output path") from None
+        if hasattr(os, "fchmod"):  # the usual permissions, not owner-only
             os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
@@ -372,7 +382,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             os.fsync(handle.fileno())
         os.replace(tmp, path)
     except BaseException as exc:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         if isinstance(exc, OSError):  # e.g. the disk filled up: one line for the user, no partial file
             raise UdhError(f"{path}: writing it failed ({exc.strerror}); check the free space and permissions") from None
         raise
@@ -396,8 +406,7 @@ def check_output_path(path: str | os.PathLike, suffixes: tuple[str, ...] | None 
             raise UdhError(f"{path}: the folder {folder} is not writable; choose another output path")
     except OSError as exc:  # e.g. a name longer than the file system takes (ENAMETOOLONG)
         raise UdhError(f"{path}: cannot write a file there ({exc.strerror or exc}); choose another output path") from None
-    # The temporary file atomic_write_bytes writes first is named ".NAME.xxxxxxxx.part": it must fit the file system too.
-    temporary = len(os.fsencode(path.name)) + 15
+    temporary = len(os.fsencode(temporary_name(path).name))  # the name atomic_write_bytes writes first must fit too
     try:
         limit = os.pathconf(folder, "PC_NAME_MAX")
     except (OSError, ValueError, AttributeError):

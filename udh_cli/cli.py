@@ -23,10 +23,11 @@ from udh_cli.errors import UdhError
 from udh_cli.api import ESTIMATE_WORK_SIZE
 from udh_cli.estimators.flags import OPTION_FLAGS, given_flags
 from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS, nest_options, parse_method_options
-from udh_cli.generator_settings import FlightConfig as _FlightConfig, GpsConfig as _GpsConfig
-from udh_cli.train.config import TrainConfig as _TrainConfig
+from udh_cli.generator_settings import FlightConfig as _FlightConfig, GpsConfig as _GpsConfig, MotionConfig as _MotionConfig
+from udh_cli.train.config import MOTIONS as _MOTIONS, TrainConfig as _TrainConfig
 
 _TRAIN = _TrainConfig()  # the command line's defaults are the library's
+_MOTION = _MotionConfig()
 _FLIGHT = _FlightConfig()
 _GPS = _GpsConfig(0.0, 0.0)
 
@@ -207,12 +208,12 @@ def train(
     illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.", metavar="")] = _TRAIN.illumination,
     occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = _TRAIN.occluders,
     photometric: Annotated[str, typer.Option(help="What the unsupervised L1 compares: intensity (the paper's) or contrast (local contrast, blind to vignetting, hot spots and exposure).")] = _TRAIN.photometric,
-    motion: Annotated[str, typer.Option(help="paper (corner perturbation by --rho) or flight (whole frames with real flight motion; --rho is then the perspective jitter).")] = _TRAIN.motion,
-    max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = _TRAIN.max_heading,
-    max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = _TRAIN.max_scale,
-    max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = _TRAIN.max_shift,
-    min_overlap: Annotated[float, typer.Option(help="Flight motion: least share of B that A's view covers.")] = _TRAIN.min_overlap,
-    residual: Annotated[float, typer.Option(help="Flight motion, a later round of the cascade: A pre-warped by an answer off by up to this many px (0: a first round).")] = _TRAIN.residual,
+    motion: Annotated[str, typer.Option(help="paper (corner perturbation by --rho) or flight (whole frames with real flight motion; --rho is then the perspective jitter).")] = _MOTIONS[0],
+    max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = _MOTION.max_heading,
+    max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = _MOTION.scale_range[1],
+    max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = _MOTION.max_shift,
+    min_overlap: Annotated[float, typer.Option(help="Flight motion: least share of B that A's view covers.")] = _MOTION.min_overlap,
+    residual: Annotated[float, typer.Option(help="Flight motion, a later round of the cascade: A pre-warped by an answer off by up to this many px (0: a first round).")] = _MOTION.residual,
     patch_size: Annotated[int, typer.Option(help="Network input side, px, a multiple of 32 (--mode match: the views' height; they are 4:3).")] = _TRAIN.patch_size,
     eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = _TRAIN.eval_every,
     seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = _TRAIN.seed,
@@ -220,13 +221,14 @@ def train(
 ) -> None:
     """Train the unsupervised or supervised network (needs the [bold]train[/bold] extra: torch)."""
     _require_torch()
+    from udh_cli.train.config import flight_motion
     from udh_cli.train.loop import TrainConfig, train as run_training
     from udh_cli.train.warm_start import init_arch
 
     config = TrainConfig(
         mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, real_fraction=real_fraction, source_side=source_side, arch=arch or init_arch(init, mode), patch_size=patch_size, rho=rho, small_motion_fraction=small_motion,
-        illumination=illumination, occluders=occluders, photometric=photometric, motion=motion, max_heading=max_heading, max_scale=max_scale,
-        max_shift=max_shift, min_overlap=min_overlap, residual=residual, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
+        illumination=illumination, occluders=occluders, photometric=photometric,
+        motion=flight_motion(motion, rho, max_heading, max_scale, max_shift, min_overlap, residual), steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
         checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),
     )
     last = run_training(config, resume=resume, threads=threads, overwrite=overwrite, on_note=lambda note: err_console.print(f"note: {note}"))

@@ -229,10 +229,8 @@ class Cascade(Estimator):
                              verification_score=score, verified_by=verified_by, stage=stage)
 
 
-# The start network's options where the cascade's differ from the network's own (refine_rounds: see build). One
-# round of each network is enough ahead of ECC: always running the full cascade cost about 25 % more time
-# (held-out rho 32, 300 pairs); the tile stage cost a quarter of auto's time for the same answers, ECC refining
-# to full resolution anyway (docs/estimators.md, "Why the settings").
+# The start network's options where a cascade's differ from the network's own (refine_rounds: see build): one round
+# of each network and no tile stage are enough ahead of ECC, which refines to full resolution (docs/estimators.md, "Why the settings").
 NETWORK_DEFAULTS: dict[str, Any] = {"iterations": 1, "search": 0, "tiles": False}
 
 

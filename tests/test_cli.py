@@ -14,6 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from udh_cli.estimators import estimator_names
+from udh_cli.estimators.flags import OPTION_FLAGS
 from udh_cli import cli, geometry
 from udh_cli.files import MANIFEST_NAME
 from udh_cli.homography_files import format_homography
@@ -370,3 +371,18 @@ def test_the_mosaic_command_loads_when_invoked():
 def test_estimate_help_states_the_licence_of_the_shipped_weights(monkeypatch, capfd):
     code, out, _ = run_main(monkeypatch, capfd, "estimate", "--help")
     assert code == 0 and "research use only" in " ".join(out.split()) and "models/README.md" in out
+
+
+def test_estimate_flags_go_where_dash_o_goes_and_win_over_it(files, monkeypatch):
+    from udh_cli import api
+
+    seen = {}
+    monkeypatch.setattr(api, "estimate_report", lambda *args, **kwargs: seen.update(kwargs) or {"verified": True})
+    args = ["estimate", str(files["a.png"]), str(files["b16.png"]), "-m", "auto", "-O", "network.search=1", "-O", "min_score=0.6", "--search", "2"]
+    assert CliRunner().invoke(cli.app, [*args, "--flight-model", "none", "--json"]).exit_code == 0
+    assert seen["network"] == {"search": 2, "flight_model": ""} and seen["min_score"] == 0.6
+    help_text = CliRunner().invoke(cli.app, ["estimate", "--help"], env={"COLUMNS": "400"}).stdout
+    for flag in OPTION_FLAGS:  # every flag, its help from the one table
+        assert flag.name in help_text and flag.help[:40] in " ".join(help_text.split())
+    too_far = CliRunner().invoke(cli.app, [*args[:-1], "5"])
+    assert too_far.exit_code == 2 and "less than or equal to 4" in too_far.output

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import errno
 import importlib
+import inspect
 import json
 import signal
 import sys
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Callable, Optional
 
 import typer
 from typer.core import TyperCommand, TyperGroup
@@ -20,11 +21,13 @@ from rich.table import Table
 from udh_cli import __version__
 from udh_cli.errors import UdhError
 from udh_cli.api import ESTIMATE_WORK_SIZE
-from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS, parse_method_options
-from udh_cli.generator_settings import FlightConfig as _FlightConfig, GpsConfig as _GpsConfig
-from udh_cli.train.config import TrainConfig as _TrainConfig
+from udh_cli.estimators.flags import OPTION_FLAGS, given_flags
+from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS, nest_options, parse_method_options
+from udh_cli.generator_settings import FlightConfig as _FlightConfig, GpsConfig as _GpsConfig, MotionConfig as _MotionConfig
+from udh_cli.train.config import MOTIONS as _MOTIONS, TrainConfig as _TrainConfig
 
 _TRAIN = _TrainConfig()  # the command line's defaults are the library's
+_MOTION = _MotionConfig()
 _FLIGHT = _FlightConfig()
 _GPS = _GpsConfig(0.0, 0.0)
 
@@ -85,7 +88,6 @@ METHOD_HELP = "; ".join(f"[bold]{name}[/bold]: {description}" for name, (_, _, d
 _state = {"debug": False}
 INTERRUPTED = 130  # the shell's exit code for Ctrl-C
 UNVERIFIED = 3  # udh estimate: an answer was found but did not verify
-MAX_ITERATIONS = 1000  # udh estimate --iterations: ECC's own default (the paper's); network rounds need a handful
 
 
 def _version(value: bool) -> None:
@@ -102,7 +104,25 @@ def _root(
     _state["debug"] = debug
 
 
+def _with_option_flags(command: Callable[..., None]) -> Callable[..., None]:
+    """``command`` with a typed flag for each of :data:`OPTION_FLAGS` (after its own options, before ``-O``); the
+    flags given reach it as ``flags``, keyed by option, to go where ``-O`` goes. Why generated: each option is
+    described once, in the library's table."""
+    own = [p for p in inspect.signature(command, eval_str=True).parameters.values() if p.name != "flags"]
+    added = [inspect.Parameter(flag.key, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=None, annotation=Annotated[
+        Optional[flag.kind], typer.Option(f"{flag.name}/--no-{flag.name[2:]}" if flag.switch else flag.name, min=flag.low,
+                                          max=flag.high, help=flag.help)]) for flag in OPTION_FLAGS]
+
+    def with_flags(**values) -> None:
+        command(**{p.name: values[p.name] for p in own}, flags=given_flags(values))
+
+    with_flags.__name__, with_flags.__doc__ = command.__name__, command.__doc__
+    with_flags.__signature__ = inspect.Signature(own[:-1] + added + own[-1:])  # -O stays last in the help
+    return with_flags
+
+
 @app.command()
+@_with_option_flags
 def estimate(
     image_a: Annotated[Path, typer.Argument(metavar="IMAGE_A", help="Image A (any size; colour or grey; 8 or 16 bit).")],
     image_b: Annotated[Path, typer.Argument(metavar="IMAGE_B", help="Image B.")],
@@ -110,22 +130,11 @@ def estimate(
     json_output: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout instead of tables.", metavar="")] = False,
     viz: Annotated[Optional[Path], typer.Option("--viz", help="Write a picture: A's border warped onto B.")] = None,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Ground-truth homography file (A to B) to report the corner error.")] = None,
-    best_features: Annotated[Optional[int], typer.Option(help="sift/orb: keep only the N strongest keypoints.")] = None,
-    model: Annotated[Optional[Path], typer.Option(help="Learned methods: an ONNX file instead of the shipped model.")] = None,
-    device: Annotated[Optional[str], typer.Option(help="Learned methods: auto (CUDA if onnxruntime has it), cpu or cuda.")] = None,
-    iterations: Annotated[Optional[int], typer.Option(min=1, max=MAX_ITERATIONS, help=f"Learned methods: rounds of the coarse network; ecc: ECC iterations (1-{MAX_ITERATIONS}).")] = None,
-    refine_model: Annotated[Optional[Path], typer.Option(help="Learned methods: an ONNX file for the refinement stage instead of the shipped one.")] = None,
-    refine_rounds: Annotated[Optional[int], typer.Option(min=0, max=10, help="Learned methods: rounds of the refinement network after the coarse ones (0: none; at most 10).")] = None,
-    search: Annotated[Optional[int], typer.Option(min=0, max=4, help="Learned methods: when the answer is doubted, retry from a (2N+1)^2 grid of shifts up to half the frame (0: off; at most 4; unsupervised: 2 with its tile stage).")] = None,
-    precision: Annotated[Optional[str], typer.Option(help="Learned methods: which shipped networks, int8 (the default where shipped) or fp32.")] = None,
-    headings: Annotated[Optional[int], typer.Option(min=1, max=2, help="Learned methods: 2 also tries B turned half a turn (unsupervised's default), 1 only B as given.")] = None,
-    tiles: Annotated[Optional[bool], typer.Option("--tiles/--no-tiles", help="Learned methods: refine on tiles up to full resolution (on when there is a refinement stage).")] = None,
-    flight_model: Annotated[Optional[str], typer.Option(help="Learned methods: the flight-motion coarse network beside the first (default: the shipped one; 'none' for none).")] = None,
-    matcher_model: Annotated[Optional[str], typer.Option(help="Learned methods: the matcher whose global match a doubted answer gets (default: the shipped one with the tile stage; 'none' for none).")] = None,
     work_size: Annotated[int, typer.Option(help="Estimate with the images' longer side shrunk to this many pixels; the answer is in full-resolution pixels.")] = ESTIMATE_WORK_SIZE,
     full_resolution: Annotated[bool, typer.Option("--full-resolution", help="Estimate at the images' full resolution (slow and memory-hungry on large photos).", metavar="")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --viz file that udh did not write.", metavar="")] = False,
     option: Annotated[Optional[list[str]], typer.Option("--option", "-O", help=OPTION_HELP)] = None,
+    flags: Optional[dict] = None,
 ) -> None:
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold]).
 
@@ -135,13 +144,8 @@ def estimate(
     """
     from udh_cli.api import estimate_report
 
-    given = {"best_features": best_features, "model": None if model is None else str(model), "device": device, "iterations": iterations,
-             "refine_model": None if refine_model is None else str(refine_model), "refine_rounds": refine_rounds, "search": search,
-             "precision": precision, "headings": headings, "tiles": tiles,
-             "flight_model": _model_or_off(flight_model), "matcher_model": _model_or_off(matcher_model)}
     try:
-        options = {**parse_method_options(option, [method.value]).get(method.value, {}),
-                   **{key: value for key, value in given.items() if value is not None}}
+        options = nest_options(method.value, flags or {}, parse_method_options(option, [method.value]).get(method.value, {}))
         report = estimate_report(image_a, image_b, method.value, gt=gt, viz=viz, work_size=None if full_resolution else work_size,
                                  overwrite=overwrite, **options)
     except UdhError as exc:
@@ -204,12 +208,12 @@ def train(
     illumination: Annotated[bool, typer.Option(help="Random brightness/contrast/gamma on the network's inputs.", metavar="")] = _TRAIN.illumination,
     occluders: Annotated[float, typer.Option(min=0.0, max=1.0, help="Share of pairs (0-1) with random occluding blobs on the network's inputs.")] = _TRAIN.occluders,
     photometric: Annotated[str, typer.Option(help="What the unsupervised L1 compares: intensity (the paper's) or contrast (local contrast, blind to vignetting, hot spots and exposure).")] = _TRAIN.photometric,
-    motion: Annotated[str, typer.Option(help="paper (corner perturbation by --rho) or flight (whole frames with real flight motion; --rho is then the perspective jitter).")] = _TRAIN.motion,
-    max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = _TRAIN.max_heading,
-    max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = _TRAIN.max_scale,
-    max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = _TRAIN.max_shift,
-    min_overlap: Annotated[float, typer.Option(help="Flight motion: least share of B that A's view covers.")] = _TRAIN.min_overlap,
-    residual: Annotated[float, typer.Option(help="Flight motion, a later round of the cascade: A pre-warped by an answer off by up to this many px (0: a first round).")] = _TRAIN.residual,
+    motion: Annotated[str, typer.Option(help="paper (corner perturbation by --rho) or flight (whole frames with real flight motion; --rho is then the perspective jitter).")] = _MOTIONS[0],
+    max_heading: Annotated[float, typer.Option(help="Flight motion: largest turn, degrees either way.")] = _MOTION.max_heading,
+    max_scale: Annotated[float, typer.Option(help="Flight motion: largest scale change, a factor either way.")] = _MOTION.scale_range[1],
+    max_shift: Annotated[float, typer.Option(help="Flight motion: largest shift, as a fraction of the frame.")] = _MOTION.max_shift,
+    min_overlap: Annotated[float, typer.Option(help="Flight motion: least share of B that A's view covers.")] = _MOTION.min_overlap,
+    residual: Annotated[float, typer.Option(help="Flight motion, a later round of the cascade: A pre-warped by an answer off by up to this many px (0: a first round).")] = _MOTION.residual,
     patch_size: Annotated[int, typer.Option(help="Network input side, px, a multiple of 32 (--mode match: the views' height; they are 4:3).")] = _TRAIN.patch_size,
     eval_every: Annotated[int, typer.Option(help="Validate every N steps.")] = _TRAIN.eval_every,
     seed: Annotated[int, typer.Option(help="Seed for data and initialisation.")] = _TRAIN.seed,
@@ -217,24 +221,19 @@ def train(
 ) -> None:
     """Train the unsupervised or supervised network (needs the [bold]train[/bold] extra: torch)."""
     _require_torch()
+    from udh_cli.train.config import flight_motion
     from udh_cli.train.loop import TrainConfig, train as run_training
     from udh_cli.train.warm_start import init_arch
 
     config = TrainConfig(
         mode=mode, data=[str(d) for d in data or []], data_kind=data_kind, real_fraction=real_fraction, source_side=source_side, arch=arch or init_arch(init, mode), patch_size=patch_size, rho=rho, small_motion_fraction=small_motion,
-        illumination=illumination, occluders=occluders, photometric=photometric, motion=motion, max_heading=max_heading, max_scale=max_scale,
-        max_shift=max_shift, min_overlap=min_overlap, residual=residual, steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
+        illumination=illumination, occluders=occluders, photometric=photometric,
+        motion=flight_motion(motion, rho, max_heading, max_scale, max_shift, min_overlap, residual), steps=steps, batch=batch, lr=lr, seed=seed, eval_every=eval_every,
         checkpoint_every=eval_every, init=init, teacher=teacher, teacher_weight=teacher_weight, out=str(out),
     )
     last = run_training(config, resume=resume, threads=threads, overwrite=overwrite, on_note=lambda note: err_console.print(f"note: {note}"))
     summary = ", ".join(f"{k} {v:.4g}" for k, v in last.items() if isinstance(v, float))
     console.print(f"done at step {last.get('step')}: {summary}; checkpoints in {out}")
-
-
-def _model_or_off(value: str | None) -> str | None:
-    """A model option of the command line as the estimator takes it: 'none' turns the network off (""), no value
-    keeps the estimator's default (None)."""
-    return None if value is None else ("" if value.lower() == "none" else value)
 
 
 def _require_torch() -> None:

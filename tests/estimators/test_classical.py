@@ -253,7 +253,8 @@ def test_one_option_syntax_for_every_command():
     # A bare KEY reaches every method here that takes it; METHOD.KEY only that one; values are JSON or text.
     got = parse_method_options(["ratio=0.8", "ecc.iterations=200", "model=my.v2.onnx"], ["sift", "ecc", "unsupervised"])
     assert got == {"sift": {"ratio": 0.8}, "ecc": {"iterations": 200}, "unsupervised": {"model": "my.v2.onnx"}}
-    assert parse_method_options(["threads=1"], ["auto", "unsupervised", "sift"]) == {"auto": {"threads": 1}, "unsupervised": {"threads": 1}}
+    assert parse_method_options(["threads=1"], ["auto", "unsupervised", "sift"]) == {"auto": {"network": {"threads": 1}},
+                                                                                      "unsupervised": {"threads": 1}}
     assert parse_method_options(None, ["sift"]) == {}
     with pytest.raises(UdhError, match="KEY=VALUE"):
         parse_method_options(["junk"], ["sift"])

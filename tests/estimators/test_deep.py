@@ -11,7 +11,7 @@ import pytest
 from conftest import export_tiny_network, textured_image, warped_pair
 from udh_cli import geometry
 from udh_cli.errors import UdhError
-from udh_cli.estimators import create_estimator, deep
+from udh_cli.estimators import create_estimator, deep, matching
 from udh_cli.estimators.pair import PreparedImage
 from udh_cli.models_catalog import SHIPPED_MODELS, models_dir
 
@@ -342,7 +342,7 @@ def test_a_folded_global_match_never_replaces_the_cascades_answer(monkeypatch):
 
     a, b = warped_pair(geometry.translation(6.0, -4.0), seed=5)
     folded = np.array([[-1.0, 0.0, 100.0], [0.0, 1.0, 0.0], [0.01, 0.0, 1.0]])
-    monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(folded, 400, 500, 0))
+    monkeypatch.setattr(matching, "global_match", lambda *args, **kwargs: MatchResult(folded, 400, 500, 0))
     # Every pair doubted, no tiles to outrank the match: only the fold check stands between it and the answer.
     matcher = str(models_dir() / f"{SHIPPED_MODELS['unsupervised-matcher']}.onnx")
     estimator = create_estimator("unsupervised", device="cpu", search=0, search_below=1.0, tiles=False, matcher_model=matcher)
@@ -369,7 +369,7 @@ def test_a_confident_match_outranks_what_the_tiles_confirmed_and_is_kept_as_matc
         return [TileResult(moved, 2, 1.0, 0.5, 2) if len(tile_calls) == 1 else TileResult(args[2][0], 0, 0.0, float("nan"), 2)]
 
     monkeypatch.setattr(deep, "refine_pairs_with_tiles", tiles)
-    monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 400, 500, 0))
+    monkeypatch.setattr(matching, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 400, 500, 0))
     matcher = str(models_dir() / f"{SHIPPED_MODELS['unsupervised-matcher']}.onnx")
     estimator = create_estimator("unsupervised", device="cpu", search=0, heading_search=0, search_below=1.0, matcher_model=matcher)
     estimate = estimator.estimate(a, b)
@@ -380,7 +380,7 @@ def test_a_confident_match_outranks_what_the_tiles_confirmed_and_is_kept_as_matc
     assert len(tile_calls) == 2 and not estimate.verified and estimate.details["verdict_failed"] == ["match tiles"]
     # Below the confident support, the answer the tile levels confirmed stands.
     tile_calls.clear()
-    monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 40, 500, 0))
+    monkeypatch.setattr(matching, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 40, 500, 0))
     estimate = estimator.estimate(a, b)
     assert estimate.stage == "tiles" and geometry.mace(estimate.homography, moved, 320, 240) < 1e-6
     # ...but the verdict sees that the match, an opinion of 40 cells, puts it 30 px elsewhere.
@@ -394,7 +394,7 @@ def test_near_its_prior_the_network_keeps_its_networks_and_drops_the_far_searche
         pytest.skip("shipped unsupervised model not built yet")
     full = create_estimator("unsupervised", device="cpu")
     near = full.near_prior()
-    assert (near.search, near.match_headings, near.match_escalate_side) == (0, 1, None)
-    assert (full.search, full.match_headings, full.match_escalate_side) == (deep.PIPELINE_SEARCH, deep.MATCH_HEADINGS, deep.MAX_MATCH_SIDE)
+    assert (near.search, near.match_settings.headings, near.match_settings.escalate_side, near.match_escalate_side) == (0, 1, None, None)
+    assert (full.search, full.match_settings.headings, full.match_settings.escalate_side) == (deep.PIPELINE_SEARCH, deep.MATCH_HEADINGS, matching.MAX_MATCH_SIDE)
     assert near.network is full.network and near.matcher is full.matcher  # nothing loaded again
     assert near.heading_search == full.heading_search and near.settings() != full.settings()

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import udh_cli.estimators.deep as deep
+import udh_cli.estimators.matching as matching
 from conftest import textured_image, warped_pair
 from udh_cli import geometry
 from udh_cli.estimators import create_estimator
@@ -184,7 +185,7 @@ def test_a_confident_global_match_no_tile_level_accepts_is_not_verified(monkeypa
     truth = geometry.translation(6.0, -4.0)
     a, b = warped_pair(truth, seed=5)
     answer = geometry.translation(1.0, 0.0) @ truth
-    monkeypatch.setattr(deep, "global_match", lambda *args, **kwargs: MatchResult(answer, 900, 1000, 0))
+    monkeypatch.setattr(matching, "global_match", lambda *args, **kwargs: MatchResult(answer, 900, 1000, 0))
     monkeypatch.setattr(deep, "refine_pairs_with_tiles", lambda network, pairs, starts, *args, **kwargs:
                         [TileResult(np.asarray(h), 0, 0.0, float("nan"), 2) for h in starts])
     found = estimator.estimate(a, b)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from conftest import BlockDescriptors, textured_image
 from udh_cli import geometry
@@ -226,3 +227,17 @@ def test_the_second_look_compares_every_cell_only_where_a_quarter_of_them_agree(
     sliver = [PreparedImage.of(scene[40:232, 24:280]), PreparedImage.of(scene[40:232, 216:472])]
     assert matching.global_match(BlockDescriptors(), *sliver, side=96, headings=1, escalate_side=256).side == 256
     assert [c for c in calls if c[0] == (48, 64)] == [((48, 64), True), ((48, 64), False)]
+
+
+def test_one_record_checks_the_global_match_settings_of_every_estimator():
+    from udh_cli.errors import UdhError
+
+    assert matching.MatchSettings().checked("matcher") == matching.MatchSettings()
+    with pytest.raises(UdhError, match=r"^method 'matcher': side \(10\) and escalate_side"):
+        matching.MatchSettings(side=10).checked("matcher")
+    with pytest.raises(UdhError, match=r"^method 'unsupervised': match_side \(384\) and match_escalate_side \(4096"):
+        matching.MatchSettings(escalate_side=4096).checked("unsupervised", "match_")
+    with pytest.raises(UdhError, match=r"headings \(3\) must be one of 1, 2, 4"):
+        matching.MatchSettings(headings=3).checked("matcher")
+    near = matching.MatchSettings(side=256, refine_side=512).near_prior()
+    assert (near.side, near.headings, near.refine_side, near.escalate_side) == (256, 1, 512, None)

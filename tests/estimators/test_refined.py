@@ -254,8 +254,8 @@ def test_a_doubtful_answer_asks_the_fallback_first_and_escalates_only_if_that_is
         assert [rounds for _, rounds in learned.start.stages] == [1, 1]
         assert [rounds for _, rounds in escalated.stages] == [2, 2] and escalated.network is learned.start.network
         assert [o.key for o in learned.opinions] == ["fallback", "escalated", *VIEWS]
-        assert AutoOptions(threads=1).build().start.threads == 1  # passed on to the network
-        already_full = AutoOptions(iterations=2, refine_rounds=2).build()
+        assert AutoOptions(network={"threads": 1}).build().start.threads == 1  # passed on to the network
+        already_full = AutoOptions(network={"iterations": 2, "refine_rounds": 2}).build()
         assert "escalated" not in [o.key for o in already_full.opinions]  # rerunning it would repeat its answer
 
 

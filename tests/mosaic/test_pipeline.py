@@ -130,7 +130,7 @@ def test_learned_methods_search_for_large_motion_in_mosaics_unless_told_otherwis
     from udh_cli.mosaic.config import MOSAIC_SEARCH, mosaic_method_options
 
     assert mosaic_method_options("unsupervised", {}) == {"search": MOSAIC_SEARCH}
-    assert mosaic_method_options("auto", {"model": "m.onnx"}) == {"model": "m.onnx", "search": MOSAIC_SEARCH}
+    assert mosaic_method_options("auto", {"model": "m.onnx"}) == {"network": {"model": "m.onnx", "search": MOSAIC_SEARCH}}
     assert mosaic_method_options("unsupervised", {"search": 0}) == {"search": 0}
     assert mosaic_method_options("sift", {"ratio": 0.8}) == {"ratio": 0.8}
 

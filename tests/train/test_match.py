@@ -17,12 +17,13 @@ from udh_cli.train.archs import create_model  # noqa: E402
 from udh_cli.train.checkpoint import load_checkpoint  # noqa: E402
 from udh_cli.train.data import match_view  # noqa: E402
 from udh_cli.train.export import export_onnx  # noqa: E402
+from udh_cli.train.config import flight_motion  # noqa: E402
 from udh_cli.train.loop import TrainConfig, Trainer, train  # noqa: E402
 from udh_cli.train.warm_start import init_arch  # noqa: E402
 
 
 def match_config(pool: Path, out: Path, **changes) -> TrainConfig:
-    base = dict(mode="match", arch="matcher", data=[str(pool)], motion="flight", patch_size=64, rho=4.0, max_heading=20.0,
+    base = dict(mode="match", arch="matcher", data=[str(pool)], motion=flight_motion("flight", 4.0, max_heading=20.0), patch_size=64, rho=4.0,
                 steps=4, batch=2, eval_every=2, checkpoint_every=2, val_pairs=6, out=str(out))
     return TrainConfig(**{**base, **changes})
 
@@ -80,7 +81,7 @@ def test_match_mode_and_its_architecture_go_together(pool, tmp_path):
     with pytest.raises(UdhError, match="do not go together"):
         Trainer(TrainConfig(data=[str(pool)], arch="matcher", out=str(tmp_path / "b")), progress=False)
     with pytest.raises(UdhError, match="--motion flight"):
-        Trainer(match_config(pool, tmp_path / "c", motion="paper"), progress=False)
+        Trainer(match_config(pool, tmp_path / "c", motion=None), progress=False)
     with pytest.raises(UdhError, match="--teacher"):
         Trainer(match_config(pool, tmp_path / "d", teacher="unsupervised"), progress=False)
 

@@ -21,6 +21,7 @@ from conftest import cached_copy, textured_image  # noqa: E402
 from udh_cli.errors import UdhError  # noqa: E402
 from udh_cli.train import losses  # noqa: E402
 from udh_cli.train.checkpoint import load_checkpoint  # noqa: E402
+from udh_cli.train.config import flight_motion  # noqa: E402
 from udh_cli.train.loop import TrainConfig, Trainer, train  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -336,12 +337,12 @@ def test_corr_global_starts_exactly_as_the_corr_network_it_widens():
 
 def test_flight_motion_training_runs_and_records_its_motion(pool, tmp_path):
     out = tmp_path / "flight"
-    last = train(tiny_config(pool, out, patch_size=64, motion="flight", max_heading=20.0, arch="corr-global", steps=4,
+    last = train(tiny_config(pool, out, patch_size=64, motion=flight_motion("flight", 6.0, max_heading=20.0), arch="corr-global", steps=4,
                              eval_every=2, checkpoint_every=2, val_pairs=8, batch=4), threads=1, progress=False)
     assert last["step"] == 4 and np.isfinite(last["val_mace_median"])
-    assert load_checkpoint(out / "checkpoint.pt")["config"]["max_heading"] == 20.0
+    assert load_checkpoint(out / "checkpoint.pt")["config"]["motion"]["max_heading"] == 20.0
     with pytest.raises(UdhError, match="flight motion out of range"):
-        Trainer(tiny_config(pool, tmp_path / "bad", motion="flight", max_heading=200.0), progress=False)
+        Trainer(tiny_config(pool, tmp_path / "bad", motion=flight_motion("flight", 6.0, max_heading=200.0)), progress=False)
 
 
 def make_flight(folder: Path, frames: int = 6, shift: int = 12) -> Path:
@@ -393,9 +394,9 @@ def test_pools_and_flights_together_mix_real_pairs_into_flight_motion_batches(po
     with pytest.raises(UdhError, match="--real-fraction"):
         Trainer(tiny_config(pool, tmp_path / "bad", real_fraction=1.5), progress=False)
     with pytest.raises(UdhError, match="--residual trains a later round on flight motion"):
-        Trainer(tiny_config(pool, tmp_path / "bad", residual=8.0), progress=False)
+        flight_motion("paper", 6.0, residual=8.0)
     with pytest.raises(UdhError, match="--residual 40"):
-        Trainer(tiny_config(pool, tmp_path / "bad", motion="flight", residual=40.0), progress=False)
+        Trainer(tiny_config(pool, tmp_path / "bad", motion=flight_motion("flight", 6.0, residual=40.0)), progress=False)
 
 
 def test_pool_images_at_a_larger_side_give_pairs_from_windows_at_that_scale(pool, tmp_path):

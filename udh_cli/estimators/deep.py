@@ -20,7 +20,7 @@ from udh_cli.estimators.thresholds import THRESHOLDS
 from udh_cli.estimators.tiles import TileRefinement, refine_pairs_with_tiles
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel, OnnxMatcher
-from udh_cli.estimators.matching import CONFIDENT_INLIERS, MATCH_REFINE_SIDE, MATCH_SIDE, MAX_MATCH_SIDE, global_match
+from udh_cli.estimators.matching import CONFIDENT_INLIERS, MatchSettings
 from udh_cli.estimators.verify import Verifier
 
 
@@ -123,9 +123,9 @@ class DeepEstimator(Estimator):
     judged: bool = True
     tiles: bool | None = None
     matcher_model: str | None = None
-    match_side: int = MATCH_SIDE
-    match_escalate_side: int | None = MAX_MATCH_SIDE
-    match_refine_side: int | None = MATCH_REFINE_SIDE
+    match_side: int = MatchSettings.side
+    match_escalate_side: int | None = MatchSettings.escalate_side
+    match_refine_side: int | None = MatchSettings.refine_side
     batch_size: int = PASSES_PER_CALL
     threads: int | None = None
     network: OnnxHomographyModel = field(init=False, repr=False)
@@ -134,7 +134,7 @@ class DeepEstimator(Estimator):
     tile_network: OnnxHomographyModel = field(init=False, repr=False)  # the network of the tile stage
     tile_coarse_network: OnnxHomographyModel | None = field(init=False, repr=False)  # its coarse level's, if any
     matcher: OnnxMatcher | None = field(init=False, repr=False)  # the global matcher, if any
-    match_headings: int = field(init=False, repr=False, default=MATCH_HEADINGS)  # B's turns the global match tries
+    match_settings: MatchSettings = field(init=False, repr=False)  # how the global match runs (the match_* options)
 
     def __post_init__(self) -> None:
         from udh_cli.models_catalog import PRECISIONS, check_precision, has_refinement_stage, has_shipped, shipped_onnx
@@ -191,10 +191,7 @@ class DeepEstimator(Estimator):
             self.tiles = len(self.stages) > 1
         if self.matcher_model is None and self.model is None and self.tiles and has_shipped(f"{self.name}-matcher", precision=None):
             self.matcher_model = str(shipped_onnx(f"{self.name}-matcher", "fp32"))  # float32 only: 0.57 MB, run on doubted pairs
-        if not 64 <= self.match_side <= MAX_MATCH_SIDE or not (self.match_refine_side is None or 64 <= self.match_refine_side <= 4096) \
-                or not (self.match_escalate_side is None or 64 <= self.match_escalate_side <= MAX_MATCH_SIDE):
-            raise UdhError(f"method '{self.name}': match_side ({self.match_side}) and match_escalate_side ({self.match_escalate_side}, or "
-                           f"none) must be 64 to {MAX_MATCH_SIDE} px and match_refine_side ({self.match_refine_side}) 64 to 4096 px or none")
+        self.match_settings = MatchSettings(self.match_side, MATCH_HEADINGS, self.match_refine_side, self.match_escalate_side).checked(self.name, "match_")
         self.matcher = OnnxMatcher.load(self.matcher_model, self.device, self.threads) if self.matcher_model else None
         if self.search is None:
             # Only with the tile stage: without it nothing but the 128-px score checks a searched answer, and a
@@ -219,7 +216,8 @@ class DeepEstimator(Estimator):
         """These networks without the shift search, the global match at B's heading and first side only; the match
         and the heading search answer loop pairs the cascade cannot (docs/mosaic.md, "Loop-closure pairs ...")."""
         twin = copy.copy(self)
-        twin.search, twin.match_headings, twin.match_escalate_side = 0, 1, None
+        twin.search, twin.match_settings = 0, self.match_settings.near_prior()
+        twin.match_escalate_side = twin.match_settings.escalate_side
         return twin
 
     def loaded_precision(self) -> str:
@@ -314,8 +312,7 @@ class DeepEstimator(Estimator):
         matched_any = self.matcher is not None and bool(doubtful)
         if matched_any:
             for i in doubtful:
-                found = global_match(self.matcher, pairs[i].a, pairs[i].b, self.match_side, self.match_headings, self.match_refine_side,
-                                     self.match_escalate_side)
+                found = self.match_settings.match(self.matcher, pairs[i].a, pairs[i].b)
                 if found.b_from_a is None:
                     continue
                 h = geometry.rescale_homography(found.b_from_a, pairs[i].a.size, (s, s), pairs[i].b.size, (s, s))

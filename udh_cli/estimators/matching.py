@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from udh_cli import geometry
+from udh_cli.errors import UdhError
 from udh_cli.estimators.recent import RecentCache, pixels_digest
 from udh_cli.estimators.thresholds import THRESHOLDS
 
@@ -196,6 +197,45 @@ class MatchResult:
     matches: int
     heading: int
     side: int = MATCH_SIDE
+
+
+@dataclass(frozen=True)
+class MatchSettings:
+    """How a global match runs (:func:`global_match`'s arguments): the one record of the matcher's settings and
+    their check (:meth:`checked`), for ``--method matcher`` and the networks' rescue alike.
+
+    Attributes:
+        side: the longer side, px, at which frames are described (64 to :data:`MAX_MATCH_SIDE`).
+        headings: B's turns tried (:data:`HEADINGS`: 1 as given, 2 also half a turn, 4 also quarter turns).
+        refine_side: the longer side, px, of the guided refinement (64 to 4096; None: none).
+        escalate_side: the longer side, px, of a second look when the first is not confident (64 to
+            :data:`MAX_MATCH_SIDE`; None: none).
+    """
+
+    side: int = MATCH_SIDE
+    headings: int = 4
+    refine_side: int | None = MATCH_REFINE_SIDE
+    escalate_side: int | None = MAX_MATCH_SIDE
+
+    def checked(self, method: str, prefix: str = "") -> "MatchSettings":
+        """These settings, or :class:`UdhError` naming ``method``'s options (``prefix`` + the field's name) that are
+        out of range."""
+        if self.headings not in HEADINGS:
+            raise UdhError(f"method '{method}': {prefix}headings ({self.headings}) must be one of {', '.join(map(str, HEADINGS))}")
+        if not 64 <= self.side <= MAX_MATCH_SIDE or not (self.refine_side is None or 64 <= self.refine_side <= 4096) \
+                or not (self.escalate_side is None or 64 <= self.escalate_side <= MAX_MATCH_SIDE):
+            raise UdhError(f"method '{method}': {prefix}side ({self.side}) and {prefix}escalate_side ({self.escalate_side}, or none) "
+                           f"must be 64 to {MAX_MATCH_SIDE} px and {prefix}refine_side ({self.refine_side}) 64 to 4096 px or none")
+        return self
+
+    def near_prior(self) -> "MatchSettings":
+        """B's own heading and the first side only: for a pre-warped pair the other turns and the second look
+        search for what the prediction settled."""
+        return MatchSettings(self.side, 1, self.refine_side, None)
+
+    def match(self, network, image_a, image_b) -> "MatchResult":
+        """:func:`global_match` of two prepared images with these settings."""
+        return global_match(network, image_a, image_b, self.side, self.headings, self.refine_side, self.escalate_side)
 
 
 def match_size(size: tuple[int, int], side: int) -> tuple[int, int]:

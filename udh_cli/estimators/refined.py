@@ -250,19 +250,21 @@ class Cascade(Estimator):
                              verification_score=score, verified_by=verified_by, stage=stage)
 
 
+# The start network's options where a cascade's differ from the network's own (refine_rounds: see build): one round
+# of each network and no tile stage are enough ahead of ECC, which refines to full resolution (docs/estimators.md, "Why the settings").
+NETWORK_DEFAULTS: dict[str, Any] = {"iterations": 1, "search": 0, "tiles": False}
+
+
 @dataclass
 class UnsupervisedEccOptions:
     """The options of ``unsupervised+ecc``; :meth:`build` composes its :class:`Cascade`.
 
     Attributes:
         initial: the network that starts it: "unsupervised" or "supervised" (:data:`LEARNED_STARTS`).
-        model, device, threads, iterations, refine_model, refine_rounds, search, precision: that network's
-            (see :class:`~udh_cli.estimators.deep.DeepEstimator`). ``iterations`` 1: one round of each network is
-            enough ahead of ECC; always running the full cascade cost about 25 % more time (held-out rho 32,
-            300 pairs). ``refine_rounds`` None: one round when the network has a refinement stage.
-        tiles: the network's own tile stage (:mod:`udh_cli.estimators.tiles`) before ECC. Off: ECC refines
-            to full resolution anyway, and the tile stage cost a quarter of ``auto``'s time for the same answers
-            (docs/estimators.md, "Why the settings").
+        network: that network's options (the fields of :class:`~udh_cli.estimators.deep.DeepEstimator`, e.g.
+            ``{"search": 2}``, ``-O network.search=2``), over :data:`NETWORK_DEFAULTS` and the network's own
+            defaults. ``refine_rounds`` unset: one round when the network has a refinement stage. ``judged`` is
+            the cascade's: it judges after ECC (:class:`Policy`).
         refiner: the ECC pyramid and its iteration budget.
         escalate: when the answer is still doubted after the fallback, rerun the network with its own default
             (longer) cascade, sharing its loaded networks: it rescues large-motion pairs at the cost of the few
@@ -280,15 +282,7 @@ class UnsupervisedEccOptions:
 
     name: ClassVar[str] = "unsupervised+ecc"
     initial: str = "unsupervised"
-    model: str | None = None
-    device: str = "auto"
-    threads: int | None = None
-    iterations: int = 1
-    refine_model: str | None = None
-    refine_rounds: int | None = None
-    search: int = 0
-    precision: str | None = None
-    tiles: bool = False
+    network: dict[str, Any] = field(default_factory=dict, metadata={"options_of": "unsupervised", "set_here": ("judged",)})
     refiner: PyramidEcc = field(default_factory=PyramidEcc)
     escalate: bool = False
     fallback: str | None = None
@@ -301,6 +295,9 @@ class UnsupervisedEccOptions:
         """The :class:`Cascade` these options describe (networks and fallback loaded once here)."""
         if self.initial not in LEARNED_STARTS:
             raise UdhError(f"method '{self.name}': initial '{self.initial}' must be a network: {', '.join(LEARNED_STARTS)}")
+        if not isinstance(self.network, dict) or "judged" in self.network:
+            raise UdhError(f"method '{self.name}': network takes the network's options (but judged, the cascade's) as a JSON object, "
+                           f"e.g. -O 'network={{\"search\": 2}}' or -O network.search=2, not {self.network!r}")
         if self.fallback_options is not None and not isinstance(self.fallback_options, dict):
             raise UdhError(f"method '{self.name}': fallback_options takes the fallback's options as a JSON object, "
                            f"e.g. -O 'fallback_options={{\"ratio\": 0.8}}', not {self.fallback_options!r}")
@@ -315,13 +312,13 @@ class UnsupervisedEccOptions:
             raise UdhError(f"method '{self.name}': {exc}") from None
         # A model given alone runs alone, as with the network's own method, and so does a network with no
         # shipped refinement stage (supervised): refine_rounds then stays the network's own default (0).
-        refine_rounds = self.refine_rounds
-        if refine_rounds is None and has_refinement_stage(self.initial, self.model, self.refine_model):
-            refine_rounds = 1
-        network = create_estimator(self.initial, model=self.model, device=self.device, threads=self.threads,
-                                   iterations=self.iterations, refine_model=self.refine_model,
-                                   refine_rounds=refine_rounds, search=self.search, precision=self.precision,
-                                   tiles=self.tiles, judged=False)  # the cascade judges after ECC (Policy)
+        chosen = {**NETWORK_DEFAULTS, **self.network}
+        if chosen.get("refine_rounds") is None and has_refinement_stage(self.initial, chosen.get("model"), chosen.get("refine_model")):
+            chosen["refine_rounds"] = 1
+        try:
+            network = create_estimator(self.initial, **chosen, judged=False)  # the cascade judges after ECC (Policy)
+        except UdhError as exc:
+            raise UdhError(f"method '{self.name}', its network: {exc}") from None
         opinions = []
         if self.fallback:
             options = FALLBACK_OPTIONS.get(self.fallback, {}) if self.fallback_options is None else self.fallback_options

@@ -56,10 +56,12 @@ def parse_method_options(items: Sequence[str] | None, methods: Sequence[str]) ->
     """Estimator options from a command line, one syntax for every command: ``[METHOD.]KEY=VALUE``.
 
     ``METHOD.KEY=VALUE`` goes to that method; a bare ``KEY=VALUE`` goes to every method of ``methods`` that
-    takes ``KEY`` (the command's method; under ``udh bench`` each method compared). Values are read as JSON
-    when they parse (numbers, true/false, null), else kept as text (paths). Returns ``{method: {key: value}}``
-    for the methods that got options. Raises :class:`UdhError` for a malformed item, a METHOD not in
-    ``methods``, or a bare KEY that none of them takes.
+    takes ``KEY`` (the command's method; under ``udh bench`` each method compared). ``KEY`` may name an option
+    of a record the method composes, ``network.search`` (:func:`option_path`), and a bare ``search`` reaches it
+    there when the method has no ``search`` of its own. Values are read as JSON when they parse (numbers,
+    true/false, null), else kept as text (paths). Returns ``{method: options}`` for the methods that got
+    options, nested as :func:`nest_options` makes them. Raises :class:`UdhError` for a malformed item, a METHOD
+    not in ``methods``, or a KEY that none of them takes (naming the keys they take).
     """
     options: dict[str, dict[str, Any]] = {}
     for item in items or []:
@@ -68,19 +70,30 @@ def parse_method_options(items: Sequence[str] | None, methods: Sequence[str]) ->
             shown = item if len(item) <= 60 else item[:57] + "..."
             raise UdhError(f"option '{shown}': write {OPTION_SYNTAX.removeprefix('-O ')}, e.g. model=my.onnx or sift.ratio=0.8")
         key, value = parsed
-        method, dot, name = key.rpartition(".")
-        if dot:
-            if method not in methods:
-                raise UdhError(f"option {key!r}: {method!r} is not a method of this command ({', '.join(methods)})")
-            targets = [method]
+        head, dot, rest = key.partition(".")
+        if dot and head in ESTIMATORS:
+            if head not in methods:
+                raise UdhError(f"option {key!r}: {head!r} is not a method of this command ({', '.join(methods)})")
+            targets, name = [head], rest.strip()
+            if option_path(head, name) is None:
+                raise UdhError(f"option {key!r}: {_takes(head, name)}")
         else:
-            targets = [m for m in methods if name in estimator_options(m)]
+            targets, name = [m for m in methods if option_path(m, key) is not None], key
             if not targets:
-                raise UdhError(f"option {key!r}: no method here takes {name!r} ({', '.join(methods)}); "
-                               f"{methods[0]} takes: {', '.join(estimator_options(methods[0])) or 'no options'}")
+                raise UdhError(f"option {key!r}: no method here takes {key!r} ({', '.join(methods)}); {_takes(methods[0], key)}")
         for target in targets:
-            options.setdefault(target, {})[name.strip()] = value
+            options[target] = nest_options(target, {name: value}, options.get(target, {}))
     return options
+
+
+def _takes(name: str, key: str) -> str:
+    """What method ``name`` takes, for an error about ``key``: its composed record's keys when ``key`` names one."""
+    head, dot, _ = key.partition(".")
+    nested = _nested_fields(name)
+    if dot and head in nested:
+        return f"{name}'s {head} takes: {', '.join(nested[head])}"
+    listed = [f"{key}.{{{', '.join(nested[key])}}}" if key in nested else key for key in _own_options(name)]
+    return f"{name} takes: {', '.join(listed) or 'no options'}"
 
 
 def estimator_names() -> list[str]:
@@ -95,22 +108,87 @@ def _estimator_class(name: str) -> type:
     return getattr(importlib.import_module(module_name), class_name)
 
 
-def estimator_options(name: str) -> list[str]:
-    """The option names (dataclass fields) that the estimator registered as ``name`` takes."""
+def _own_options(name: str) -> list[str]:
+    """The dataclass fields of the class registered as ``name`` that its constructor takes."""
     cls = _estimator_class(name)
     return [f.name for f in dataclasses.fields(cls) if f.init] if dataclasses.is_dataclass(cls) else []
 
 
+def _nested_fields(name: str) -> dict[str, list[str]]:
+    """The fields of ``name``'s record that hold another method's options (metadata ``options_of``), with the keys
+    each takes: that method's options less those the record sets itself (metadata ``set_here``)."""
+    cls = _estimator_class(name)
+    if not dataclasses.is_dataclass(cls):
+        return {}
+    return {f.name: [key for key in _own_options(f.metadata["options_of"]) if key not in f.metadata.get("set_here", ())]
+            for f in dataclasses.fields(cls) if f.init and "options_of" in f.metadata}
+
+
+def estimator_options(name: str) -> list[str]:
+    """The options the method registered as ``name`` takes: its dataclass fields, and for a record it composes
+    (``auto``'s ``network``) that record's keys, dotted (``network.search``)."""
+    nested = _nested_fields(name)
+    return [key for field_name in _own_options(name)
+            for key in ([f"{field_name}.{inner}" for inner in nested[field_name]] if field_name in nested else [field_name])]
+
+
+def option_path(name: str, key: str) -> tuple[str, ...] | None:
+    """Where method ``name`` takes ``key``: ``(key,)`` for a field of its own, ``(record, key)`` for a key of a
+    record it composes (``"network.search"``, or a bare ``"search"`` when it has no ``search`` of its own); None
+    when it does not take it."""
+    head, dot, rest = key.partition(".")
+    nested = _nested_fields(name)
+    if dot:
+        return (head, rest) if rest in nested.get(head, ()) else None
+    if key in _own_options(name):
+        return (key,)
+    return next(((record, key) for record, keys in nested.items() if key in keys), None)
+
+
+def nest_options(name: str, options: dict[str, Any], into: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``options`` for method ``name`` (bare, dotted or nested keys) as its constructor takes them, merged into a
+    copy of ``into``: each key of a composed record inside that record's dict (``{"network": {"search": 2}}``).
+
+    Raises :class:`UdhError` for a key the method does not take, naming those it takes.
+    """
+    nested = _nested_fields(name)
+    out = {key: dict(value) if key in nested and isinstance(value, dict) else value for key, value in (into or {}).items()}
+    for key, value in options.items():
+        path = option_path(name, key)
+        if path is None:
+            raise UdhError(f"method '{name}' does not take {key}; {_takes(name, key).replace(f'{name} takes', 'it takes')}")
+        if len(path) == 2:
+            out[path[0]] = {**out.get(path[0], {}), path[1]: value}
+        elif key in nested and isinstance(value, dict):  # a record given whole, e.g. network={"search": 2}
+            for inner, inner_value in value.items():
+                out = nest_options(name, {f"{key}.{inner}": inner_value}, out)
+            out.setdefault(key, {})
+        else:
+            out[key] = value
+    return out
+
+
+def with_option_default(name: str, options: dict[str, Any], key: str, value: Any, none_is_unset: bool = False) -> dict[str, Any]:
+    """``options`` of method ``name`` nested (:func:`nest_options`), with ``key`` set to ``value`` where the method
+    takes it and ``options`` do not give it (or give None, with ``none_is_unset``); unchanged where it does not."""
+    nested = nest_options(name, options)
+    path = option_path(name, key)
+    if path is None:
+        return nested
+    holder = nested if len(path) == 1 else nested.setdefault(path[0], {})
+    if path[-1] not in holder or (none_is_unset and holder[path[-1]] is None):
+        holder[path[-1]] = value
+    return nested
+
+
 def create_estimator(name: str, **options: Any) -> Estimator:
-    """Build the estimator registered as ``name`` with keyword ``options`` (its dataclass fields).
+    """Build the estimator registered as ``name`` with keyword ``options`` (its dataclass fields; the keys of a
+    record it composes dotted, bare or nested, as :func:`nest_options` reads them).
 
     Raises :class:`UdhError` for an unknown name or option, or an option value of the wrong type.
     """
     cls = _estimator_class(name)
-    accepted = estimator_options(name)
-    unknown = sorted(set(options) - set(accepted))
-    if unknown:
-        raise UdhError(f"method '{name}' does not take {', '.join(unknown)}; it takes: {', '.join(accepted) or 'no options'}")
+    options = nest_options(name, options)
     _check_option_types(name, cls, options)
     from udh_cli.estimators.base import Estimator  # NumPy, once an estimator is made: the names alone need none
 

@@ -10,7 +10,7 @@ from typing import Any
 
 from udh_cli.errors import UdhError
 from udh_cli.estimators import DEFAULT_METHOD, Estimator, create_estimator
-from udh_cli.estimators.registry import estimator_options
+from udh_cli.estimators.registry import with_option_default
 from udh_cli.mosaic.inputs.frames import ORDERS
 from udh_cli.mosaic.pairs.types import Acceptance
 from udh_cli.mosaic.pairs.workers import EstimatorSpec, automatic_workers
@@ -161,10 +161,7 @@ def mosaic_method_options(method: str, given: dict[str, Any]) -> dict[str, Any]:
     against at most 45 in training). On copr the search took the median pair error from 14.3 to 2.6 px
     (at 128x128, against the SIFT reference).
     """
-    options = dict(given)
-    if "search" in estimator_options(method) and "search" not in options:
-        options["search"] = MOSAIC_SEARCH
-    return options
+    return with_option_default(method, given, "search", MOSAIC_SEARCH)
 
 
 def acceptance(config: MosaicConfig) -> Acceptance:

@@ -76,7 +76,8 @@ _CONFIG_FIELDS = {
     "patch_size": (lambda v: _is_integer(v) and v % 32 == 0 and 32 <= v <= MAX_PATCH_SIZE, f"a multiple of 32 from 32 to {MAX_PATCH_SIZE}", False),
     "rho": (lambda v: _is_number(v) and math.isfinite(v) and v > 0, "a positive number", False),
     "data": (lambda v: isinstance(v, (list, tuple)) and all(isinstance(d, str) for d in v), "a list of folders", False),
-    "motion": (lambda v: isinstance(v, str), "a motion name", True),
+    "motion": (lambda v: v is None or isinstance(v, str) or _is_motion(v), "none, a motion name or flight motion's ranges", True),
+    # The flat flight-motion keys of checkpoints written before TrainConfig nested them in "motion".
     "max_heading": (lambda v: _is_number(v) and math.isfinite(v), "a number", True),
     "max_scale": (lambda v: _is_number(v) and math.isfinite(v), "a number", True),
     "max_shift": (lambda v: _is_number(v) and math.isfinite(v), "a number", True),
@@ -95,6 +96,14 @@ def _check_config(path: Path, config: Any) -> None:
             raise UdhError(f"{path}: the checkpoint's config lacks '{key}'; it is damaged or foreign")
         if not test(config[key]):
             raise UdhError(f"{path}: the checkpoint's config gives {key} {_short(config[key])}, not {wanted}; it is damaged or foreign")
+
+
+def _is_motion(value: Any) -> bool:
+    """Whether ``value`` is a stored MotionConfig: finite numbers, a (low, high) scale range, a residual of at least 0."""
+    if not isinstance(value, dict) or not isinstance(value.get("scale_range"), (list, tuple)) or len(value["scale_range"]) != 2:
+        return False
+    numbers = [v for key, v in value.items() if key != "scale_range"] + list(value["scale_range"])
+    return all(_is_number(v) and math.isfinite(v) for v in numbers) and value.get("residual", 0) >= 0
 
 
 def _short(value: Any) -> str:

@@ -3,15 +3,21 @@ takes its defaults from here."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
+from udh_cli.errors import UdhError
 from udh_cli.generator_settings import MotionConfig
 
 DEFAULT_ARCH = "corr"  # the CPU-friendly network of udh_cli.train.archs
 PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learning rates
 # Default rates by --mode: the paper's, and for the matcher (a fine-tune of a trained encoder plus a new block).
 DEFAULT_LR = {**PAPER_LR, "match": 3e-4}
-MOTIONS = ("paper", "flight")
+MOTIONS = ("paper", "flight")  # --motion: the paper's corner perturbation (TrainConfig.motion None), or flight motion
+# The flat keys of a run's stored settings before TrainConfig nested its flight motion (config.json and checkpoints of
+# before 2026-11-28), with the MotionConfig field each became; max_scale became scale_range (1 / it, it).
+FLAT_MOTION_KEYS = ("max_heading", "max_scale", "max_shift", "min_overlap", "residual")
 PHOTOMETRIC_SPACES = ("intensity", "contrast")  # what the unsupervised loss compares (train.losses)
 DEFAULT_STEPS = 20000
 DEFAULT_REAL_FRACTION = 0.5  # share of a mixed batch from real flight pairs
@@ -40,12 +46,10 @@ class TrainConfig:
             see the clean images.
         photometric: what the unsupervised L1 compares: "intensity" (grey values, the paper's) or
             "contrast" (local contrast, blind to vignetting, hot spots and exposure).
-        motion: "paper" (corner perturbation by ``rho``, the paper's) or "flight" (whole frames with real
-            flight motion, :mod:`udh_cli.flight_motion`; ``rho`` is then the perspective jitter).
-        max_heading: flight motion's largest turn, degrees; max_scale: its largest scale change (a factor,
-            both ways); max_shift: its largest translation, as a fraction of the frame; min_overlap: the least
-            share of B that A's view covers; residual: above 0, train a later round of the cascade (A shown
-            pre-warped by an answer off by up to this many px at the corners, the label what is left).
+        motion: None for the paper's corner perturbation by ``rho``, or the flight motion of whole frames
+            (:class:`~udh_cli.generator_settings.MotionConfig`, :mod:`udh_cli.flight_motion`: turn, scale, shift,
+            perspective jitter, overlap, and ``residual`` above 0 for a later round of the cascade);
+            :func:`flight_motion` makes it from the command line's flags.
         steps: total optimiser steps (None: :data:`DEFAULT_STEPS`, or on resume the run's own total);
             batch: pairs per step and per process.
         lr: Adam learning rate (None: the paper's, 1e-4 unsupervised, 5e-4 supervised).
@@ -72,12 +76,7 @@ class TrainConfig:
     illumination: bool = True
     occluders: float = 0.0
     photometric: str = "intensity"
-    motion: str = "paper"
-    max_heading: float = MotionConfig.max_heading
-    max_scale: float = MotionConfig.scale_range[1]
-    max_shift: float = MotionConfig.max_shift
-    min_overlap: float = MotionConfig.min_overlap
-    residual: float = MotionConfig.residual
+    motion: MotionConfig | None = None
     steps: int | None = None
     batch: int = 32
     lr: float | None = None
@@ -96,11 +95,43 @@ class TrainConfig:
     def learning_rate(self) -> float:
         return DEFAULT_LR[self.mode] if self.lr is None else self.lr
 
+    @classmethod
+    def from_dict(cls, stored: dict[str, Any]) -> "TrainConfig":
+        """The config a run stored (``asdict`` of one, read back from JSON or a checkpoint), nested or flat: the
+        flat keys of before 2026-11-28 (``motion`` "paper"/"flight", :data:`FLAT_MOTION_KEYS`, ``rho`` the
+        perspective jitter) load to the same values. Raises KeyError, TypeError or ValueError for a damaged one."""
+        values = {key: value for key, value in stored.items() if key not in FLAT_MOTION_KEYS}
+        values["motion"] = stored_motion(stored)
+        if "betas" in values:
+            values["betas"] = tuple(values["betas"])
+        return cls(**values)
 
-def motion_config(config: TrainConfig) -> MotionConfig | None:
-    """The flight-motion distribution a run trains on, or None for the paper's corner perturbation."""
-    if config.motion == "paper":
+
+def stored_motion(stored: dict[str, Any]) -> MotionConfig | None:
+    """The motion of a run's stored settings (see :meth:`TrainConfig.from_dict`), nested or flat."""
+    motion = stored.get("motion")
+    if isinstance(motion, dict):
+        return MotionConfig(**{**motion, "scale_range": tuple(motion["scale_range"])})
+    if motion is None or motion == "paper":
         return None
-    return MotionConfig(max_heading=config.max_heading, scale_range=(1.0 / config.max_scale, config.max_scale),
-                        max_shift=config.max_shift, perspective=config.rho,
-                        min_overlap=config.min_overlap, residual=config.residual)
+    if motion != "flight":
+        raise ValueError(f"motion {motion!r} is not one of {', '.join(MOTIONS)}")
+    flat = {key: float(stored[key]) for key in FLAT_MOTION_KEYS if key in stored}
+    return flight_motion("flight", float(stored.get("rho", TrainConfig.rho)), **flat)
+
+
+def flight_motion(motion: str, perspective: float, max_heading: float = MotionConfig.max_heading,
+                  max_scale: float = MotionConfig.scale_range[1], max_shift: float = MotionConfig.max_shift,
+                  min_overlap: float = MotionConfig.min_overlap, residual: float = MotionConfig.residual) -> MotionConfig | None:
+    """``TrainConfig.motion`` from the command line's flags: None for ``motion`` "paper", else the flight motion
+    with these ranges (``max_scale``: the largest scale change, a factor either way; ``perspective``: ``--rho``).
+
+    Raises :class:`UdhError` for an unknown ``motion``, or a ``residual`` without flight motion."""
+    if motion not in MOTIONS:
+        raise UdhError(f"--motion {motion}: choose one of {', '.join(MOTIONS)}")
+    if motion == "paper":
+        if residual:
+            raise UdhError("--residual trains a later round on flight motion; it needs --motion flight")
+        return None
+    return MotionConfig(max_heading=max_heading, scale_range=(1.0 / max_scale, max_scale), max_shift=max_shift,
+                        perspective=perspective, min_overlap=min_overlap, residual=residual)

@@ -27,6 +27,7 @@ from udh_cli.images import check_output_path
 from udh_cli.onnx_model import MODEL_FORMAT, write_metadata
 from udh_cli.train.archs import MATCHERS, create_model
 from udh_cli.train.checkpoint import load_checkpoint
+from udh_cli.train.config import stored_motion
 
 OPSET = 18  # the torch.export-based exporter's lowest
 
@@ -55,6 +56,7 @@ def _portable_history(trained_before: dict[str, Any]) -> dict[str, Any]:
 def model_metadata(state: dict[str, Any]) -> dict[str, str]:
     """The ONNX metadata (all strings) describing a checkpoint: what the estimator and the model card read."""
     config = state["config"]
+    motion = stored_motion(config)  # nested, or the flat keys of older checkpoints
     return {
         "udh_format": MODEL_FORMAT,
         "arch": config["arch"],
@@ -70,11 +72,11 @@ def model_metadata(state: dict[str, Any]) -> dict[str, str]:
         "best_val_mace": repr(float(state.get("best_val", float("nan")))),
         # What motion the network saw, so that a user (and the model card) can tell what it was trained for;
         # models exported before these keys existed were trained on the paper's corner perturbation.
-        "motion": str(config.get("motion", "paper")),
-        "max_heading": repr(float(config.get("max_heading", 0.0))) if config.get("motion", "paper") == "flight" else "0.0",
-        "max_scale": repr(float(config.get("max_scale", 1.0))) if config.get("motion", "paper") == "flight" else "1.0",
-        "max_shift": repr(float(config.get("max_shift", 0.0))) if config.get("motion", "paper") == "flight" else "0.0",
-        "residual": repr(float(config.get("residual", 0.0))),
+        "motion": "paper" if motion is None else "flight",
+        "max_heading": repr(float(motion.max_heading)) if motion else "0.0",
+        "max_scale": repr(float(motion.scale_range[1])) if motion else "1.0",
+        "max_shift": repr(float(motion.max_shift)) if motion else "0.0",
+        "residual": repr(float(motion.residual)) if motion else "0.0",
         "convention": "offsets[i] = b_from_a(corner_i) - corner_i, corners TL,TR,BR,BL at pixel centres of the SxS input",
     }
 

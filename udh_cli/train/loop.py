@@ -16,10 +16,11 @@ import torch
 
 from udh_cli import geometry
 from udh_cli.errors import UdhError
+from udh_cli.generator_settings import MotionConfig
 from udh_cli.synthetic import PairConfig
 from udh_cli.train import losses
 from udh_cli.train.archs import MATCHERS, create_model, widen_from
-from udh_cli.train.config import DEFAULT_LR, DEFAULT_STEPS, MOTIONS, PHOTOMETRIC_SPACES, TrainConfig, motion_config
+from udh_cli.train.config import DEFAULT_LR, DEFAULT_STEPS, PHOTOMETRIC_SPACES, TrainConfig
 from udh_cli.train.checkpoint import load_checkpoint, save_checkpoint
 from udh_cli.train.data import Batch, MatchData, match_view, open_data
 from udh_cli.train.run_folder import check_fresh_out, lock_run_folder, logged_step
@@ -77,7 +78,6 @@ class Trainer:
             saved = load_checkpoint(self.checkpoint_path)
             stored = saved["config"]
             try:
-                stored["betas"] = tuple(stored["betas"])
                 # The stored run defines everything except how long to train and where the data lies now.
                 steps = config.steps if config.steps is not None else stored["steps"]
                 lr = stored["lr"]
@@ -85,8 +85,8 @@ class Trainer:
                     # Lowering the rate is the advice after a diverged run, so a new --lr is honoured, and said.
                     self.notes.append(f"--lr {config.lr} replaces the run's {stored['lr']} from step {int(saved['step'])} on")
                     lr = config.lr
-                config = TrainConfig(**{**stored, "steps": max(steps, int(saved["step"])), "lr": lr, "data": config.data or stored["data"],
-                                        "out": config.out})
+                config = replace(TrainConfig.from_dict(stored), steps=max(steps, int(saved["step"])), lr=lr, data=config.data or stored["data"],
+                                 out=config.out)
             except (KeyError, TypeError, ValueError) as exc:  # a damaged or foreign config: one line, not a traceback
                 raise UdhError(f"{self.checkpoint_path}: the run's stored settings are damaged ({type(exc).__name__}: {exc}); "
                                f"start a new run with --overwrite or another --out") from None
@@ -103,7 +103,7 @@ class Trainer:
         if not config.data:
             raise UdhError("no --data given; name one or more folders of images or flights")
         pair_config = PairConfig(config.patch_size, config.rho, config.small_motion_fraction, config.illumination, config.occluders,
-                                 motion_config(config))
+                                 config.motion)
         if config.mode == "match":
             self.data = MatchData([Path(d) for d in config.data], pair_config)
         else:
@@ -413,18 +413,18 @@ def _check_config(config: TrainConfig, out: Path) -> None:
         raise UdhError(f"--small-motion {config.small_motion_fraction}: give a share of pairs from 0 to 1")
     if not 0.0 <= float(config.occluders) <= 1.0:
         raise UdhError(f"--occluders {config.occluders}: give a share of pairs from 0 to 1")
-    if config.motion not in MOTIONS:
-        raise UdhError(f"--motion {config.motion}: choose one of {', '.join(MOTIONS)}")
+    motion = config.motion
+    if motion is not None and not isinstance(motion, MotionConfig):
+        raise UdhError(f"motion takes the flight motion (udh_cli.train.config.flight_motion) or None for the paper's, not {motion!r}")
     if config.photometric not in PHOTOMETRIC_SPACES:
         raise UdhError(f"--photometric {config.photometric}: choose one of {', '.join(PHOTOMETRIC_SPACES)}")
-    if not (0 <= config.max_heading <= 180 and 1 <= config.max_scale <= 4 and 0 <= config.max_shift <= 1 and 0.05 <= config.min_overlap <= 1):
-        raise UdhError(f"flight motion out of range: --max-heading {config.max_heading} (0-180 degrees), "
-                       f"--max-scale {config.max_scale} (1-4), --max-shift {config.max_shift} (0-1 of the frame), "
-                       f"--min-overlap {config.min_overlap} (0.05-1)")
-    if not 0.0 <= config.residual <= config.patch_size / 4:
-        raise UdhError(f"--residual {config.residual}: give 0 (a first round) or a corner error up to {config.patch_size // 4} px")
-    if config.residual and config.motion != "flight":
-        raise UdhError("--residual trains a later round on flight motion; it needs --motion flight")
+    if motion is not None and not (0 <= motion.max_heading <= 180 and 1 <= motion.scale_range[1] <= 4 and 0 <= motion.max_shift <= 1
+                                   and 0.05 <= motion.min_overlap <= 1):
+        raise UdhError(f"flight motion out of range: --max-heading {motion.max_heading} (0-180 degrees), "
+                       f"--max-scale {motion.scale_range[1]} (1-4), --max-shift {motion.max_shift} (0-1 of the frame), "
+                       f"--min-overlap {motion.min_overlap} (0.05-1)")
+    if motion is not None and not 0.0 <= motion.residual <= config.patch_size / 4:
+        raise UdhError(f"--residual {motion.residual}: give 0 (a first round) or a corner error up to {config.patch_size // 4} px")
     if out.exists() and not out.is_dir():
         raise UdhError(f"--out {out}: is a file; give a folder for the run")
     # Nothing is created until training starts, so a bad --data leaves no empty run folder behind.

@@ -313,14 +313,9 @@ def _single_threaded(spec: EstimatorSpec) -> EstimatorSpec:
     """The spec with one onnxruntime thread for each method that takes ``threads``: a worker per core, not threads."""
     from dataclasses import replace
 
-    from udh_cli.estimators.registry import estimator_options
+    from udh_cli.estimators.registry import with_option_default
 
-    def one_thread(name: str, options: dict[str, Any]) -> dict[str, Any]:
-        if "threads" in estimator_options(name) and options.get("threads") is None:
-            return {**options, "threads": 1}
-        return options
-
-    return replace(spec, opinions=tuple((name, one_thread(name, options)) for name, options in spec.opinions))
+    return replace(spec, opinions=tuple((name, with_option_default(name, options, "threads", 1, none_is_unset=True)) for name, options in spec.opinions))
 
 
 # workers=None: one process per core, at most MAX_AUTO_WORKERS, for a flight of POOL_MIN_FRAMES frames or more.

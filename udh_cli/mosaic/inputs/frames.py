@@ -245,7 +245,8 @@ class _DecodeKeeper:
 
 
 def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Path], reporter: Reporter, lens: Lens | None,
-                 kept: _DecodeKeeper) -> FrameSet:
+                 kept: _DecodeKeeper | None = None) -> FrameSet:
+    kept = kept or _DecodeKeeper(0)
     excluded = {Path(p).resolve() for p in exclude}
     try:
         listing = list(folder.iterdir())
@@ -372,7 +373,8 @@ def read_video_frame(capture: cv2.VideoCapture) -> tuple[bool, np.ndarray | None
 _FFMPEG_LINE = re.compile(r"\s*\[(?:OPENCV:FFMPEG:\d+|[\w,\-]+ @ 0x[0-9a-fA-F]+)\]")
 
 
-def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens: Lens | None, kept: _DecodeKeeper) -> FrameSet:
+def _open_video(path: Path, work_size: int, every: int, reporter: Reporter, lens: Lens | None, kept: _DecodeKeeper | None = None) -> FrameSet:
+    kept = kept or _DecodeKeeper(0)
     if path.suffix.lower() in IMAGE_SUFFIXES:
         raise UdhError(f"{path}: is a single image; give a folder of frames or a video")
     stamp = file_stamp(path)

@@ -10,6 +10,7 @@ stream (as pigz does); the run-length strategy only matches the byte before, so 
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import zlib
 from collections import deque
@@ -110,8 +111,7 @@ class StreamedPng:
             if self.next_row != self.size[1]:
                 raise UdhError(f"{self.path}: the PNG got {self.next_row} of its {self.size[1]} rows; this is a bug in udh, please report it")
             self._drain(0)
-            self._write(_chunk(b"IDAT", struct.pack(">I", self.adler)) + _chunk(b"IEND", b""))
-            self.file.flush()
+            self._write(_chunk(b"IDAT", struct.pack(">I", self.adler)) + _chunk(b"IEND", b""), flush=True)
         finally:
             self.abandon()
 
@@ -120,7 +120,8 @@ class StreamedPng:
         for future in self.pending:
             future.cancel()
         self.pool.shutdown(wait=True)
-        self.file.close()
+        with contextlib.suppress(OSError):  # closing flushes what a full disk refused again; the file is discarded anyway
+            self.file.close()
 
     def __enter__(self) -> "StreamedPng":
         return self
@@ -141,9 +142,11 @@ class StreamedPng:
             self.adler = _adler32_combine(self.adler, adler, length)
             self._write(_chunk(b"IDAT", data))
 
-    def _write(self, data: bytes) -> None:
+    def _write(self, data: bytes, flush: bool = False) -> None:
         try:
             self.file.write(data)
+            if flush:  # a small file sits whole in the buffer: the full disk shows only here
+                self.file.flush()
         except OSError as exc:  # a full disk: one line, and the staging folder discards the file
             raise UdhError(f"{self.path}: writing the mosaic failed ({exc.strerror or exc}); check the free space and permissions") from None
 

@@ -3,9 +3,10 @@
 OpenCV encodes a PNG from the whole image at once, on the calling thread, after compositing. Here each band of
 canvas rows is filtered and compressed as soon as its tiles are blended, so the compression runs beside the
 next tiles' blending, and the map is never assembled whole for the PNG. The encoding is OpenCV's: the PNG "Sub"
-filter on every row, zlib level 1 with the run-length strategy (sizes within 0.2 % of OpenCV's). Each block of
-rows is compressed as a raw DEFLATE stream ended by a sync flush, so that the blocks concatenate into one zlib
-stream (as pigz does); the run-length strategy only matches the byte before, so cutting costs no compression.
+filter on every row, zlib level 1 with the run-length strategy, so the files are OpenCV's size (the tests hold
+it). Each block of rows is compressed as a raw DEFLATE stream ended by a sync flush, so that the blocks
+concatenate into one zlib stream (as pigz does); the run-length strategy only matches the byte before, so
+cutting costs no compression.
 """
 
 from __future__ import annotations

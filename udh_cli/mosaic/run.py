@@ -99,6 +99,7 @@ def run_mosaic(
     anchors = solve_anchors(frameset, config.gcp_sigma_m, config.gps_sigma_m, reporter, gcps, gcp_image_width)
     solved = solve_parts(frameset, parts, pairs, config.global_solve(), reporter, anchors)
     plan = plan_canvases(frameset, parts, files, config.drawing())
+    frameset.drop_decoded(i for part in plan.parts for i in part.frames)  # a frame no part renders is not decoded again
     staged = StagedFiles(files.output, overwrite)  # the images of every part appear together, or none of them does
     try:
         keep = kept_images(plan, wanted=has_rasterio() and (gcps is not None or bool(gps_fixes(frameset.frames))))  # for the GeoTIFFs

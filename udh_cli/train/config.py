@@ -15,8 +15,8 @@ PAPER_LR = {"unsupervised": 1e-4, "supervised": 5e-4}  # the paper's Adam learni
 # Default rates by --mode: the paper's, and for the matcher (a fine-tune of a trained encoder plus a new block).
 DEFAULT_LR = {**PAPER_LR, "match": 3e-4}
 MOTIONS = ("paper", "flight")  # --motion: the paper's corner perturbation (TrainConfig.motion None), or flight motion
-# The flat keys of a run's stored settings before TrainConfig nested its flight motion (config.json and checkpoints of
-# before 2026-11-28), with the MotionConfig field each became; max_scale became scale_range (1 / it, it).
+# The flat keys a run's stored settings (config.json, checkpoints) held before TrainConfig nested its flight motion,
+# with the MotionConfig field each became; max_scale became scale_range (1 / it, it).
 FLAT_MOTION_KEYS = ("max_heading", "max_scale", "max_shift", "min_overlap", "residual")
 PHOTOMETRIC_SPACES = ("intensity", "contrast")  # what the unsupervised loss compares (train.losses)
 DEFAULT_STEPS = 20000
@@ -98,7 +98,7 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, stored: dict[str, Any]) -> "TrainConfig":
         """The config a run stored (``asdict`` of one, read back from JSON or a checkpoint), nested or flat: the
-        flat keys of before 2026-11-28 (``motion`` "paper"/"flight", :data:`FLAT_MOTION_KEYS`, ``rho`` the
+        flat keys of earlier runs (``motion`` "paper"/"flight", :data:`FLAT_MOTION_KEYS`, ``rho`` the
         perspective jitter) load to the same values. Raises KeyError, TypeError or ValueError for a damaged one."""
         values = {key: value for key, value in stored.items() if key not in FLAT_MOTION_KEYS}
         values["motion"] = stored_motion(stored)

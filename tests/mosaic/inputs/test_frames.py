@@ -214,3 +214,17 @@ def test_the_first_frames_decoded_while_reading_are_handed_over_once_as_full_ima
     (tmp_path / "f0.png").write_bytes(cv2.imencode(".png", textured_image(160, 120, 9))[1].tobytes())
     with pytest.raises(UdhError, match="f0.png"):  # a frame replaced since it was read is refused, kept or not
         frameset.take_decoded([0])
+
+
+@pytest.mark.parametrize("grey", [False, True])
+def test_kept_16_bit_frames_are_handed_over_in_the_flights_grey_range_as_a_second_read_is(tmp_path, grey):
+    for seed in range(3):
+        image = textured_image(160, 120, seed).astype(np.uint16) * 4 + 7000  # thermal-like: a sliver of 16 bits
+        cv2.imwrite(str(tmp_path / f"f{seed}.png"), image if grey else np.dstack([image, image // 2 + 3500, image]))
+    frameset = open_frames(tmp_path, 80, keep_decoded_bytes=2**30)
+    assert frameset.value_range is not None and frameset.decoded_while_reading[0].dtype == np.uint16
+    taken = frameset.take_decoded([0, 2])
+    read_again = dict(frameset.full_images([0, 2]))
+    for index in (0, 2):
+        assert taken[index].dtype == np.uint8 and taken[index].shape == (120, 160, 3)
+        assert np.array_equal(taken[index], read_again[index])

@@ -69,3 +69,20 @@ def test_a_distorted_flight_mosaics_to_its_truth_with_the_estimated_lens(tmp_pat
     # Measured: 21.4 px without a lens, 3.2 px with the fitted k1 (-0.100 at the assumed focal length 0.7), 0.81 px
     # with the true camera (test_lens.py): one k1 cannot hold the lens's k2 and its off-centre principal point.
     assert error(fitted) < 4.0 and error(plain) > 10.0
+
+
+def test_the_kept_decodes_are_undistorted_by_the_fitted_lens_as_a_second_read_is(tmp_path):
+    import numpy as np
+
+    from udh_cli.mosaic import Reporter
+    from udh_cli.mosaic.inputs.frames import open_frames
+    from udh_cli.mosaic.inputs.lens_fit import undistort_by_fitted_lens
+
+    paths = make_flight(tmp_path, SMALL, seed=4)
+    for path in paths:
+        cv2.imwrite(str(path), distort(cv2.imread(str(path)), BARREL))
+    frames = open_frames(tmp_path, 320, keep_decoded_bytes=2**30)
+    assert undistort_by_fitted_lens(frames, Reporter(quiet=True)).k1 < -0.05
+    kept = frames.take_decoded([0, 5])
+    read_again = dict(frames.full_images([0, 5]))
+    assert sorted(kept) == [0, 5] and all(np.array_equal(kept[i], read_again[i]) for i in kept)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import struct
 import zlib
 
@@ -87,3 +88,11 @@ def test_rows_out_of_order_or_missing_are_refused_and_the_file_is_left_to_its_st
             png.add_rows(0, image[:32])
     with pytest.raises(UdhError, match="cannot hold a 0x64 image"):
         StreamedPng(tmp_path / "c.png", (0, 64))
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full, a device that is always full")
+@pytest.mark.parametrize("height", [4, 2000])  # one within the file's buffer (fails on flush), one past it (on write)
+def test_a_full_disk_is_one_udh_error_not_an_oserror(height):
+    with pytest.raises(UdhError, match="writing the mosaic failed .*No space left"):
+        with StreamedPng("/dev/full", (64, height)) as png:
+            png.add_rows(0, _map_like(height, 64))

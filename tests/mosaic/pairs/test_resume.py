@@ -222,3 +222,23 @@ def test_cli_resume_with_the_output_inside_the_frames_folder(flight, tmp_path, m
     assert sidecar["summary"]["pairs_from_cache"] == len(sidecar["pairs"]) > 7
     assert sidecar["skipped_files"] == []  # the cache (and the other outputs) are never read as frames
     assert f"{len(sidecar['pairs'])} of {len(sidecar['pairs'])} pair estimates taken from" in err
+
+
+def test_the_pair_key_covers_the_judges_thresholds(flight, monkeypatch, tmp_path):
+    """A record holds verdicts (verified, which stage answered) that the judge's table decided: a retuned table
+    must not reuse them."""
+    from dataclasses import replace
+
+    from udh_cli.mosaic.inputs.frames import open_frames
+    from udh_cli.mosaic.pairs import cache as pair_cache
+    from udh_cli.mosaic.pairs.types import Acceptance, PairRequest
+
+    frames = open_frames(flight[0], 64).frames
+
+    def key() -> str:
+        cache = pair_cache.PairCache.open(tmp_path / "m.pairs.json", frames, [], Acceptance(), False, Reporter(quiet=True), keep=False)
+        return cache.key(PairRequest(0, 1, "consecutive"))
+
+    before = key()
+    monkeypatch.setattr(pair_cache, "THRESHOLDS", replace(pair_cache.THRESHOLDS, min_matched_tile_levels=3))
+    assert key() != before

@@ -71,3 +71,17 @@ def test_frames_decoded_before_are_not_read_again(placed_flight, monkeypatch):
     given = composite(frames, to_ground, size, "multiband", Reporter(quiet=True), tile_side=128, decoded=decoded)
     assert sorted(set(read)) == sorted(set(to_ground) - {0, 1})
     assert np.array_equal(given, alone)
+
+
+def test_a_part_takes_its_kept_frames_in_a_budget_less_what_the_other_parts_still_hold(placed_flight):
+    from udh_cli.mosaic.render.decoded import DECODED_CACHE_BYTES
+
+    folder = placed_flight[0].source
+    frames = open_frames(folder, 800, keep_decoded_bytes=DECODED_CACHE_BYTES)
+    one_frame = 320 * 240 * 3
+    assert frames.decoded_bytes() == len(frames.frames) * one_frame
+    decoded = DecodedFrames.taken_from(frames, [0, 1, 2])
+    assert list(decoded.kept) == [0, 1, 2] and sorted(frames.decoded_while_reading) == list(range(3, len(frames.frames)))
+    assert decoded.budget_bytes + frames.decoded_bytes() == DECODED_CACHE_BYTES  # the two together stay in one budget
+    frames.drop_decoded([3])
+    assert list(frames.decoded_while_reading) == [3]

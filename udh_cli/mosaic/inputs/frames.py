@@ -95,6 +95,15 @@ class FrameSet:
             _check_unchanged(self.source, self.source_stamp)
         return taken
 
+    def decoded_bytes(self) -> int:
+        """Bytes of the frames still held from reading (:attr:`decoded_while_reading`)."""
+        return sum(image.nbytes for image in self.decoded_while_reading.values())
+
+    def drop_decoded(self, keep: Iterable[int]) -> None:
+        """Let go of the frames decoded while reading but those of ``keep`` (e.g. the frames no part renders)."""
+        keep = set(keep)
+        self.decoded_while_reading = {i: image for i, image in self.decoded_while_reading.items() if i in keep}
+
     def full_images(self, indices: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(index, (H, W, 3) BGR uint8)`` at full resolution for ``indices``, in sequence order.
 

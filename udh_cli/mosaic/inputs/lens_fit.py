@@ -159,7 +159,8 @@ def undistort_by_fitted_lens(frames, reporter) -> K1Fit:
     lens = fit.lens(frames.frames[0].size)
     for frame in frames.frames:  # the work copies were made from the distorted frames: undistort them too
         frame.work = lens.undistort(frame.work)
-    frames.decoded_while_reading = {i: lens.undistort(image) for i, image in frames.decoded_while_reading.items()}  # and the kept decodes
+    for index, image in frames.decoded_while_reading.items():  # and the kept decodes, one at a time: no second copy of them all
+        frames.decoded_while_reading[index] = lens.undistort(image)
     frames.lens = lens
     reporter.info(f"--camera estimate: k1 = {fit.k1:.4f} for a focal length of {fit.focal:.3f} of the longer side ({fit.focal_source}); "
                   f"the pairs' match residual {fit.rms_without_px:.2f} -> {fit.rms_with_px:.2f} px RMS over {fit.pairs} pairs")

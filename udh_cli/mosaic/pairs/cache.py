@@ -10,7 +10,8 @@ A pair's key covers everything its estimate depends on:
   file's content, EXIF orientation and ``work_size`` are all in it);
 - the opinions (the method, then the fallback): registry name, settings and the size and modification time
   of any model file among them, so a retrained model is a different method;
-- the acceptance thresholds (they decide which estimates are accepted and when the next opinion is asked);
+- the acceptance thresholds (they decide which estimates are accepted and when the next opinion is asked) and the
+  judge's whole table (:data:`~udh_cli.estimators.thresholds.THRESHOLDS`: the verdicts inside the estimates);
 - for pre-warped loop-closure pairs, the prior (the chained prediction B is warped with), exactly, and whether it
   was first confirmed as it is (:mod:`.confirm`; the record's ``method`` then says which path answered).
 
@@ -20,6 +21,7 @@ consistently (a homography shifted with its estimate), is estimated again with a
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -31,6 +33,7 @@ import numpy as np
 from udh_cli import geometry
 from udh_cli.estimators import Estimate, Estimator
 from udh_cli.estimators.base import TYPED_FIELDS
+from udh_cli.estimators.thresholds import THRESHOLDS
 from udh_cli.errors import UdhError
 from udh_cli.files import read_side_file
 from udh_cli.version import __version__
@@ -111,6 +114,7 @@ class PairCache:
             "opinions": [estimator_identity(opinion) for opinion in opinions],
             "acceptance": {"min_confidence": float(acceptance.min_confidence), "min_verified": float(acceptance.min_verified),
                            "revision": ACCEPTANCE_REVISION},
+            "judge": dataclasses.asdict(THRESHOLDS),  # a retuned threshold changes the verdicts the records hold
         }
         previous: dict[str, dict] = {}
         path = Path(path)

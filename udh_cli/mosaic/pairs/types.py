@@ -23,8 +23,9 @@ from udh_cli.mosaic.inputs.frames import Frame
 # The revision of what makes a pair accepted: these rules, and what an estimator calls confirmed (the tile
 # stage's CONFIRMING_LEVELS). A pair cache records it, so that --resume never reuses decisions made under other
 # rules. 2: answers their method marks unconfirmed are doubted, and two tile levels confirm. 3: loop pairs are
-# first confirmed from the chain's prediction (confirm.py's settings).
-ACCEPTANCE_REVISION = 3
+# first confirmed from the chain's prediction (confirm.py's settings). 4: answers RANSAC's matches verify stay verified
+# only where the judge's tile levels agree (judge_matched).
+ACCEPTANCE_REVISION = 4
 
 
 @dataclass(frozen=True)

@@ -211,7 +211,7 @@ class PoolRunner:
         self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                         initializer=die_with_parent, initargs=(os.getpid(),))
         # Start every worker now, each building its estimators, while this process reads the frames: starting one
-        # (Python, onnxruntime, the networks) takes about a second, which the first pairs would otherwise wait for.
+        # (Python, onnxruntime, the networks) is slow, and the first pairs would otherwise wait for it.
         # A warm-up's error is left to the first batch, which meets it again and says it.
         for _ in range(workers):
             self.pool.submit(warm_up_worker, self.spec)

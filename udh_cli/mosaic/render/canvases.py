@@ -136,7 +136,7 @@ def composite_part(frameset: FrameSet, plan: PlannedPart, settings: Drawing, rep
     suffix = "" if plan.number == 1 else f" part {plan.number}"
     gains, seams = None, None
     # The frames decoded while reading, then the small copies' decodes, kept for the tiles.
-    decoded = DecodedFrames(frameset, already=frameset.take_decoded(plan.frames))
+    decoded = DecodedFrames.taken_from(frameset, plan.frames)
     want_seams = settings.seams != "central" and settings.blend != "feather"
     if settings.exposure != "none" or want_seams:
         small = draw_small(frameset, to_mosaic, plan.canvas.scale, reporter, f"small copies{suffix}", decoded)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from typing import Iterator, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -27,6 +27,14 @@ class DecodedFrames:
         self.kept: OrderedDict[int, np.ndarray] = OrderedDict(sorted((already or {}).items()))  # e.g. FrameSet.take_decoded's
         self.kept_bytes = sum(image.nbytes for image in self.kept.values())
         self.lock = threading.Lock()
+
+    @classmethod
+    def taken_from(cls, frames: FrameSet, indices: Iterable[int]) -> "DecodedFrames":
+        """The cache of one part's rendering: ``indices``' frames decoded while reading (:meth:`FrameSet.take_decoded`)
+        kept first, in a budget less what ``frames`` still holds for the other parts: the two stay within
+        :data:`DECODED_CACHE_BYTES` together."""
+        already = frames.take_decoded(indices)
+        return cls(frames, max(1, DECODED_CACHE_BYTES - frames.decoded_bytes()), already)
 
     def get(self, indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
         """``(index, (H, W, 3) BGR uint8)`` for ``indices``, in sequence order; the frames not kept are decoded one

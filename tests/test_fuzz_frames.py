@@ -59,6 +59,19 @@ def test_an_earlier_mosaic_whose_sidecar_was_re_saved_is_still_not_a_frame(resav
     assert report["summary"]["frames"] == len(list(frames.glob("frame_*.jpg")))
 
 
+def test_a_mosaic_named_like_a_frame_does_not_hide_that_frame_from_the_next_run(frames, monkeypatch, capfd):
+    count = len(list(frames.glob("frame_*.jpg")))
+    code, err = mosaic(monkeypatch, capfd, frames, frames / "frame_003.png")  # its sidecar: frame_003.json
+    assert code == 0, err
+    code, err = mosaic(monkeypatch, capfd, frames, frames / "new.png")
+    assert code == 0, err
+    assert "skipping frame_003.png: an earlier udh mosaic's output (frame_003.json)" in err
+    assert "skipping frame_003.jpg" not in err
+    report = json.loads((frames / "new.json").read_text())
+    assert "frame_003.jpg" in [frame["file"] for frame in report["frames"]]
+    assert report["summary"]["frames"] == count  # the preview, frame_003.preview.jpg, is no frame either
+
+
 def test_a_json_file_that_only_mentions_the_sidecar_format_is_not_a_sidecar(frames, monkeypatch, capfd):
     from udh_cli.mosaic.outputs.staging import SIDECAR_FORMAT, earlier_outputs
 

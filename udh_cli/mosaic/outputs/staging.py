@@ -24,7 +24,8 @@ from typing import Iterable
 from udh_cli.errors import UdhError
 from udh_cli.files import SIDE_FILE_LIMIT, folder_locked, read_side_file, record_written, written_by_udh
 from udh_cli.images import IMAGE_SUFFIXES
-from udh_cli.mosaic.outputs.files import CAMERAS_SUFFIX, GEOREFERENCE_SUFFIXES, PAM_SUFFIX, PREVIEW_SUFFIX, REPORT_PAGE_SUFFIX, MosaicFiles, RunFiles
+from udh_cli.mosaic.outputs.files import (CAMERAS_SUFFIX, COG_SUFFIX, GEOREFERENCE_SUFFIXES, LIVE_PICTURE_SUFFIX, PAM_SUFFIX, PREVIEW_SUFFIX,
+                                         REPORT_PAGE_SUFFIX, MosaicFiles, RunFiles)
 from udh_cli.mosaic.report import Reporter
 
 SIDECAR_FORMAT = "udh-mosaic/1"  # the sidecar's "format", its first key as udh writes it
@@ -225,9 +226,17 @@ def earlier_outputs(files: Iterable[Path]) -> dict[Path, str]:
     Why: a mosaic written into its frames' folder under another name than this run's would otherwise be stitched
     in as a frame by the next run (its own outputs, :meth:`.files.RunFiles.own_files`, are left out by name)."""
     files = list(files)
-    stems = [path.stem for path in files if path.suffix.lower() == ".json" and _is_sidecar(path)]
-    return {path: f"{stem}.json" for path in files for stem in stems
-            if path.suffix.lower() in IMAGE_SUFFIXES and path.name.startswith(f"{stem}.")}
+    found: dict[Path, str] = {}
+    for sidecar in (path for path in files if path.suffix.lower() == ".json" and _is_sidecar(path)):
+        # The mosaics it lists by name, and the files named after them; never merely a file that shares its stem,
+        # which may be a frame (a mosaic "frame_003.png" beside the frame "frame_003.jpg").
+        listed = set(_sidecar_mosaics(sidecar))
+        derived = re.compile(rf"{re.escape(sidecar.stem)}(\.part[1-9][0-9]*)?({re.escape(PREVIEW_SUFFIX)}|{re.escape(COG_SUFFIX)}|"
+                             rf"{re.escape(LIVE_PICTURE_SUFFIX)})|{re.escape(sidecar.stem)}\.part[1-9][0-9]*\.[A-Za-z]+")
+        for path in files:
+            if path.suffix.lower() in IMAGE_SUFFIXES and (path.name in listed or derived.fullmatch(path.name)):
+                found[path] = sidecar.name
+    return found
 
 
 def _is_sidecar(path: Path) -> bool:

@@ -73,6 +73,21 @@ def test_other_methods_and_colour_jpeg(files, method):
     assert error < {"orb": 2.0, "ecc": 0.3, "identity": 30.0}[method]
 
 
+def test_an_answer_its_method_does_not_verify_must_also_align(files, monkeypatch):
+    """ECC converged far off with a high correlation (as on a large shift from the identity): not verified, exit 3."""
+    from udh_cli.estimators.ecc import EccEstimator
+
+    off = geometry.translation(150.0, 40.0) @ TRUTH
+    monkeypatch.setattr(EccEstimator, "_estimate", lambda self, pair: (off, 0.9, {"correlation": 0.9}))
+    result = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(files["b.jpg"]), "-m", "ecc", "--json"])
+    report = json.loads(result.stdout)
+    assert report["confidence"] == pytest.approx(0.9) and report["verified"] is False
+    assert result.exit_code == report["exit_code"] == cli.UNVERIFIED
+    monkeypatch.setattr(EccEstimator, "_estimate", lambda self, pair: (TRUTH, 0.9, {"correlation": 0.9}))
+    right = CliRunner().invoke(cli.app, ["estimate", str(files["a.png"]), str(files["b.jpg"]), "-m", "ecc", "--json"])
+    assert json.loads(right.stdout)["verified"] is True and right.exit_code == 0
+
+
 def test_an_unverified_answer_is_printed_with_a_warning(files, tmp_path):
     """Two unrelated textured images: auto answers its best guess, says it is unconfirmed, and the JSON says so."""
     from conftest import textured_image

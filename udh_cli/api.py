@@ -107,7 +107,10 @@ def estimate_report(
     size_a, size_b = (image_a.shape[1], image_a.shape[0]), (image_b.shape[1], image_b.shape[0])
     small_a, small_b = (work_a.shape[1], work_a.shape[0]), (work_b.shape[1], work_b.shape[0])
     result = dataclasses.replace(found, homography=geometry.rescale_homography(found.homography, small_a, size_a, small_b, size_b))
-    verified = is_verified(result)
+    # As the mosaic judges it: an answer its method does not verify (ECC, a network without its judge) must also align.
+    from udh_cli.mosaic.pairs.types import Acceptance
+
+    verified = is_verified(result) and Acceptance().judge(found, work_a, work_b, estimator.verifies_itself)[1] is None
 
     width, height = image_a.shape[1], image_a.shape[0]
     report = result.to_json()

@@ -105,7 +105,8 @@ def _print_mosaic(report: dict) -> None:
         else:  # the truth names none of these frames (or not the reference): nothing to compare
             table.add_row("error vs ground truth (px)", "- (the ground truth names no placed frame with its reference)")
     for part in report["parts"]:
-        table.add_row(f"mosaic part {part['part']}" if len(report["parts"]) > 1 else "mosaic", f"{part['file']} ({part['width']}x{part['height']}, {len(part['frames'])} frames)")
+        shown = Path(report["sidecar"]).with_name(part["file"])  # the sidecar names it relative to its own folder
+        table.add_row(f"mosaic part {part['part']}" if len(report["parts"]) > 1 else "mosaic", f"{shown} ({part['width']}x{part['height']}, {len(part['frames'])} frames)")
     cameras = [part["cameras"] for part in report["parts"] if part.get("cameras")]
     if cameras:  # --solve camera: what the solve assumed and found
         tilts = [c["tilt_deg"]["max"] for c in cameras]

@@ -30,7 +30,7 @@ from udh_cli.bench.verdicts import KindScore, Reliability, kind_scores, reliabil
 from udh_cli.errors import UdhError
 
 KINDS = (FLIGHT_GROUP, PAIRS_GROUP) + MOTION_KINDS
-DEFAULT_METHODS = ("unsupervised", "auto", "sift")  # issue 35's comparison
+DEFAULT_METHODS = ("unsupervised", "auto", "sift")  # the network alone, the default, and the classical reference
 DRAWS_PER_PAIR = 20  # motions tried on a pair before another pair is taken: some leave A too little of B
 
 

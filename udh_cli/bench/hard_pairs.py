@@ -30,7 +30,7 @@ from udh_cli.errors import UdhError
 from udh_cli.homography_files import homography_from_values, parse_numbers
 from udh_cli.images import read_image, to_gray_u8
 
-SCORED_SIDE = 800  # longest side, px, at which errors are measured (issue 35's scale)
+SCORED_SIDE = 800  # longest side, px, at which errors are measured: the mosaic's working size
 MIN_REFERENCE_INLIERS = 50  # a SIFT reference fitted to fewer RANSAC inliers is too unsure to score against
 H_COLUMNS = ("H", "H_sift_ransac_1to2")  # ground truth, then the shared data's reference
 FLIGHT_GROUP, PAIRS_GROUP = "flight pairs", "real pairs"

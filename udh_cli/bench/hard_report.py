@@ -19,7 +19,7 @@ RULES = (
     f"{metrics.FAIL_PX:g} px. A pair without an answer is scored as 'no motion' in the median.",
     "verified: what udh reports as verified (the method's own verdict, Estimate.verified, where it gives one; else a "
     f"confidence of at least {VERIFIED_CONFIDENCE:g}, the mosaic's floor). verified but wrong: verified, yet a failure; "
-    "as a share of all pairs, and of the verified answers (issue 35's target: under 3 %).",
+    "as a share of all pairs, and of the verified answers (the aim: under 3 % of the verified answers wrong).",
 )
 
 

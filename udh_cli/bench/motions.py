@@ -21,7 +21,7 @@ import numpy as np
 
 from udh_cli import geometry
 
-# The kinds of motion of issue 35's table, in its order; each draws as below.
+# The kinds of motion a UAV pair shows, each drawn as below.
 MOTION_KINDS = ("extreme viewpoint and scale", "in-plane rotation", "vertical-axis rotation", "mixed", "scale")
 MIN_OVERLAP = 0.25  # share of A that must stay inside the moved B: less leaves too little to match on
 OVERLAP_GRID = 24  # A is sampled on a 24 x 24 grid of points to measure the overlap

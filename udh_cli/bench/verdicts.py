@@ -52,7 +52,7 @@ class KindScore:
 
     @property
     def verified_wrong_rate(self) -> float:
-        """Share of all pairs that are verified but wrong (issue 35's figure)."""
+        """Share of all pairs that are verified but wrong (what a map built on verified answers risks)."""
         return self.verified_wrong / self.pairs
 
     @property

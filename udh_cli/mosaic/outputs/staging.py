@@ -68,10 +68,9 @@ def check_outputs_are_not_inputs(source: Path, files: dict[str, Path], sidecar: 
         if resolved in sources or (is_frame and not ours):
             raise UdhError(f"{path}: the {role} would replace an input file of {source}; choose another output name")
         owned_by_run = path.name.lower().endswith(GEOREFERENCE_SUFFIXES + (CAMERAS_SUFFIX, REPORT_PAGE_SUFFIX, PAM_SUFFIX))
-        if path.suffix.lower() == ".json" and not owned_by_run and not _is_udh_json(path, ("udh-mosaic",)):
-            raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
-        if owned_by_run and not earlier_run:  # in formats of their own (world files, OpenSfM's): only an earlier run of ours wrote these
-            raise UdhError(f"{path}: the {role} would replace a file udh did not write; choose another output name")
+        if (path.suffix.lower() == ".json" and not owned_by_run and not _is_udh_json(path, ("udh-mosaic",))) or (owned_by_run and not earlier_run):
+            # JSON, world files and OpenSfM's cameras beside frames are often a flight's own records: never replaced
+            raise UdhError(f"{path}: the {role} would replace a file udh did not write (even --overwrite keeps it); choose another output name")
 
 
 def check_sidecar_is_this_outputs(files: RunFiles, overwrite: bool = False) -> None:

@@ -3,6 +3,12 @@ per-run cache of expensive folders (tiny exported networks, simulated flights) h
 
 from __future__ import annotations
 
+import os
+
+# One thread per native pool (torch's OpenMP, and every subprocess a test starts): tiny tensors gain nothing from
+# more, and on a shared machine the idle threads spin on busy cores. Set before anything imports torch.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 import shutil
 import tempfile
 from dataclasses import dataclass

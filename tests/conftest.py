@@ -3,6 +3,14 @@ per-run cache of expensive folders (tiny exported networks, simulated flights) h
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import os
+
+# One thread per native pool (torch's OpenMP, and every subprocess a test starts): tiny tensors gain nothing from
+# more, and on a shared machine the idle threads spin on busy cores. Set before anything imports torch.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -94,11 +102,16 @@ class SessionCache:
 _session_cache: SessionCache | None = None
 
 
+_network_store: Path | None = None
+
+
 @pytest.fixture(scope="session", autouse=True)
-def session_cache(tmp_path_factory) -> SessionCache:
+def session_cache(tmp_path_factory, pytestconfig) -> SessionCache:
     """The run's :class:`SessionCache`, reachable from plain helpers such as :func:`export_tiny_network`."""
-    global _session_cache
+    global _session_cache, _network_store
     _session_cache = SessionCache(tmp_path_factory.mktemp("session-cache"))
+    cache = getattr(pytestconfig, "cache", None)  # absent with -p no:cacheprovider: every run exports afresh
+    _network_store = None if cache is None else cache.mkdir("udh-tiny-networks")
     return _session_cache
 
 
@@ -130,14 +143,50 @@ def _export_tiny_network(folder: Path, arch: str, seed: int) -> None:
     assert result["metadata"]["input_size"] == "32" and result["metadata"]["arch"] == arch
 
 
-def export_tiny_network(folder: Path, arch: str, seed: int) -> Path:
-    """An untrained 32-pixel ``arch`` network, saved as ``folder/<arch>.pt`` and exported like a real one to
-    ``folder/<arch>.onnx``; returns the latter.
+@functools.cache
+def _source_digest() -> str:
+    """What a tiny network's files depend on: every udh_cli source file, this file, and the exporters' versions."""
+    import onnxruntime
+    import torch
 
-    The export (seconds of torch tracing) runs once per run for each ``(arch, seed)``; callers get copies.
+    digest = hashlib.sha1(f"{torch.__version__} {onnxruntime.__version__}".encode())
+    package = Path(__file__).resolve().parents[1] / "udh_cli"
+    for path in [*sorted(package.rglob("*.py")), Path(__file__).resolve()]:
+        digest.update(path.relative_to(package.parent).as_posix().encode() + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _stored_tiny_network(folder: Path, arch: str, seed: int) -> None:
+    """:func:`_export_tiny_network` into ``folder``, reusing the files of an earlier run while no source changed."""
+    if _network_store is None:
+        return _export_tiny_network(folder, arch, seed)
+    entry = _network_store / f"{arch}-seed{seed}-{_source_digest()}"
+    if not entry.is_dir():
+        staged = Path(tempfile.mkdtemp(dir=_network_store, prefix=".part-"))
+        try:
+            _export_tiny_network(staged, arch, seed)
+            staged.rename(entry)
+        except OSError:
+            if not entry.is_dir():  # not a concurrent run that stored the same network first
+                raise
+        finally:
+            shutil.rmtree(staged, ignore_errors=True)
+    shutil.copytree(entry, folder, copy_function=shutil.copy, dirs_exist_ok=True)
+
+
+def export_tiny_network(folder: Path, arch: str, seed: int, fresh: bool = False) -> Path:
+    """An untrained 32-pixel ``arch`` network, saved as ``folder/<arch>.pt`` and exported like a real one to
+    ``folder/<arch>.onnx`` (parity with torch asserted); returns the latter.
+
+    The export (seconds of torch tracing) runs once per ``(arch, seed)`` until a source file changes: the files
+    are kept in pytest's cache folder between runs, and callers get copies. ``fresh`` exports now, for the tests
+    of the export itself.
     """
     pytest.importorskip("torch")
-    cached_copy(folder, ("tiny-network", arch, seed), lambda built: _export_tiny_network(built, arch, seed))
+    if fresh:
+        _export_tiny_network(folder, arch, seed)
+    else:
+        cached_copy(folder, ("tiny-network", arch, seed), lambda built: _stored_tiny_network(built, arch, seed))
     return folder / f"{arch}.onnx"
 
 

@@ -31,7 +31,7 @@ def test_lite_network_exports_with_its_window_index_as_a_constant(tmp_path):
     """corr-lite (the fast coarse network) goes through ONNX with parity, and no network recomputes the
     correlation window from shapes at run time: that was a dozen small ops per batch-1 call."""
     onnx = pytest.importorskip("onnx")
-    path = export_tiny_network(tmp_path, "corr-lite", seed=2)
+    path = export_tiny_network(tmp_path, "corr-lite", seed=2, fresh=True)
     ops = {node.op_type for node in onnx.load(str(path)).graph.node}
     assert "GatherElements" in ops  # the window gather is there...
     assert not ops & {"Range", "GreaterOrEqual", "Less"}  # ...but not the arithmetic that built its index

@@ -440,7 +440,7 @@ def test_export_refuses_its_own_checkpoint_and_a_non_onnx_name(tmp_path):
     from conftest import export_tiny_network
     from udh_cli.train.export import export_onnx
 
-    onnx_path = export_tiny_network(tmp_path, "corr-global", seed=0)  # the widened network exports and matches torch
+    onnx_path = export_tiny_network(tmp_path, "corr-global", seed=0, fresh=True)  # the widened network exports and matches torch
     checkpoint = tmp_path / "corr-global.pt"
     before = checkpoint.read_bytes()
     with pytest.raises(UdhError, match=r"\.onnx name"):

@@ -214,3 +214,17 @@ def test_gains_scale_the_fed_pixels_as_the_float_path_truncates(gain):
     assert scaled.dtype == np.int16 and scaled.min() >= 0 and scaled.max() == 255
     assert np.abs(scaled - expected).max() <= 1 and (scaled == expected).mean() > 0.999
     assert (_scaled(warped, None, (0, 0, 60, 40), (0, 0, 60, 40)) == warped).all()
+
+
+def test_tiles_are_as_few_as_the_side_allows_of_even_sizes_on_the_blenders_grid():
+    from udh_cli.mosaic.render.composite import TILE_ALIGN, tile_boxes
+
+    tiles = tile_boxes(3297, 6425, 2048)  # copr's canvas: no thin last row (the plain grid's was 281 px)
+    assert len(tiles) == 8 and {x1 - x0 for x0, _, x1, _ in tiles} <= {1664, 1633} and min(y1 - y0 for _, y0, _, y1 in tiles) >= 1500
+    assert all(x0 % TILE_ALIGN == 0 and y0 % TILE_ALIGN == 0 for x0, y0, _, _ in tiles)
+    assert all(x1 - x0 <= 2048 and y1 - y0 <= 2048 for x0, y0, x1, y1 in tiles)
+    covered = np.zeros((6425, 3297), np.uint8)
+    for x0, y0, x1, y1 in tiles:
+        covered[y0:y1, x0:x1] += 1
+    assert (covered == 1).all()  # every canvas pixel in exactly one tile
+    assert tile_boxes(100, 50, 2048) == [(0, 0, 100, 50)]

@@ -1,6 +1,6 @@
 """Compositing: the canvas, and warping + blending frames into it tile by tile (bounded memory).
 
-The canvas is blended in square tiles (:data:`TILE_SIDE`), each with a margin that multiband blending needs to
+The canvas is blended in tiles of at most :data:`TILE_SIDE` a side (:func:`tile_boxes`), each with a margin that multiband blending needs to
 see across the tile's edge, and each tile only from the frames that reach it. Only one tile's accumulators and
 a few decoded frames are in memory at once, so the working set depends on the tile and frame sizes, not on the
 map's area: :func:`composite_tiles` yields the tiles for a writer that streams them to a file, and
@@ -34,7 +34,8 @@ BYTES_PER_PIXEL = {"feather": 28, "multiband": 36, "none": 20}
 OUTPUT_BYTES_PER_PIXEL = 4  # an assembled BGRA canvas (PNG and JPEG outputs are encoded from it whole)
 DEFAULT_MAX_CANVAS_BYTES = 3 * 2**30  # refuse canvases whose assembled image would need more than this
 MULTIBAND_LEVELS = 5
-TILE_SIDE = 2048  # canvas pixels per tile side; a canvas that fits in one tile is blended whole
+TILE_SIDE = 2048  # canvas pixels per tile side at most; a canvas that fits in one tile is blended whole
+TILE_ALIGN = 2**MULTIBAND_LEVELS  # tile corners on multiples of this: the multiband blender's coarsest grid
 # Canvas pixels each tile also blends beyond its edges, then drops. Multiband blending mixes each band over a
 # reach that doubles per level (the 5th level's 5x5 kernel spans about 2^5 * 4 px): with 256 px the tiled
 # result differs from the whole canvas blended at once by at most 1 grey level (tests/mosaic/render/test_composite.py).
@@ -162,10 +163,7 @@ def composite_tiles(
     rois = {i: r for i, r in rois.items() if r is not None}
     # A video is decoded sequentially from its start on every read, so it is blended in one tile.
     side = max(width, height) if frames.is_video else (tile_side or TILE_SIDE)
-    if width <= side and height <= side:
-        tiles = [(0, 0, width, height)]
-    else:
-        tiles = [(x, y, min(x + side, width), min(y + side, height)) for y in range(0, height, side) for x in range(0, width, side)]
+    tiles = tile_boxes(width, height, side)
     margin = TILE_MARGIN[blend] if len(tiles) > 1 else 0
     plan = []  # per tile: its box, the region blended for it, and the frames reaching that region
     for tx0, ty0, tx1, ty1 in tiles:
@@ -194,6 +192,23 @@ def composite_tiles(
                     yield running.popleft().result()
             while running:
                 yield running.popleft().result()
+
+
+def tile_boxes(width: int, height: int, max_side: int) -> list[tuple[int, int, int, int]]:
+    """Row-major ``(x0, y0, x1, y1)`` tiles covering a ``width`` x ``height`` canvas, at most ``max_side`` a side: as
+    few as that allows, of even sizes, their corners on multiples of :data:`TILE_ALIGN` where ``max_side`` allows.
+    Why even: a thin last row or column of tiles costs as much blending as a whole one (each frame reaching it is
+    warped and fed again, with the margin on every side); why aligned: the blender's coarsest grid then lies as it
+    does on the whole canvas, and tiles blend as the canvas does (within one grey level)."""
+
+    def spans(length: int) -> list[tuple[int, int]]:
+        count = math.ceil(length / max_side)
+        step = math.ceil(length / count)
+        if max_side >= TILE_ALIGN:
+            step = min(max_side // TILE_ALIGN * TILE_ALIGN, math.ceil(step / TILE_ALIGN) * TILE_ALIGN)
+        return [(start, min(start + step, length)) for start in range(0, length, step)]
+
+    return [(x0, y0, x1, y1) for y0, y1 in spans(height) for x0, x1 in spans(width)]
 
 
 def composite(frames: FrameSet, mosaic_from_frame: dict[int, np.ndarray], canvas_size: tuple[int, int], blend: str,

@@ -189,7 +189,7 @@ def test_a_damaged_video_skips_the_frames_its_decoder_reports_and_says_so(tmp_pa
 
 
 def test_a_dangling_link_removed_while_it_is_examined_is_named_not_a_traceback(tmp_path, monkeypatch):
-    from udh_cli.mosaic.inputs import frames as frames_module
+    from udh_cli.mosaic.inputs import listing as listing_module
 
     link = tmp_path / "zz_dangling.jpg"
     link.symlink_to(tmp_path / "gone.jpg")
@@ -197,8 +197,8 @@ def test_a_dangling_link_removed_while_it_is_examined_is_named_not_a_traceback(t
     def removed_meanwhile(path):
         raise FileNotFoundError(2, "No such file or directory", str(path))
 
-    monkeypatch.setattr(frames_module.os, "readlink", removed_meanwhile)
-    assert frames_module.not_a_file(link) == "a symbolic link to a missing file; copy the frame there or remove the link"
+    monkeypatch.setattr(listing_module.os, "readlink", removed_meanwhile)
+    assert listing_module.not_a_file(link) == "a symbolic link to a missing file; copy the frame there or remove the link"
 
 
 def test_damage_in_a_frame_every_drops_skips_the_next_kept_frame_decoded_from_it(tmp_path, monkeypatch):

@@ -9,7 +9,9 @@ from __future__ import annotations
 import os
 import re
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
@@ -20,14 +22,19 @@ from udh_cli.errors import UdhError
 from udh_cli.images import IMAGE_SUFFIXES, native_messages_silenced, read_image, scaled_size, to_gray_float, to_gray_u8
 from udh_cli.mosaic.inputs.display import display_u8, flight_value_range, to_display
 from udh_cli.mosaic.inputs.lens import Lens
+from udh_cli.mosaic.inputs.listing import natural_key, not_a_file, subfolder_hint
 from udh_cli.mosaic.inputs.metadata import FrameMetadata, read_metadata
 from udh_cli.mosaic.outputs.staging import earlier_outputs
 from udh_cli.mosaic.report import Reporter
+from udh_cli.processes import in_order
 
 ORDERS = ("name", "time")  # the --order choices
 # Files a frame folder may hold that are not frames: the simulator's ground truth, and live mode's end-of-flight
 # sentinel (FollowConfig.sentinel), which stays in the folder its final run reads.
 IGNORED_FILES = ("ground_truth.json", "DONE")
+# Threads that decode frames and make their working copies: the decoder runs one at a time (its messages are
+# caught on a shared stderr), the file read, undistortion, grey copy and resize beside it.
+READING_THREADS = 2
 
 
 @dataclass
@@ -177,11 +184,6 @@ def stretch_work_copies(frames: list[Frame]) -> tuple[float, float] | None:
     return value_range
 
 
-def _natural_key(name: str) -> list:
-    """Sort key that puts frame_2 before frame_10."""
-    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
-
-
 def open_frames(
     source: str | Path,
     work_size: int,
@@ -263,7 +265,7 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
         raise UdhError(f"{folder}: cannot list the folder ({exc.strerror}); check its permissions") from None
     skipped: list[dict] = []
     entries = []
-    for path in sorted((p for p in listing if not p.name.startswith(".") and p.name not in IGNORED_FILES), key=lambda p: _natural_key(p.name)):
+    for path in sorted((p for p in listing if not p.name.startswith(".") and p.name not in IGNORED_FILES), key=lambda p: natural_key(p.name)):
         why = not_a_file(path)
         if why is None:
             entries.append(path)
@@ -283,73 +285,49 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
             skipped.append({"file": path.name, "reason": f"not an image file (suffix '{path.suffix}')"})
             reporter.warn(f"skipping {path.name}: not an image file")
     if not candidates:
-        raise UdhError(f"{folder}: no image files found (looked for {', '.join(IMAGE_SUFFIXES)}); point to a folder of frames or a video{_subfolder_hint(folder)}")
+        raise UdhError(f"{folder}: no image files found (looked for {', '.join(IMAGE_SUFFIXES)}); point to a folder of frames or a video{subfolder_hint(folder)}")
     metadata = {p: read_metadata(p) for p in candidates}  # headers only: GPS and time for the sidecar and the order
     if order == "time":
         times = {p: metadata[p].capture_time for p in candidates}
         missing = [p.name for p in candidates if times[p] is None]
         if missing:
             reporter.warn(f"{len(missing)} frames have no EXIF capture time and go last, by name: {', '.join(missing[:5])}{'...' if len(missing) > 5 else ''}")
-        candidates.sort(key=lambda p: (times[p] is None, times[p] or "", _natural_key(p.name)))
+        candidates.sort(key=lambda p: (times[p] is None, times[p] or "", natural_key(p.name)))
     frames: list[Frame] = []
-    with reporter.stage("reading frames", len(candidates)) as advance:
-        for path in candidates:
-            stamp = file_stamp(path)  # before the read: a change during it is a change too
-            try:
-                image = read_image(path)
-            except UdhError as exc:
-                skipped.append({"file": path.name, "reason": str(exc)})
+    with reporter.stage("reading frames", len(candidates)) as advance, ThreadPoolExecutor(READING_THREADS, thread_name_prefix="udh-read") as pool:
+        jobs = [partial(pool.submit, _read_frame, path, work_size, lens) for path in candidates]
+        for index, future in in_order(jobs, window=2 * READING_THREADS):
+            path, (stamp, image, work) = candidates[index], future.result()
+            if isinstance(image, UdhError):
+                skipped.append({"file": path.name, "reason": str(image)})
                 # The reason read_image gives: unreadable (permissions), NaN pixels, not an image...
-                reporter.warn(f"skipping {path.name}: cannot be decoded ({str(exc).removeprefix(f'{path}: ')})")
+                reporter.warn(f"skipping {path.name}: cannot be decoded ({str(image).removeprefix(f'{path}: ')})")
                 advance(1)
                 continue
-            if lens is not None:
-                lens.check((image.shape[1], image.shape[0]), path.name)
-            image = _undistorted(image, lens)
             kept.offer(len(frames), image)
-            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(image, work_size), path, None,
+            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work, path, None,
                                 metadata[path].capture_time if order == "time" else None, metadata[path], stamp))
+            del image
             advance(1)
     if len(frames) < 2:
         found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"
-        raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames{_subfolder_hint(folder)}")
+        raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames{subfolder_hint(folder)}")
     return FrameSet(folder, frames, skipped, stretch_work_copies(frames), decoded_while_reading=kept.kept)
 
 
-def not_a_file(path: Path) -> str | None:
-    """None when the folder entry ``path`` is a regular file or a link to one; "" for a folder; else why it cannot
-    be a frame: a link to nothing, a loop of links, a pipe, device or socket (a FIFO would block its reader)."""
-    import errno
-    import stat
-
+def _read_frame(path: Path, work_size: int, lens: Lens | None) -> tuple[tuple[int, int, int] | None, np.ndarray | UdhError, np.ndarray | None]:
+    """One frame's file stamp (taken before the read: a change during it is a change too), its full image,
+    undistorted, and its working copy; the :class:`UdhError` in place of the image when it cannot be decoded.
+    A lens that does not fit the frame raises."""
+    stamp = file_stamp(path)
     try:
-        mode = path.stat().st_mode
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            return "a loop of symbolic links; point the link at the frame itself"
-        if path.is_symlink():
-            try:
-                target = os.readlink(path)
-            except OSError:  # the link itself went away meanwhile
-                return "a symbolic link to a missing file; copy the frame there or remove the link"
-            return f"a symbolic link to {target}, which does not exist; copy the frame there or remove the link"
-        return f"cannot be read ({exc.strerror or exc}); check its permissions"
-    if stat.S_ISDIR(mode):
-        return ""
-    if not stat.S_ISREG(mode):
-        return "not a regular file (a pipe, device or socket); copy the frame into a file"
-    return None
-
-
-def _subfolder_hint(folder: Path) -> str:
-    """' (did you mean F/images?)' when a subfolder holds images: flight folders often keep them there."""
-    for sub in sorted(p for p in folder.iterdir() if p.is_dir()):
-        try:
-            if any(f.suffix.lower() in IMAGE_SUFFIXES for f in sub.iterdir()):
-                return f" (did you mean {sub}?)"
-        except OSError:  # an unreadable subfolder is no hint; the error being reported is about the folder
-            continue
-    return ""
+        image = read_image(path)
+    except UdhError as exc:
+        return stamp, exc, None
+    if lens is not None:
+        lens.check((image.shape[1], image.shape[0]), path.name)
+    image = _undistorted(image, lens)
+    return stamp, image, work_copy(image, work_size)
 
 
 def _open_capture(path: Path) -> cv2.VideoCapture:

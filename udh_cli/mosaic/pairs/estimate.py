@@ -4,6 +4,7 @@ full resolution (types: :mod:`.types`)."""
 
 from __future__ import annotations
 
+import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -29,7 +30,8 @@ def estimate_pairs(
     runner: LocalRunner | PoolRunner | DaskRunner | None = None,
 ) -> list[PairResult]:
     """Estimate every request with the first of ``opinions``; a failed or doubtful (see :class:`Acceptance`) pair
-    is asked of the next. Batches of ``batch_size`` pairs go to ``estimate_pairs`` so learned methods batch them.
+    is asked of the next. Batches of up to ``batch_size`` pairs (:func:`even_batch_size`) go to ``estimate_pairs``
+    so learned methods batch them.
 
     ``runner`` (:mod:`.workers`) runs the batches: in this process (the default, with ``opinions``), in a
     process pool or on a Dask cluster, several at once, each with the estimators it builds from their names
@@ -44,10 +46,11 @@ def estimate_pairs(
     runner = runner or LocalRunner(opinions, acceptance)
     results = [PairResult(r.a, r.b, r.kind, prior=r.prior) for r in requests]
     batches = []
+    size = even_batch_size(len(requests), batch_size, runner.window)
     with reporter.stage(stage, len(requests)) as advance:
-        for start in range(0, len(requests), batch_size):
+        for start in range(0, len(requests), size):
             batch = []
-            for i in range(start, min(start + batch_size, len(requests))):
+            for i in range(start, min(start + size, len(requests))):
                 cached = cache.lookup(requests[i]) if cache is not None else None
                 if cached is None:
                     batch.append(i)
@@ -76,6 +79,14 @@ def estimate_pairs(
                     cache.add(requests[i], results[i])
                 cache.save()
     return results
+
+
+def even_batch_size(count: int, largest: int, window: int) -> int:
+    """Pairs per batch for ``count`` pairs run ``window`` batches at a time: at most ``largest``, and few enough
+    that the pairs make two batches per slot of the window. Why: a last batch larger than the others, or fewer
+    batches than workers, keeps one worker busy while the other waits (copr's 6 loop pairs of a later round went
+    to one worker as one batch). An estimate does not depend on the batch it is in (tests/mosaic/pairs)."""
+    return max(1, min(largest, math.ceil(count / (2 * max(1, window)))))
 
 
 def _apply(i: int, attempts, requests: Sequence[PairRequest], results: list[PairResult], frames: Sequence[Frame], undo) -> None:

@@ -19,7 +19,6 @@ from typing import Any, Callable, Sequence
 
 import cv2
 import numpy as np
-from scipy import linalg as dense_linalg
 from scipy import sparse
 from scipy.sparse import linalg as sparse_linalg
 
@@ -204,8 +203,8 @@ def solve_part(
     block_rows, block_cols = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
 
     def normal_equations(current: np.ndarray):
-        """The Gauss-Newton system (8 free x 8 free, :func:`assemble_symmetric`: each pair touches two frames and
-        each anchor one, so beyond a few hundred frames it is held sparse) and the gradient."""
+        """The Gauss-Newton system (8 free x 8 free, scipy CSR: each pair touches two frames and each anchor one,
+        so it is sparse and its memory and time grow with the pairs, not with n squared) and the gradient."""
         gradient = np.zeros((n + 1, 8))
         rows, cols, values = [], [], []
 
@@ -232,7 +231,8 @@ def solve_part(
             _, weight = huber(np.sqrt((residual**2).sum(-1)), k_anchor)  # A
             np.add.at(gradient, anchor_slots, np.einsum("a,aij,ai->aj", weight, jacobian, residual))
             add(anchor_slots, anchor_slots, np.einsum("a,aij,ail->ajl", weight, jacobian, jacobian))
-        return assemble_symmetric(np.concatenate(rows), np.concatenate(cols), np.concatenate(values), 8 * free), gradient[:free].ravel()
+        system = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(8 * free, 8 * free))
+        return system, gradient[:free].ravel()
 
     def optimise(params: np.ndarray) -> np.ndarray:
         """Levenberg-Marquardt from ``params``, with the current ``ground`` similarity."""
@@ -269,8 +269,8 @@ def levenberg_marquardt(state, cost_of: Callable[[Any], float], normal_equations
                         moved: Callable[[Any, np.ndarray], Any], iterations: int):
     """Levenberg-Marquardt with Marquardt's diagonal scaling, from ``state`` (any value ``moved`` understands).
 
-    ``cost_of(state)``: the robust cost; ``normal_equations(state)``: the Gauss-Newton system (F, F), sparse or
-    a dense array, and gradient (F,) over the free unknowns; ``moved(state, step)``: the state after a step (F,), or None when
+    ``cost_of(state)``: the robust cost; ``normal_equations(state)``: the Gauss-Newton system (F, F) sparse
+    and gradient (F,) over the free unknowns; ``moved(state, step)``: the state after a step (F,), or None when
     that state is not allowed. At most ``iterations`` steps; stops once a step improves the cost by less than
     1e-10 of it, or the damping passes 1e8. Returns the best state found.
     """
@@ -280,8 +280,7 @@ def levenberg_marquardt(state, cost_of: Callable[[Any], float], normal_equations
     for _ in range(iterations):
         diagonal = system.diagonal() + 1e-12
         try:
-            damped = system + (sparse.diags(damping * diagonal) if sparse.issparse(system) else np.diag(damping * diagonal))
-            step = solve_symmetric(damped, -gradient)
+            step = solve_symmetric(system + sparse.diags(damping * diagonal), -gradient)
         except RuntimeError:  # SuperLU: an exactly singular factor
             step = None
         if step is None or not np.isfinite(step).all():
@@ -303,35 +302,17 @@ def levenberg_marquardt(state, cost_of: Callable[[Any], float], normal_equations
     return state
 
 
-# Unknowns up to which the normal equations are held and solved dense: at 41 frames (320 unknowns) building the
-# sparse matrix and SuperLU's factor cost several times a dense solve; past a few hundred frames dense memory and
-# time grow with n squared and cubed (docs/benchmarks.md, "The solves held dense").
-DENSE_UNKNOWNS = 1600
+def solve_symmetric(matrix: sparse.spmatrix, rhs: np.ndarray) -> np.ndarray:
+    """Solve the damped normal equations ``matrix @ x = rhs`` (symmetric positive definite, (8F, 8F) sparse).
 
-
-def assemble_symmetric(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, size: int) -> np.ndarray | sparse.csr_matrix:
-    """The (size, size) matrix of the summed ``values`` at (``rows``, ``cols``): a dense array up to
-    :data:`DENSE_UNKNOWNS`, else scipy CSR."""
-    if size <= DENSE_UNKNOWNS:
-        return np.bincount(rows * size + cols, weights=values, minlength=size * size).reshape(size, size)
-    return sparse.csr_matrix((values, (rows, cols)), shape=(size, size))
-
-
-def solve_symmetric(matrix: np.ndarray | sparse.spmatrix, rhs: np.ndarray) -> np.ndarray:
-    """Solve the damped normal equations ``matrix @ x = rhs`` (symmetric positive definite, (8F, 8F)).
-
-    A dense array by LAPACK's Cholesky factor. A sparse one by SuperLU in its symmetric mode: a minimum-degree ordering of the
-    matrix's own graph and pivots kept on the diagonal. Why not ``spsolve``'s default (COLAMD, partial pivoting),
-    which ignores the symmetry: on simulated lawn-mower surveys the solve took 40.1 s at 1,988 frames and 5.8 s at
-    504 with it, 12.6 s and 2.2 s like this, to the same solution within 1e-6 px. SuperLU is scipy's own; a
-    Cholesky (CHOLMOD) would need one more package. A singular matrix raises RuntimeError or leaves non-finite
+    SuperLU in its symmetric mode: a minimum-degree ordering of the matrix's own graph and pivots kept on the
+    diagonal. Why not ``spsolve``'s default (COLAMD, partial pivoting), which ignores the symmetry: on simulated
+    lawn-mower surveys the solve took 40.1 s at 1,988 frames and 5.8 s at 504 with it, 12.6 s and 2.2 s like
+    this, to the same solution within 1e-6 px. Why not a dense Cholesky for small systems: LAPACK's threads
+    made copr's solves 20x slower on a busy machine (docs/benchmarks.md, "Speed"). SuperLU is scipy's own; a
+    Cholesky (CHOLMOD) would need one more package. A zero pivot raises RuntimeError or leaves non-finite
     values, which the caller treats as a failed step.
     """
-    if not sparse.issparse(matrix):
-        try:
-            return dense_linalg.cho_solve(dense_linalg.cho_factor(matrix, check_finite=False), rhs, check_finite=False)
-        except np.linalg.LinAlgError as exc:  # not positive definite in floating point
-            raise RuntimeError(str(exc)) from None
     factor = sparse_linalg.splu(sparse.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                                 options={"SymmetricMode": True})
     return factor.solve(rhs)

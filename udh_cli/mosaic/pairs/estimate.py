@@ -84,8 +84,8 @@ def estimate_pairs(
 def even_batch_size(count: int, largest: int, window: int) -> int:
     """Pairs per batch for ``count`` pairs run ``window`` batches at a time: at most ``largest``, and few enough
     that the pairs make two batches per slot of the window. Why: a last batch larger than the others, or fewer
-    batches than workers, keeps one worker busy while the other waits (copr's 6 loop pairs of a later round went
-    to one worker as one batch). An estimate does not depend on the batch it is in (tests/mosaic/pairs)."""
+    batches than workers (a later loop round's few pairs), keeps one worker busy while the others wait
+    (docs/benchmarks.md, "Speed"). An estimate does not depend on the batch it is in (tests/mosaic/pairs)."""
     return max(1, min(largest, math.ceil(count / (2 * max(1, window)))))
 
 

@@ -309,7 +309,7 @@ def solve_symmetric(matrix: sparse.spmatrix, rhs: np.ndarray) -> np.ndarray:
     diagonal. Why not ``spsolve``'s default (COLAMD, partial pivoting), which ignores the symmetry: on simulated
     lawn-mower surveys the solve took 40.1 s at 1,988 frames and 5.8 s at 504 with it, 12.6 s and 2.2 s like
     this, to the same solution within 1e-6 px. Why not a dense Cholesky for small systems: LAPACK's threads
-    made copr's solves 20x slower on a busy machine (docs/benchmarks.md, "Speed"). SuperLU is scipy's own; a
+    made a 41-frame flight's solves 20x slower on a busy machine (docs/benchmarks.md, "Speed"). SuperLU is scipy's own; a
     Cholesky (CHOLMOD) would need one more package. A zero pivot raises RuntimeError or leaves non-finite
     values, which the caller treats as a failed step.
     """

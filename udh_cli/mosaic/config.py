@@ -157,9 +157,7 @@ def mosaic_method_options(method: str, given: dict[str, Any]) -> dict[str, Any]:
     """``given`` plus the mosaic's defaults for ``method``: the learned methods search for large motion.
 
     Why: consecutive frames of real flights move further than the synthetic pairs the networks were trained
-    on (median corner motion 37-70 px at the networks' 128x128 input on copr, brighton-beach and seneca,
-    against at most 45 in training). On copr the search took the median pair error from 14.3 to 2.6 px
-    (at 128x128, against the SIFT reference).
+    on (docs/mosaic.md, "Stages": the learned methods' large-motion search).
     """
     return with_option_default(method, given, "search", MOSAIC_SEARCH)
 

@@ -265,8 +265,8 @@ class _OverviewPyramid:
     built from the map's strips as they are drawn and written to one temporary tiled GeoTIFF per level.
 
     Why not GDAL's own: its COG driver computes the overviews by reading the whole map back for every level,
-    with cubic resampling; on seneca's 150-megapixel map that took 17 of its 23 s, this 1 s (2026-11-25,
-    docs/benchmarks.md). Each level holds at most one block's height of rows of the level below, so memory
+    with cubic resampling, most of a large map's COG time (docs/benchmarks.md, "2026-11-25, later: confirmed
+    network answers, the COG's own overviews"). Each level holds at most one block's height of rows of the level below, so memory
     stays at about one strip.
     """
 

@@ -48,8 +48,8 @@ class Acceptance:
     unverified but supported (``verified_by`` set: it failed only the judge's stricter checks) is judged here like a
     verified one: the joint solve cross-checks every pair. An answer its matches verify or support (``verified_by``
     "matches": a network's global match that hundreds of cells support) skips the photometric check, as SIFT's
-    RANSAC-verified ones do. Why: in a network-only mosaic of seneca 46 of the 75 pairs accepted
-    without this were over 20 px off (against ``auto``'s), with it 1 of 28 (docs/mosaic.md, 2026-11-25).
+    RANSAC-verified ones do. Why: without it most of a network-only mosaic's accepted pairs on a low-texture
+    flight were over 20 px off (docs/benchmarks.md, "2026-11-25, later: confirmed network answers").
     """
 
     min_confidence: float = THRESHOLDS.min_confidence

@@ -318,9 +318,8 @@ def _single_threaded(spec: EstimatorSpec) -> EstimatorSpec:
 
 
 # workers=None: one process per core, at most MAX_AUTO_WORKERS, for a flight of POOL_MIN_FRAMES frames or more.
-# Why: a pool pays for its start (spawning, imports, loading the networks: about 2 s) only over enough pairs
-# (2026-11-24, auto, 2 cores: copr's 41 frames 19.3 -> 15.0 s, seneca's 167 frames 225 -> 168 s), and each
-# worker holds its own networks and feature cache (up to about 0.5 GB).
+# Why: a pool pays for its start (spawning, imports, loading the networks) only over enough pairs (docs/mosaic.md,
+# "Both cores, or a cluster"), and each worker holds its own networks and feature cache (up to about 0.5 GB).
 MAX_AUTO_WORKERS = 4
 POOL_MIN_FRAMES = 30
 

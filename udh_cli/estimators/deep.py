@@ -19,8 +19,9 @@ from udh_cli.estimators.judge import judge_answers
 from udh_cli.estimators.thresholds import THRESHOLDS
 from udh_cli.estimators.tiles import TileRefinement, refine_pairs_with_tiles
 from udh_cli.estimators.pair import PreparedPair
-from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel, OnnxMatcher
+from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel
 from udh_cli.estimators.matching import CONFIDENT_INLIERS, MatchSettings
+from udh_cli.estimators.networks import LearnedNetworks, load_networks
 from udh_cli.estimators.verify import Verifier
 
 
@@ -128,16 +129,11 @@ class DeepEstimator(Estimator):
     match_refine_side: int | None = MatchSettings.refine_side
     batch_size: int = PASSES_PER_CALL
     threads: int | None = None
-    network: OnnxHomographyModel = field(init=False, repr=False)
-    stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)
-    first_stages: list[OnnxHomographyModel] = field(init=False, repr=False)  # the coarse networks whose cascades compete
-    tile_network: OnnxHomographyModel = field(init=False, repr=False)  # the network of the tile stage
-    tile_coarse_network: OnnxHomographyModel | None = field(init=False, repr=False)  # its coarse level's, if any
-    matcher: OnnxMatcher | None = field(init=False, repr=False)  # the global matcher, if any
+    networks: LearnedNetworks = field(init=False, repr=False)  # every network loaded, by role
     match_settings: MatchSettings = field(init=False, repr=False)  # how the global match runs (the match_* options)
 
     def __post_init__(self) -> None:
-        from udh_cli.models_catalog import PRECISIONS, check_precision, has_refinement_stage, has_shipped, shipped_onnx
+        from udh_cli.models_catalog import PRECISIONS, check_precision, has_refinement_stage
 
         if self.iterations < 1 or self.batch_size < 1:  # 0 rounds would answer the identity as if estimated
             raise UdhError(f"method '{self.name}': iterations ({self.iterations}) and batch_size ({self.batch_size}) must be at least 1")
@@ -153,63 +149,42 @@ class DeepEstimator(Estimator):
         if not (self.heading_search == 0 or 3 <= self.heading_search <= 72):
             raise UdhError(f"method '{self.name}': heading_search ({self.heading_search}) must be 0 (off) or 3 to 72 angles")
         check_precision(self.precision)
-
-        path = self.model if self.model is not None else shipped_onnx(self.name, self.precision)
-        self.network = OnnxHomographyModel.load(path, self.device, self.threads)
-        self.stages = [(self.network, self.iterations)]
-        if self.refine_rounds:
-            refine_path = self.refine_model if self.refine_model is not None else shipped_onnx(f"{self.name}-refine", self.precision)
-            refiner = OnnxHomographyModel.load(refine_path, self.device, self.threads)
-            if refiner.input_size != self.network.input_size:
-                raise UdhError(f"{refine_path}: the refinement network takes {refiner.input_size}px inputs but "
-                               f"{path} takes {self.network.input_size}px; give two models of the same input size")
-            self.tile_network = refiner
-            if self.rounds_model:
-                refiner = OnnxHomographyModel.load(self.rounds_model, self.device, self.threads)
-                if refiner.input_size != self.network.input_size:
-                    raise UdhError(f"{self.rounds_model}: the rounds' network takes {refiner.input_size}px inputs, {path} {self.network.input_size}px")
-            self.stages.append((refiner, self.refine_rounds))
-        else:
-            self.tile_network = self.network
-        self.tile_coarse_network = self.network if len(self.stages) > 1 else None
-        if self.tile_coarse_model and self.tile_coarse_network is None:
-            raise UdhError(f"method '{self.name}': tile_coarse_model runs in the tile stage, which needs a refinement stage "
-                           f"(refine_rounds is 0 or no refinement network is given)")
-        if self.tile_coarse_model:
-            self.tile_coarse_network = OnnxHomographyModel.load(self.tile_coarse_model, self.device, self.threads)
-            if self.tile_coarse_network.input_size != self.network.input_size:
-                raise UdhError(f"{self.tile_coarse_model}: the tiles' coarse network takes {self.tile_coarse_network.input_size}px inputs, {path} {self.network.input_size}px")
-        self.first_stages = [self.network]
-        if self.flight_model is None and self.model is None and has_shipped(f"{self.name}-flight", precision=None):
-            self.flight_model = str(shipped_onnx(f"{self.name}-flight", self.precision))
-        if self.flight_model:
-            flight = OnnxHomographyModel.load(self.flight_model, self.device, self.threads)
-            if flight.input_size != self.network.input_size:
-                raise UdhError(f"{self.flight_model}: the flight network takes {flight.input_size}px inputs, {path} {self.network.input_size}px")
-            self.first_stages.append(flight)
-        if self.tiles is None:
-            self.tiles = len(self.stages) > 1
-        if self.matcher_model is None and self.model is None and self.tiles and has_shipped(f"{self.name}-matcher", precision=None):
-            self.matcher_model = str(shipped_onnx(f"{self.name}-matcher", "fp32"))  # float32 only: 0.57 MB, run on doubted pairs
         self.match_settings = MatchSettings(self.match_side, MATCH_HEADINGS, self.match_refine_side, self.match_escalate_side).checked(self.name, "match_")
-        self.matcher = OnnxMatcher.load(self.matcher_model, self.device, self.threads) if self.matcher_model else None
+        if self.tiles is None:  # on with a refinement stage
+            self.tiles = self.refine_rounds > 0
         if self.search is None:
             # Only with the tile stage: without it nothing but the 128-px score checks a searched answer, and a
             # translation alone can pass that (an untrained network on the example flight: 0.24 at 36 px off).
             self.search = PIPELINE_SEARCH if self.tiles else 0
-        loaded = self.loaded_precision()
-        if self.precision is None and loaded in PRECISIONS:
-            # Record what was chosen, so that settings (mosaic sidecars, the pair cache) say what ran and
-            # precision=None and precision="int8" name the same estimator.
-            self.precision = loaded
+        self.networks = load_networks(self.name, self.model, self.refine_model, self.rounds_model, self.tile_coarse_model,
+                                      self.flight_model, self.matcher_model, self.refine_rounds, self.tiles, self.precision,
+                                      self.device, self.threads)
+        # Record what was chosen, so that settings (mosaic sidecars, the pair cache) say what ran and the
+        # shipped defaults name the same estimator as those files given by path.
+        if self.flight_model is None and self.networks.flight is not None:
+            self.flight_model = str(self.networks.flight.path)
+        if self.matcher_model is None and self.networks.matcher is not None:
+            self.matcher_model = str(self.networks.matcher.path)
+        if self.precision is None and self.networks.precision() in PRECISIONS:
+            self.precision = self.networks.precision()
+
+    @property
+    def network(self) -> OnnxHomographyModel:
+        """The coarse network, the first of the cascade; its input side is S."""
+        return self.networks.coarse
+
+    @property
+    def stages(self) -> list[tuple[OnnxHomographyModel, int]]:
+        """The cascade as (network, rounds): the coarse network's, then the refinement network's if there is one."""
+        refinement = [(self.networks.rounds, self.refine_rounds)] if self.networks.rounds is not None else []
+        return [(self.networks.coarse, self.iterations), *refinement]
 
     def with_default_rounds(self) -> "DeepEstimator":
         """The same estimator and loaded networks with the default rounds (the refinement stage only if
         this one has it): a longer cascade without loading the models again."""
         twin = copy.copy(self)
         twin.iterations = DEFAULT_ITERATIONS
-        twin.refine_rounds = DEFAULT_REFINE_ROUNDS if len(self.stages) > 1 else 0
-        twin.stages = [(network, rounds) for (network, _), rounds in zip(self.stages, (twin.iterations, twin.refine_rounds))]
+        twin.refine_rounds = DEFAULT_REFINE_ROUNDS if self.networks.rounds is not None else 0
         return twin
 
     def near_prior(self) -> "DeepEstimator":
@@ -221,19 +196,11 @@ class DeepEstimator(Estimator):
         return twin
 
     def loaded_precision(self) -> str:
-        """What the cascade runs in: "int8", "fp32", or "mixed" (networks of both, e.g. a float32 ``model``
-        file followed by the shipped int8 refinement network)."""
-        found = {network.metadata.get("precision", "fp32") for network in self._networks()}
-        return found.pop() if len(found) == 1 else "mixed"
+        """What the cascade runs in: "int8", "fp32", or "mixed" (:meth:`LearnedNetworks.precision`)."""
+        return self.networks.precision()
 
     def model_files(self) -> list[str]:
-        matcher = [str(self.matcher.path)] if self.matcher is not None else []
-        return sorted({str(network.path) for network in self._networks()} | set(matcher))
-
-    def _networks(self) -> list[OnnxHomographyModel]:
-        """Every homography network this estimator runs (some more than once); the matcher is not one."""
-        tile_coarse = [self.tile_coarse_network] if self.tile_coarse_network is not None else []
-        return [*(network for network, _ in self.stages), *self.first_stages, self.tile_network, *tile_coarse]
+        return self.networks.files()
 
     def rounds(self) -> list[OnnxHomographyModel]:
         """The network of every round of the cascade, in order."""
@@ -309,10 +276,10 @@ class DeepEstimator(Estimator):
                     turned[i] = angle
             doubtful = [i for i in doubtful if still_doubted(i)]
         headings_done = time.perf_counter()
-        matched_any = self.matcher is not None and bool(doubtful)
+        matched_any = self.networks.matcher is not None and bool(doubtful)
         if matched_any:
             for i in doubtful:
-                found = self.match_settings.match(self.matcher, pairs[i].a, pairs[i].b)
+                found = self.match_settings.match(self.networks.matcher, pairs[i].a, pairs[i].b)
                 if found.b_from_a is None:
                     continue
                 h = geometry.rescale_homography(found.b_from_a, pairs[i].a.size, (s, s), pairs[i].b.size, (s, s))
@@ -393,8 +360,8 @@ class DeepEstimator(Estimator):
         """The tile stage (every pair's tiles of a level together) from S x S answers; None where one is degenerate."""
         fulls = [self._full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
         valid = [i for i, full in enumerate(fulls) if full is not None]
-        found = refine_pairs_with_tiles(self.tile_network, [(pairs[i].a, pairs[i].b) for i in valid], [fulls[i] for i in valid],
-                                        coarse_network=self.tile_coarse_network) if valid else []
+        found = refine_pairs_with_tiles(self.networks.tile, [(pairs[i].a, pairs[i].b) for i in valid], [fulls[i] for i in valid],
+                                        coarse_network=self.networks.tile_coarse) if valid else []
         return [dict(zip(valid, found)).get(i) for i in range(len(pairs))]
 
     def _search(self, pairs: Sequence[PreparedPair], small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:

@@ -113,8 +113,8 @@ def judge_matched(network, pair, b_from_a: np.ndarray, alignment: float, confide
     checks = {"aligns": alignment >= thresholds.min_alignment_matched}
     levels = None
     if checks["aligns"] and network is not None and TileRefinement().can_confirm(pair.b.size, network.network.input_size):
-        found = refine_pairs_with_tiles(network.tile_network, [(pair.a, pair.b)], [b_from_a],
-                                        coarse_network=network.tile_coarse_network)[0]
+        found = refine_pairs_with_tiles(network.networks.tile, [(pair.a, pair.b)], [b_from_a],
+                                        coarse_network=network.networks.tile_coarse)[0]
         levels = found.levels_used
         checks["tiles"] = found.confirms(thresholds.min_matched_tile_levels)
     failed = tuple(name for name, passed in checks.items() if not passed)

@@ -326,7 +326,7 @@ def test_a_doubted_pair_takes_the_global_match_and_a_confident_match_verifies_it
     assert geometry.mace(before.homography, truth, 384, 256) > 20 and not before.details.get("matched")
     plain.networks = dataclasses.replace(plain.networks, matcher=BlockDescriptors())
     after = plain.estimate(a, b)
-    assert after.details["matched"] and after.details["match_inliers"] >= deep.CONFIDENT_INLIERS
+    assert after.details["matched"] and after.details["match_inliers"] >= matching.CONFIDENT_INLIERS
     assert geometry.mace(after.homography, truth, 384, 256) < 2.0
     assert after.verified is not False and "match" in after.details["stage_ms"]
     with pytest.raises(UdhError, match="match_side"):

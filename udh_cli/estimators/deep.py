@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import time
 from dataclasses import dataclass, field
 from typing import ClassVar, Sequence
 
@@ -14,13 +13,14 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.flight_motion import PREWARP_BORDER
 from udh_cli.estimators.base import Estimate, Estimator
-from udh_cli.estimators.hypotheses import HEADING_COUNT, best_hypotheses, cascade_headings, heading_angles, heading_hypotheses, shift_hypotheses
+from udh_cli.estimators.hypotheses import HEADING_COUNT, best_hypotheses, heading_angles, heading_hypotheses, shift_hypotheses
 from udh_cli.estimators.judge import judge_answers
+from udh_cli.estimators.learned import Batch, StageClock, first_answers, full_resolution, packed, rescued
 from udh_cli.estimators.thresholds import THRESHOLDS
 from udh_cli.estimators.tiles import TileRefinement, refine_pairs_with_tiles
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel
-from udh_cli.estimators.matching import CONFIDENT_INLIERS, MatchSettings
+from udh_cli.estimators.matching import MatchSettings
 from udh_cli.estimators.networks import LearnedNetworks, load_networks
 from udh_cli.estimators.verify import Verifier
 
@@ -241,108 +241,21 @@ class DeepEstimator(Estimator):
         return NETWORK_CHECK.score_grey(small_a, small_b, b_from_a)
 
     def estimate_pairs(self, pairs: Sequence[PreparedPair]) -> list[Estimate]:
+        """The stages of :mod:`~udh_cli.estimators.learned`: prepare, network, tiles, the rescues of the doubted
+        pairs (headings, match, search), verdict; each timed in ``details["stage_ms"]``."""
         if not pairs:
             return []
-        start = time.perf_counter()
-        s = self.network.input_size
-        small_a, small_b = (np.stack(side) for side in zip(*(pair.square(s) for pair in pairs)))
-        prepared = time.perf_counter()
-        small_h, scores = cascade_headings(self, small_a, small_b)
-        coarse = time.perf_counter()
-        tiled = self._tiles(pairs, small_h) if self.tiles else [None] * len(pairs)
-        tiles_done = time.perf_counter()
-        searched, matched, turned, seen_match = [False] * len(pairs), [None] * len(pairs), [None] * len(pairs), [None] * len(pairs)
-
-        def offer(i: int, h: np.ndarray, score: float) -> bool:
-            # Kept when tile levels confirm it more, or as much with a better score.
-            retiled = self._tiles([pairs[i]], [h])[0] if self.tiles else None
-            confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
-            if kept := (confirmed, score) > (was_confirmed, scores[i]):
-                small_h[i], scores[i], tiled[i], matched[i] = h, score, retiled, None
-            return kept
-
-        def still_doubted(i: int) -> bool:
-            # A low score, or (with tiles) an answer the tile levels did not confirm although B had room for tiles
-            # (on real flights: a start too far off for the tiles); not a match many cells support.
-            return (scores[i] < self.search_below or self._unconfirmed(tiled[i], pairs[i])) \
-                and not (matched[i] is not None and matched[i].inliers >= CONFIDENT_INLIERS)
-
-        doubtful = [i for i in range(len(pairs)) if still_doubted(i)]
-        turned_any = bool(self.heading_search and doubtful)
-        if turned_any:  # the cheapest rescue first: a few network passes, before describing both frames
-            found, found_scores, angles = self._turned(small_a[doubtful], small_b[doubtful])
-            for i, h, score, angle in zip(doubtful, found, found_scores, angles):
-                if offer(i, h, score):
-                    turned[i] = angle
-            doubtful = [i for i in doubtful if still_doubted(i)]
-        headings_done = time.perf_counter()
-        matched_any = self.networks.matcher is not None and bool(doubtful)
-        if matched_any:
-            for i in doubtful:
-                found = self.match_settings.match(self.networks.matcher, pairs[i].a, pairs[i].b)
-                if found.b_from_a is None:
-                    continue
-                h = geometry.rescale_homography(found.b_from_a, pairs[i].a.size, (s, s), pairs[i].b.size, (s, s))
-                if not geometry.is_valid_homography(h, s, s):  # a folded fit is no answer, however many cells agree
-                    continue
-                seen_match[i] = found  # a second opinion for the verdict, kept or not
-                score = self.score(small_a[i], small_b[i], h)
-                confident = found.inliers >= CONFIDENT_INLIERS
-                # A match hundreds of cells agree on is kept as the guided matching left it, not tiled: the tile
-                # stage is less precise than it (flight-motion benchmark: one accepted coarse level moved 0.5-1.3 px
-                # matches to 6-23 px; consecutive pairs at 800 px against SIFT references, median: copr 0.91 px
-                # kept against 1.20 px tiled, where the tiles confirmed it).
-                retiled = self._tiles([pairs[i]], [h])[0] if self.tiles and not confident else None
-                # A match many cells support first: a doubted cascade answer that one tile level accepted was
-                # 204 px off where 1,077 cells put the match 0.2 px from the truth (flight-motion benchmark).
-                # Then tile levels (they confirm precise answers), then the score.
-                confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
-                if (confident, confirmed, score) > (False, was_confirmed, scores[i]):
-                    small_h[i], scores[i], tiled[i], matched[i], turned[i] = h, score, retiled, found, None
-            doubtful = [i for i in doubtful if still_doubted(i)]
-        matching_done = time.perf_counter()
-        searched_any = bool(self.search and doubtful)
-        if searched_any:  # its answers are judged by score and tiles only
-            found, found_scores = self._search([pairs[i] for i in doubtful], small_a[doubtful], small_b[doubtful])
-            for i, h, score in zip(doubtful, found, found_scores):
-                if offer(i, h, score):
-                    searched[i], turned[i] = True, None
-        finished = time.perf_counter()
-        fulls = [self._full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
-        fulls = [full if full is None or refined is None else refined.b_from_a for full, refined in zip(fulls, tiled)]
-        verdicts = judge_answers(self, pairs, small_a, small_b, fulls, scores, tiled, matched, seen_match) if self.judged else [None] * len(pairs)
-        judged = time.perf_counter()
-        per_pair_ms = (judged - start) * 1e3 / len(pairs)
-        # Only the stages that ran are timed: an absent key says "skipped" where a rounded 0.0 could not.
-        ran = {"prepare": True, "network": True, "tiles": self.tiles, "headings": turned_any, "match": matched_any,
-               "search": searched_any, "verdict": self.judged}
-        stage_ms = {name: round((t1 - t0) * 1e3 / len(pairs), 2) for name, t0, t1 in
-                    (("prepare", start, prepared), ("network", prepared, coarse), ("tiles", coarse, tiles_done),
-                     ("headings", tiles_done, headings_done), ("match", headings_done, matching_done),
-                     ("search", matching_done, finished), ("verdict", finished, judged)) if ran[name]}
+        clock = StageClock(len(pairs))
+        batch = Batch.of(pairs, self.network.input_size)
+        clock.lap("prepare")
+        answers = rescued(self, batch, first_answers(self, batch, clock), clock)
+        fulls = [full_resolution(self, answer, pair) for answer, pair in zip(answers, pairs)]
+        verdicts = judge_answers(self, pairs, batch.small_a, batch.small_b, fulls, [a.score for a in answers], [a.tiled for a in answers],
+                                 [a.match for a in answers], [a.seen_match for a in answers]) if self.judged else [None] * len(pairs)
+        clock.lap("verdict", ran=self.judged)
         precision = self.loaded_precision()
-        out = []
-        for pair, full, score, was_searched, angle, refined, match, verdict in zip(pairs, fulls, scores, searched, turned, tiled, matched, verdicts):
-            failure = None if full is not None else "the network's 4-point output gives a degenerate homography"
-            details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
-                       "precision": precision, "provider": self.network.provider, "stage_ms": stage_ms}
-            if angle is not None:
-                details["heading"] = angle
-            if match is not None:
-                details.update(matched=True, match_inliers=match.inliers, match_heading=match.heading, match_side=match.side)
-            if full is not None and refined is not None:  # never for a confident match: it is not tiled
-                details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
-                               tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
-            stage = ("tiles" if details.get("tile_levels") else "search" if was_searched else "heading" if angle is not None
-                     else "match" if match is not None else "network")
-            confidence, verified, verified_by = (score, None, None) if not self.judged else (0.0, False, None)
-            if verdict is not None:
-                details.update(verdict_failed=list(verdict[1].failed), **verdict[0])
-                confidence, verified, verified_by = verdict[1].confidence, verdict[1].verified, verdict[1].verified_by
-            out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage, verified=verified,
-                                     verified_by=verified_by, verification_score=verdict[0]["alignment"] if verdict else None,
-                                     inliers=match.inliers if match else None))
-        return out
+        return [packed(self, pair, answer, full, verdict, clock.stage_ms, clock.per_pair_ms(), precision)
+                for pair, answer, full, verdict in zip(pairs, answers, fulls, verdicts)]
 
     def _unconfirmed(self, refined, pair: PreparedPair) -> bool:
         """Whether the tile stage ran on ``pair`` (``refined``: its result, None when it did not) and did not

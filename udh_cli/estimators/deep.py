@@ -13,11 +13,10 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.flight_motion import PREWARP_BORDER
 from udh_cli.estimators.base import Estimate, Estimator
-from udh_cli.estimators.hypotheses import HEADING_COUNT, best_hypotheses, heading_angles, heading_hypotheses, shift_hypotheses
-from udh_cli.estimators.judge import judge_answers
-from udh_cli.estimators.learned import Batch, StageClock, first_answers, full_resolution, packed, rescued
+from udh_cli.estimators.hypotheses import HEADING_COUNT
+from udh_cli.estimators.learned import Batch, StageClock, final_homography, first_answers, judged, packed, rescued
 from udh_cli.estimators.thresholds import THRESHOLDS
-from udh_cli.estimators.tiles import TileRefinement, refine_pairs_with_tiles
+from udh_cli.estimators.tiles import refine_pairs_with_tiles
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel
 from udh_cli.estimators.matching import MatchSettings
@@ -27,8 +26,6 @@ from udh_cli.estimators.verify import Verifier
 
 DEFAULT_ITERATIONS = 2  # coarse rounds
 DEFAULT_REFINE_ROUNDS = 2  # measured on the held-out rho-32 bench (models/README.md)
-SEARCH_FINALISTS = 3  # large-motion search: hypotheses of a pair that get the whole cascade after screening
-HEADING_FINALISTS = 2  # heading search: turns of a pair that get the whole cascade after screening
 PIPELINE_SEARCH = 2  # the search of the whole learned pipeline (unsupervised with its tile stage): 24 shifts
 # B's turns the global match tries (matching.HEADINGS): half turns for a survey's alternating strips, then quarter
 # turns for a strip's end, each only while no turn has found enough agreeing cells.
@@ -249,48 +246,27 @@ class DeepEstimator(Estimator):
         batch = Batch.of(pairs, self.network.input_size)
         clock.lap("prepare")
         answers = rescued(self, batch, first_answers(self, batch, clock), clock)
-        fulls = [full_resolution(self, answer, pair) for answer, pair in zip(answers, pairs)]
-        verdicts = judge_answers(self, pairs, batch.small_a, batch.small_b, fulls, [a.score for a in answers], [a.tiled for a in answers],
-                                 [a.match for a in answers], [a.seen_match for a in answers]) if self.judged else [None] * len(pairs)
+        fulls = [final_homography(self, answer, pair) for answer, pair in zip(answers, pairs)]
+        verdicts = judged(self, batch, answers, fulls)
         clock.lap("verdict", ran=self.judged)
         precision = self.loaded_precision()
         return [packed(self, pair, answer, full, verdict, clock.stage_ms, clock.per_pair_ms(), precision)
                 for pair, answer, full, verdict in zip(pairs, answers, fulls, verdicts)]
 
-    def _unconfirmed(self, refined, pair: PreparedPair) -> bool:
-        """Whether the tile stage ran on ``pair`` (``refined``: its result, None when it did not) and did not
-        confirm the answer (:meth:`TileResult.confirms`), although B had room for tiles."""
-        return refined is not None and not refined.confirms() and TileRefinement().can_confirm(pair.b.size, self.network.input_size)
-
-    def _full_resolution(self, small_h: np.ndarray, pair: PreparedPair) -> np.ndarray | None:
+    def full_resolution(self, small_h: np.ndarray, pair: PreparedPair) -> np.ndarray | None:
         """A ``b_from_a`` of the S x S images rescaled exactly to the pair's pixels; None when degenerate."""
         s = self.network.input_size
         if not geometry.is_valid_homography(small_h, s, s):
             return None
         return geometry.rescale_homography(small_h, (s, s), pair.a.size, (s, s), pair.b.size)
 
-    def _tiles(self, pairs: Sequence[PreparedPair], small_h: Sequence[np.ndarray]) -> list:
+    def tile_stage(self, pairs: Sequence[PreparedPair], small_h: Sequence[np.ndarray]) -> list:
         """The tile stage (every pair's tiles of a level together) from S x S answers; None where one is degenerate."""
-        fulls = [self._full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
+        fulls = [self.full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
         valid = [i for i, full in enumerate(fulls) if full is not None]
         found = refine_pairs_with_tiles(self.networks.tile, [(pairs[i].a, pairs[i].b) for i in valid], [fulls[i] for i in valid],
                                         coarse_network=self.networks.tile_coarse) if valid else []
         return [dict(zip(valid, found)).get(i) for i in range(len(pairs))]
-
-    def _search(self, pairs: Sequence[PreparedPair], small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
-        """Large-motion search: for every pair, run the network from each translation hypothesis of a
-        (2 * search + 1)^2 grid of shifts up to half the frame (:func:`~udh_cli.estimators.hypotheses.shift_hypotheses`)
-        and keep the best-scoring answer: ``(N, 3, 3)`` ``b_from_a`` of the whole S x S images and their scores."""
-        hypotheses = shift_hypotheses(pairs, self.network.input_size, self.search)
-        found, scores, _ = best_hypotheses(self, hypotheses, small_a, small_b, SEARCH_FINALISTS)
-        return found, scores
-
-    def _turned(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float], list[float]]:
-        """Heading search: B turned by :attr:`heading_search` angles over the whole circle (those the cascade
-        tried left out), screened in one call: ``(N, 3, 3)`` ``b_from_a`` of the whole S x S images, their scores
-        and the turn, degrees, each came from."""
-        angles = heading_angles(self.heading_search, (0.0, 180.0) if self.headings == 2 else (0.0,))
-        return best_hypotheses(self, heading_hypotheses(small_a, small_b, angles), small_a, small_b, HEADING_FINALISTS)
 
 
 def _safe_dlt(offsets: np.ndarray, size: int) -> np.ndarray:

@@ -176,7 +176,7 @@ def judge_answers(estimator, pairs, small_a, small_b, fulls, scores, tiled, matc
     retile = [i for i in answered if matched[i] is not None and tiled[i] is None and estimator.tiles
               and matched[i].inliers >= thresholds.confident_inliers and alignments[i] >= thresholds.min_alignment
               and TileRefinement().can_confirm(pairs[i].b.size, s)]
-    match_tiles = dict(zip(retile, estimator._tiles([pairs[i] for i in retile], [small[i] for i in retile]))) if retile else {}
+    match_tiles = dict(zip(retile, estimator.tile_stage([pairs[i] for i in retile], [small[i] for i in retile]))) if retile else {}
     out = []
     for i, (pair, full) in enumerate(zip(pairs, fulls)):
         if full is None:

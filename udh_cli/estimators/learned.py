@@ -11,16 +11,21 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
 from udh_cli import geometry
 from udh_cli.estimators.base import Estimate
-from udh_cli.estimators.hypotheses import cascade_headings
+from udh_cli.estimators.hypotheses import best_hypotheses, cascade_headings, heading_angles, heading_hypotheses, shift_hypotheses
+from udh_cli.estimators.judge import judge_answers
 from udh_cli.estimators.matching import CONFIDENT_INLIERS, MatchResult
 from udh_cli.estimators.pair import PreparedPair
-from udh_cli.estimators.tiles import TileResult
+from udh_cli.estimators.tiles import TileRefinement, TileResult
+
+
+SEARCH_FINALISTS = 3  # large-motion search: hypotheses of a pair that get the whole cascade after screening
+HEADING_FINALISTS = 2  # heading search: turns of a pair that get the whole cascade after screening
 
 
 @dataclass(frozen=True)
@@ -106,7 +111,7 @@ def first_answers(estimator, batch: Batch, clock: StageClock) -> list[Answer]:
     """The cascade of the coarse networks from every heading (stage "network"), then the tile stage ("tiles")."""
     small_h, scores = cascade_headings(estimator, batch.small_a, batch.small_b)
     clock.lap("network")
-    tiled = estimator._tiles(batch.pairs, small_h) if estimator.tiles else [None] * len(batch.pairs)
+    tiled = estimator.tile_stage(batch.pairs, small_h) if estimator.tiles else [None] * len(batch.pairs)
     clock.lap("tiles", ran=bool(estimator.tiles))
     return [Answer(h, score, found) for h, score, found in zip(small_h, scores, tiled)]
 
@@ -114,16 +119,28 @@ def first_answers(estimator, batch: Batch, clock: StageClock) -> list[Answer]:
 def still_doubted(estimator, answer: Answer, pair: PreparedPair) -> bool:
     """A low score, or (with tiles) an answer the tile levels did not confirm although B had room for tiles (on real
     flights: a start too far off for the tiles); never a match many cells support."""
-    return (answer.score < estimator.search_below or estimator._unconfirmed(answer.tiled, pair)) and not answer.confident_match
+    return (answer.score < estimator.search_below or _unconfirmed(estimator, answer.tiled, pair)) and not answer.confident_match
+
+
+def _unconfirmed(estimator, tiled: TileResult | None, pair: PreparedPair) -> bool:
+    """Whether the tile stage ran on ``pair`` (``tiled``: its result, None when it did not) and did not confirm the
+    answer (:meth:`TileResult.confirms`), although B had room for tiles."""
+    return tiled is not None and not tiled.confirms() and TileRefinement().can_confirm(pair.b.size, estimator.network.input_size)
 
 
 def _retiled(estimator, pair: PreparedPair, small_h: np.ndarray) -> TileResult | None:
-    return estimator._tiles([pair], [small_h])[0] if estimator.tiles else None
+    """The tile stage on one offered answer, where the estimator has the stage."""
+    return estimator.tile_stage([pair], [small_h])[0] if estimator.tiles else None
 
 
 def heading_offers(estimator, batch: Batch, doubted: list[int], answers: Sequence[Answer]) -> dict[int, Answer]:
-    """The heading search's answer for each doubted pair (B turned over the whole circle), tiled."""
-    found, scores, angles = estimator._turned(batch.small_a[doubted], batch.small_b[doubted])
+    """The heading search's answer for each doubted pair, tiled: B's small copy turned by ``heading_search`` angles
+    over the whole circle (those the cascade tried left out), screened in one call, the best finishing the cascade
+    (:func:`~udh_cli.estimators.hypotheses.best_hypotheses`)."""
+    tried = (0.0, 180.0) if estimator.headings == 2 else (0.0,)
+    small_a, small_b = batch.small_a[doubted], batch.small_b[doubted]
+    turns = heading_hypotheses(small_a, small_b, heading_angles(estimator.heading_search, tried))
+    found, scores, angles = best_hypotheses(estimator, turns, small_a, small_b, HEADING_FINALISTS)
     return {i: Answer(h, score, _retiled(estimator, batch.pairs[i], h), heading=angle, seen_match=answers[i].seen_match)
             for i, h, score, angle in zip(doubted, found, scores, angles)}
 
@@ -150,20 +167,30 @@ def match_offers(estimator, batch: Batch, doubted: list[int], answers: Sequence[
 
 
 def search_offers(estimator, batch: Batch, doubted: list[int], answers: Sequence[Answer]) -> dict[int, Answer]:
-    """The large-motion search's answer for each doubted pair (shifts up to half the frame), tiled."""
-    found, scores = estimator._search([batch.pairs[i] for i in doubted], batch.small_a[doubted], batch.small_b[doubted])
+    """The large-motion search's answer for each doubted pair, tiled: the network run from each shift of a
+    (2 * search + 1)^2 grid up to half the frame (:func:`~udh_cli.estimators.hypotheses.shift_hypotheses`), the
+    best-scoring kept."""
+    shifts = shift_hypotheses([batch.pairs[i] for i in doubted], estimator.network.input_size, estimator.search)
+    found, scores, _ = best_hypotheses(estimator, shifts, batch.small_a[doubted], batch.small_b[doubted], SEARCH_FINALISTS)
     return {i: Answer(h, score, _retiled(estimator, batch.pairs[i], h), searched=True, seen_match=answers[i].seen_match)
             for i, h, score in zip(doubted, found, scores)}
 
 
-Offers = Callable[[object, Batch, list, Sequence[Answer]], dict]
-# The rescues in order, cheapest first: a few network passes (the heading search) before describing both frames
-# (the global match), and the shift search, whose answers only the score and tiles judge, last. Each is
-# (stage name, whether the estimator runs it, its offers).
-RESCUES: tuple[tuple[str, Callable[[object], bool], Offers], ...] = (
-    ("headings", lambda estimator: bool(estimator.heading_search), heading_offers),
-    ("match", lambda estimator: estimator.networks.matcher is not None, match_offers),
-    ("search", lambda estimator: bool(estimator.search), search_offers),
+class Rescue(NamedTuple):
+    """A rescue of doubted pairs: its stage name (a key of ``details["stage_ms"]``), whether an estimator runs it,
+    and its offers (``offers(estimator, batch, doubted indices, answers) -> {index: offered Answer}``)."""
+
+    name: str
+    runs: Callable[[object], bool]
+    offers: Callable[[object, Batch, list[int], Sequence[Answer]], dict[int, Answer]]
+
+
+# Cheapest first: a few network passes (the heading search) before describing both frames (the global match), and
+# the shift search, whose answers only the score and the tiles judge, last.
+RESCUES = (
+    Rescue("headings", lambda estimator: bool(estimator.heading_search), heading_offers),
+    Rescue("match", lambda estimator: estimator.networks.matcher is not None, match_offers),
+    Rescue("search", lambda estimator: bool(estimator.search), search_offers),
 )
 
 
@@ -179,10 +206,19 @@ def rescued(estimator, batch: Batch, answers: list[Answer], clock: StageClock) -
     return answers
 
 
-def full_resolution(estimator, answer: Answer, pair: PreparedPair) -> np.ndarray | None:
+def final_homography(estimator, answer: Answer, pair: PreparedPair) -> np.ndarray | None:
     """The answer as ``b_from_a`` in the pair's pixels: the tile stage's where it ran; None when degenerate."""
-    full = estimator._full_resolution(answer.small_h, pair)
+    full = estimator.full_resolution(answer.small_h, pair)
     return full if full is None or answer.tiled is None else answer.tiled.b_from_a
+
+
+def judged(estimator, batch: Batch, answers: Sequence[Answer], fulls: Sequence[np.ndarray | None]) -> list:
+    """:func:`~udh_cli.estimators.judge.judge_answers` on every answer (``fulls``: each as :func:`final_homography`
+    gives it): ``(measured, Verdict)`` each, None where there is no answer; all None when the estimator does not judge."""
+    if not estimator.judged:
+        return [None] * len(answers)
+    return judge_answers(estimator, batch.pairs, batch.small_a, batch.small_b, list(fulls), [a.score for a in answers],
+                         [a.tiled for a in answers], [a.match for a in answers], [a.seen_match for a in answers])
 
 
 def packed(estimator, pair: PreparedPair, answer: Answer, full: np.ndarray | None, verdict, stage_ms: dict,

@@ -14,6 +14,7 @@ and every other field that differs.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -21,13 +22,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+from udh_cli import geometry
+from udh_cli.estimators import create_estimator, estimator_names
+from udh_cli.images import read_image
 
-from conftest import warped_pair  # noqa: E402
-from udh_cli import geometry  # noqa: E402
-from udh_cli.estimators import create_estimator, estimator_names  # noqa: E402
-from udh_cli.images import read_image  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 CONTRACT_H = np.array([[1.0, 0.01, 6.0], [-0.01, 1.0, -4.0], [0.0, 0.0, 1.0]])  # test_contract.TRUE
 TIMINGS = ("stage_ms", "elapsed_ms")
@@ -75,8 +74,16 @@ def _answer(found, size) -> dict:
             "verification_score": found.verification_score, "details": _plain(found.details)}
 
 
+def contract_pair() -> tuple[np.ndarray, np.ndarray]:
+    """The pair of tests/estimators/test_contract.py, made by the tests' own ``warped_pair``."""
+    spec = importlib.util.spec_from_file_location("udh_tests_conftest", ROOT / "tests" / "conftest.py")
+    conftest = sys.modules[spec.name] = importlib.util.module_from_spec(spec)  # its dataclasses look themselves up there
+    spec.loader.exec_module(conftest)
+    return conftest.warped_pair(CONTRACT_H, width=320, height=240, seed=11)
+
+
 def record(out: Path, data: Path) -> None:
-    contract = warped_pair(CONTRACT_H, width=320, height=240, seed=11)
+    contract = contract_pair()
     flat = (np.full((240, 320), 128, np.uint8),) * 2
     real = real_pairs(data)
     runs = [(name, name, {}, False) for name in estimator_names()] + list(VARIANTS)

@@ -21,7 +21,7 @@ def tiny(tmp_path_factory) -> tuple[Path, Path]:
 
 def load(coarse, refine_rounds=0, tiles=False, **files):
     options = dict(refine_model=None, rounds_model=None, tile_coarse_model=None, flight_model="", matcher_model="") | files
-    return load_networks("unsupervised", str(coarse), refine_rounds=refine_rounds, tiles=tiles, precision=None, device="cpu",
+    return load_networks("unsupervised", model=str(coarse), refine_rounds=refine_rounds, tiles=tiles, precision=None, device="cpu",
                          threads=1, **options)
 
 

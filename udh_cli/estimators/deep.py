@@ -153,11 +153,12 @@ class DeepEstimator(Estimator):
             # Only with the tile stage: without it nothing but the 128-px score checks a searched answer, and a
             # translation alone can pass that (an untrained network on the example flight: 0.24 at 36 px off).
             self.search = PIPELINE_SEARCH if self.tiles else 0
-        self.networks = load_networks(self.name, self.model, self.refine_model, self.rounds_model, self.tile_coarse_model,
-                                      self.flight_model, self.matcher_model, self.refine_rounds, self.tiles, self.precision,
-                                      self.device, self.threads)
-        # Record what was chosen, so that settings (mosaic sidecars, the pair cache) say what ran and the
-        # shipped defaults name the same estimator as those files given by path.
+        self.networks = load_networks(
+            self.name, model=self.model, refine_model=self.refine_model, rounds_model=self.rounds_model,
+            tile_coarse_model=self.tile_coarse_model, flight_model=self.flight_model, matcher_model=self.matcher_model,
+            refine_rounds=self.refine_rounds, tiles=self.tiles, precision=self.precision, device=self.device, threads=self.threads)
+        # Record what was chosen, so that settings (mosaic sidecars, the pair cache) say what ran: the shipped files
+        # by path, and precision=None as the precision loaded (then None and "int8" name the same estimator).
         if self.flight_model is None and self.networks.flight is not None:
             self.flight_model = str(self.networks.flight.path)
         if self.matcher_model is None and self.networks.matcher is not None:

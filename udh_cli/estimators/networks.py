@@ -59,14 +59,14 @@ class LearnedNetworks:
         return sorted({str(network.path) for network in self.homography_networks()} | set(matcher))
 
 
-def load_networks(method: str, model: str | None, refine_model: str | None, rounds_model: str | None,
+def load_networks(method: str, *, model: str | None, refine_model: str | None, rounds_model: str | None,
                   tile_coarse_model: str | None, flight_model: str | None, matcher_model: str | None, refine_rounds: int,
                   tiles: bool, precision: str | None, device: str, threads: int | None) -> LearnedNetworks:
-    """Load the networks of the learned method ``method`` with the options of
-    :class:`~udh_cli.estimators.deep.DeepEstimator` (each file ``None``: the shipped one of its role, where the
-    estimator's docstring says so; ``""``: none), already checked (``precision`` too); ``refine_rounds`` and ``tiles``
-    resolved.
-    Raises :class:`UdhError` for a file that is missing, not a udh network, or of another input size."""
+    """Load the networks of the learned method ``method`` from the options of the same names of
+    :class:`~udh_cli.estimators.deep.DeepEstimator`, checked there (``precision`` too), with ``refine_rounds`` and
+    ``tiles`` resolved. A file ``None`` takes the shipped network of its role where the estimator's docstring says
+    so; ``""`` turns a flight network or matcher off. Raises :class:`UdhError` for a file that is missing, not a udh
+    network, or of another input size than ``model``'s."""
     shipped = ShippedRoles.of(method)
     path = model if model is not None else shipped_onnx(shipped.coarse, precision)
     coarse = OnnxHomographyModel.load(path, device, threads)

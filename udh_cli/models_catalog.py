@@ -6,6 +6,7 @@ The files sit in the top-level ``models/`` folder of a checkout, which installs 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
@@ -26,6 +27,29 @@ SHIPPED_INT8 = {
     "unsupervised-flight": "udh-unsupervised-flight-int8",
 }
 PRECISIONS = ("int8", "fp32")
+
+
+@dataclass(frozen=True)
+class ShippedRoles:
+    """The names (keys of :data:`SHIPPED_MODELS`) of the shipped networks a learned method runs, by role; a name
+    may have no file shipped (:func:`has_shipped` says), e.g. the supervised method has no refinement network.
+
+    Attributes:
+        coarse: the first network of the cascade.
+        refine: the refinement network run after it, and in the tile stage.
+        flight: a second coarse network, trained with real flight motion, whose cascade competes with the first.
+        matcher: the dense descriptors of the global match.
+    """
+
+    coarse: str
+    refine: str
+    flight: str
+    matcher: str
+
+    @classmethod
+    def of(cls, method: str) -> "ShippedRoles":
+        """The roles of the learned method ``method``: its own name and ``<method>-<role>``, as the catalogue names them."""
+        return cls(method, f"{method}-refine", f"{method}-flight", f"{method}-matcher")
 
 
 def models_dir() -> Path:
@@ -74,8 +98,8 @@ def has_shipped(name: str, precision: str | None = "fp32") -> bool:
 
 def has_refinement_stage(name: str, model: str | None, refine_model: str | None) -> bool:
     """Whether the learned method ``name`` gets a refinement stage: a ``refine_model`` file is given, or no
-    ``model`` file is and a shipped ``<name>-refine`` network exists (at either precision)."""
-    return refine_model is not None or (model is None and has_shipped(f"{name}-refine", precision=None))
+    ``model`` file is and a shipped refinement network of ``name`` exists (at either precision)."""
+    return refine_model is not None or (model is None and has_shipped(ShippedRoles.of(name).refine, precision=None))
 
 
 def shipped_onnx(name: str, precision: str | None = "fp32") -> Path:

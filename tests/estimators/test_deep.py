@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -242,7 +243,7 @@ def test_the_flight_network_joins_the_cascade_and_follows_large_whole_frame_moti
     b = cv2.warpPerspective(scene, b_from_scene, (640, 480))
     truth = b_from_scene @ geometry.translation(300, 250)
     both = create_estimator("unsupervised", device="cpu")
-    assert len(both.first_stages) == 2
+    assert len(both.networks.first) == 2
     found = both.estimate(a, b)
     error = float(geometry.mace(found.homography, truth, 640, 480))
     assert error < 3.0, error
@@ -276,7 +277,7 @@ def test_the_rounds_network_runs_the_whole_frame_rounds_and_the_tiles_keep_the_r
     estimator = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), rounds_model=str(tiny_onnx),
                                  flight_model="", device="cpu")
     assert [n.path for n in estimator.rounds()] == [tiny_onnx] * estimator.iterations + [tiny_onnx] * estimator.refine_rounds
-    assert estimator.tile_network.path == tiny_fine_onnx and estimator.tiles
+    assert estimator.networks.tile.path == tiny_fine_onnx and estimator.tiles
     assert estimator.model_files() == sorted({str(tiny_onnx), str(tiny_fine_onnx)})
     used = []
     monkeypatch.setattr(deep, "refine_pairs_with_tiles", lambda network, pairs, *args, **kwargs: used.append(network.path) or [None] * len(pairs))
@@ -285,7 +286,7 @@ def test_the_rounds_network_runs_the_whole_frame_rounds_and_the_tiles_keep_the_r
     assert used and set(used) == {tiny_fine_onnx}
     # Without a rounds network the refinement network runs both.
     plain = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), flight_model="", device="cpu")
-    assert plain.rounds()[-1].path == tiny_fine_onnx and plain.tile_network.path == tiny_fine_onnx
+    assert plain.rounds()[-1].path == tiny_fine_onnx and plain.networks.tile.path == tiny_fine_onnx
 
 
 def test_the_tiles_coarse_network_runs_only_the_tile_stage_coarse_level(tiny_onnx, tiny_fine_onnx, tmp_path, monkeypatch):
@@ -304,7 +305,7 @@ def test_the_tiles_coarse_network_runs_only_the_tile_stage_coarse_level(tiny_onn
         create_estimator("unsupervised", model=str(tiny_onnx), tile_coarse_model=str(tile_coarse), flight_model="", device="cpu")
     # Without it the coarse network starts the tiles, as it starts the cascade.
     plain = create_estimator("unsupervised", model=str(tiny_onnx), refine_model=str(tiny_fine_onnx), flight_model="", device="cpu")
-    assert plain.tile_coarse_network.path == tiny_onnx
+    assert plain.networks.tile_coarse.path == tiny_onnx
 
 
 def test_a_doubted_pair_takes_the_global_match_and_a_confident_match_verifies_itself():
@@ -323,9 +324,9 @@ def test_a_doubted_pair_takes_the_global_match_and_a_confident_match_verifies_it
     plain = create_estimator("unsupervised", device="cpu", flight_model="", search=0, matcher_model="")
     before = plain.estimate(a, b)
     assert geometry.mace(before.homography, truth, 384, 256) > 20 and not before.details.get("matched")
-    plain.matcher = BlockDescriptors()
+    plain.networks = dataclasses.replace(plain.networks, matcher=BlockDescriptors())
     after = plain.estimate(a, b)
-    assert after.details["matched"] and after.details["match_inliers"] >= deep.CONFIDENT_INLIERS
+    assert after.details["matched"] and after.details["match_inliers"] >= matching.CONFIDENT_INLIERS
     assert geometry.mace(after.homography, truth, 384, 256) < 2.0
     assert after.verified is not False and "match" in after.details["stage_ms"]
     with pytest.raises(UdhError, match="match_side"):
@@ -396,5 +397,5 @@ def test_near_its_prior_the_network_keeps_its_networks_and_drops_the_far_searche
     near = full.near_prior()
     assert (near.search, near.match_settings.headings, near.match_settings.escalate_side, near.match_escalate_side) == (0, 1, None, None)
     assert (full.search, full.match_settings.headings, full.match_settings.escalate_side) == (deep.PIPELINE_SEARCH, deep.MATCH_HEADINGS, matching.MAX_MATCH_SIDE)
-    assert near.network is full.network and near.matcher is full.matcher  # nothing loaded again
+    assert near.networks is full.networks  # nothing loaded again
     assert near.heading_search == full.heading_search and near.settings() != full.settings()

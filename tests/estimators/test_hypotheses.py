@@ -104,17 +104,17 @@ def test_the_coarse_networks_share_the_refinement_rounds_and_answer_as_their_own
     from udh_cli.onnx_model import OnnxHomographyModel
 
     estimator = shipped[1]
-    assert len(estimator.first_stages) == 2 and estimator.headings == 2 and estimator.refine_rounds >= 1
+    assert len(estimator.networks.first) == 2 and estimator.headings == 2 and estimator.refine_rounds >= 1
     a, b, _ = turned_pair(12.0, seed=4)
     small_a, small_b = (cv2.resize(image, (128, 128), interpolation=cv2.INTER_AREA)[None] / np.float32(255) for image in (a, b))
     calls = []
     predict = OnnxHomographyModel.predict_offsets
     monkeypatch.setattr(OnnxHomographyModel, "predict_offsets", lambda self, *args: calls.append(self) or predict(self, *args))
     found, scores = cascade_headings(estimator, small_a, small_b)
-    assert len(calls) == len(estimator.first_stages) * estimator.iterations + estimator.refine_rounds
+    assert len(calls) == len(estimator.networks.first) * estimator.iterations + estimator.refine_rounds
     monkeypatch.undo()
     later = estimator.rounds()[estimator.iterations:]
-    own = [estimator.predict_small(small_a, small_b, [coarse] * estimator.iterations + later) for coarse in estimator.first_stages]
+    own = [estimator.predict_small(small_a, small_b, [coarse] * estimator.iterations + later) for coarse in estimator.networks.first]
     own_scores = [estimator.score(small_a[0], small_b[0], h[0]) for h in own]
     assert scores[0] >= max(own_scores) - 1e-6  # the half turn may do better still, never worse
     if scores[0] == max(own_scores):

@@ -180,7 +180,7 @@ def test_a_confident_global_match_no_tile_level_accepts_is_not_verified(monkeypa
     if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
         pytest.skip("shipped unsupervised model not built yet")
     estimator = create_estimator("unsupervised", device="cpu", search=0, heading_search=0)
-    if estimator.matcher is None:
+    if estimator.networks.matcher is None:
         pytest.skip("no shipped matcher network")
     truth = geometry.translation(6.0, -4.0)
     a, b = warped_pair(truth, seed=5)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import time
 from dataclasses import dataclass, field
 from typing import ClassVar, Sequence
 
@@ -14,20 +13,19 @@ from udh_cli import geometry
 from udh_cli.errors import UdhError
 from udh_cli.flight_motion import PREWARP_BORDER
 from udh_cli.estimators.base import Estimate, Estimator
-from udh_cli.estimators.hypotheses import HEADING_COUNT, best_hypotheses, cascade_headings, heading_angles, heading_hypotheses, shift_hypotheses
-from udh_cli.estimators.judge import judge_answers
+from udh_cli.estimators.hypotheses import HEADING_COUNT
+from udh_cli.estimators.learned import Batch, StageClock, final_homography, first_answers, judged, packed, rescued
 from udh_cli.estimators.thresholds import THRESHOLDS
-from udh_cli.estimators.tiles import TileRefinement, refine_pairs_with_tiles
+from udh_cli.estimators.tiles import refine_pairs_with_tiles
 from udh_cli.estimators.pair import PreparedPair
-from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel, OnnxMatcher
-from udh_cli.estimators.matching import CONFIDENT_INLIERS, MatchSettings
+from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel
+from udh_cli.estimators.matching import MatchSettings
+from udh_cli.estimators.networks import LearnedNetworks, load_networks
 from udh_cli.estimators.verify import Verifier
 
 
 DEFAULT_ITERATIONS = 2  # coarse rounds
 DEFAULT_REFINE_ROUNDS = 2  # measured on the held-out rho-32 bench (models/README.md)
-SEARCH_FINALISTS = 3  # large-motion search: hypotheses of a pair that get the whole cascade after screening
-HEADING_FINALISTS = 2  # heading search: turns of a pair that get the whole cascade after screening
 PIPELINE_SEARCH = 2  # the search of the whole learned pipeline (unsupervised with its tile stage): 24 shifts
 # B's turns the global match tries (matching.HEADINGS): half turns for a survey's alternating strips, then quarter
 # turns for a strip's end, each only while no turn has found enough agreeing cells.
@@ -128,16 +126,11 @@ class DeepEstimator(Estimator):
     match_refine_side: int | None = MatchSettings.refine_side
     batch_size: int = PASSES_PER_CALL
     threads: int | None = None
-    network: OnnxHomographyModel = field(init=False, repr=False)
-    stages: list[tuple[OnnxHomographyModel, int]] = field(init=False, repr=False)
-    first_stages: list[OnnxHomographyModel] = field(init=False, repr=False)  # the coarse networks whose cascades compete
-    tile_network: OnnxHomographyModel = field(init=False, repr=False)  # the network of the tile stage
-    tile_coarse_network: OnnxHomographyModel | None = field(init=False, repr=False)  # its coarse level's, if any
-    matcher: OnnxMatcher | None = field(init=False, repr=False)  # the global matcher, if any
+    networks: LearnedNetworks = field(init=False, repr=False)  # every network loaded, by role
     match_settings: MatchSettings = field(init=False, repr=False)  # how the global match runs (the match_* options)
 
     def __post_init__(self) -> None:
-        from udh_cli.models_catalog import PRECISIONS, check_precision, has_refinement_stage, has_shipped, shipped_onnx
+        from udh_cli.models_catalog import PRECISIONS, check_precision, has_refinement_stage
 
         if self.iterations < 1 or self.batch_size < 1:  # 0 rounds would answer the identity as if estimated
             raise UdhError(f"method '{self.name}': iterations ({self.iterations}) and batch_size ({self.batch_size}) must be at least 1")
@@ -153,63 +146,43 @@ class DeepEstimator(Estimator):
         if not (self.heading_search == 0 or 3 <= self.heading_search <= 72):
             raise UdhError(f"method '{self.name}': heading_search ({self.heading_search}) must be 0 (off) or 3 to 72 angles")
         check_precision(self.precision)
-
-        path = self.model if self.model is not None else shipped_onnx(self.name, self.precision)
-        self.network = OnnxHomographyModel.load(path, self.device, self.threads)
-        self.stages = [(self.network, self.iterations)]
-        if self.refine_rounds:
-            refine_path = self.refine_model if self.refine_model is not None else shipped_onnx(f"{self.name}-refine", self.precision)
-            refiner = OnnxHomographyModel.load(refine_path, self.device, self.threads)
-            if refiner.input_size != self.network.input_size:
-                raise UdhError(f"{refine_path}: the refinement network takes {refiner.input_size}px inputs but "
-                               f"{path} takes {self.network.input_size}px; give two models of the same input size")
-            self.tile_network = refiner
-            if self.rounds_model:
-                refiner = OnnxHomographyModel.load(self.rounds_model, self.device, self.threads)
-                if refiner.input_size != self.network.input_size:
-                    raise UdhError(f"{self.rounds_model}: the rounds' network takes {refiner.input_size}px inputs, {path} {self.network.input_size}px")
-            self.stages.append((refiner, self.refine_rounds))
-        else:
-            self.tile_network = self.network
-        self.tile_coarse_network = self.network if len(self.stages) > 1 else None
-        if self.tile_coarse_model and self.tile_coarse_network is None:
-            raise UdhError(f"method '{self.name}': tile_coarse_model runs in the tile stage, which needs a refinement stage "
-                           f"(refine_rounds is 0 or no refinement network is given)")
-        if self.tile_coarse_model:
-            self.tile_coarse_network = OnnxHomographyModel.load(self.tile_coarse_model, self.device, self.threads)
-            if self.tile_coarse_network.input_size != self.network.input_size:
-                raise UdhError(f"{self.tile_coarse_model}: the tiles' coarse network takes {self.tile_coarse_network.input_size}px inputs, {path} {self.network.input_size}px")
-        self.first_stages = [self.network]
-        if self.flight_model is None and self.model is None and has_shipped(f"{self.name}-flight", precision=None):
-            self.flight_model = str(shipped_onnx(f"{self.name}-flight", self.precision))
-        if self.flight_model:
-            flight = OnnxHomographyModel.load(self.flight_model, self.device, self.threads)
-            if flight.input_size != self.network.input_size:
-                raise UdhError(f"{self.flight_model}: the flight network takes {flight.input_size}px inputs, {path} {self.network.input_size}px")
-            self.first_stages.append(flight)
-        if self.tiles is None:
-            self.tiles = len(self.stages) > 1
-        if self.matcher_model is None and self.model is None and self.tiles and has_shipped(f"{self.name}-matcher", precision=None):
-            self.matcher_model = str(shipped_onnx(f"{self.name}-matcher", "fp32"))  # float32 only: 0.57 MB, run on doubted pairs
         self.match_settings = MatchSettings(self.match_side, MATCH_HEADINGS, self.match_refine_side, self.match_escalate_side).checked(self.name, "match_")
-        self.matcher = OnnxMatcher.load(self.matcher_model, self.device, self.threads) if self.matcher_model else None
+        if self.tiles is None:  # on with a refinement stage
+            self.tiles = self.refine_rounds > 0
         if self.search is None:
             # Only with the tile stage: without it nothing but the 128-px score checks a searched answer, and a
             # translation alone can pass that (an untrained network on the example flight: 0.24 at 36 px off).
             self.search = PIPELINE_SEARCH if self.tiles else 0
-        loaded = self.loaded_precision()
-        if self.precision is None and loaded in PRECISIONS:
-            # Record what was chosen, so that settings (mosaic sidecars, the pair cache) say what ran and
-            # precision=None and precision="int8" name the same estimator.
-            self.precision = loaded
+        self.networks = load_networks(
+            self.name, model=self.model, refine_model=self.refine_model, rounds_model=self.rounds_model,
+            tile_coarse_model=self.tile_coarse_model, flight_model=self.flight_model, matcher_model=self.matcher_model,
+            refine_rounds=self.refine_rounds, tiles=self.tiles, precision=self.precision, device=self.device, threads=self.threads)
+        # Record what was chosen, so that settings (mosaic sidecars, the pair cache) say what ran: the shipped files
+        # by path, and precision=None as the precision loaded (then None and "int8" name the same estimator).
+        if self.flight_model is None and self.networks.flight is not None:
+            self.flight_model = str(self.networks.flight.path)
+        if self.matcher_model is None and self.networks.matcher is not None:
+            self.matcher_model = str(self.networks.matcher.path)
+        if self.precision is None and self.networks.precision() in PRECISIONS:
+            self.precision = self.networks.precision()
+
+    @property
+    def network(self) -> OnnxHomographyModel:
+        """The coarse network, the first of the cascade; its input side is S."""
+        return self.networks.coarse
+
+    @property
+    def stages(self) -> list[tuple[OnnxHomographyModel, int]]:
+        """The cascade as (network, rounds): the coarse network's, then the refinement network's if there is one."""
+        refinement = [(self.networks.rounds, self.refine_rounds)] if self.networks.rounds is not None else []
+        return [(self.networks.coarse, self.iterations), *refinement]
 
     def with_default_rounds(self) -> "DeepEstimator":
         """The same estimator and loaded networks with the default rounds (the refinement stage only if
         this one has it): a longer cascade without loading the models again."""
         twin = copy.copy(self)
         twin.iterations = DEFAULT_ITERATIONS
-        twin.refine_rounds = DEFAULT_REFINE_ROUNDS if len(self.stages) > 1 else 0
-        twin.stages = [(network, rounds) for (network, _), rounds in zip(self.stages, (twin.iterations, twin.refine_rounds))]
+        twin.refine_rounds = DEFAULT_REFINE_ROUNDS if self.networks.rounds is not None else 0
         return twin
 
     def near_prior(self) -> "DeepEstimator":
@@ -221,19 +194,11 @@ class DeepEstimator(Estimator):
         return twin
 
     def loaded_precision(self) -> str:
-        """What the cascade runs in: "int8", "fp32", or "mixed" (networks of both, e.g. a float32 ``model``
-        file followed by the shipped int8 refinement network)."""
-        found = {network.metadata.get("precision", "fp32") for network in self._networks()}
-        return found.pop() if len(found) == 1 else "mixed"
+        """What the cascade runs in: "int8", "fp32", or "mixed" (:meth:`LearnedNetworks.precision`)."""
+        return self.networks.precision()
 
     def model_files(self) -> list[str]:
-        matcher = [str(self.matcher.path)] if self.matcher is not None else []
-        return sorted({str(network.path) for network in self._networks()} | set(matcher))
-
-    def _networks(self) -> list[OnnxHomographyModel]:
-        """Every homography network this estimator runs (some more than once); the matcher is not one."""
-        tile_coarse = [self.tile_coarse_network] if self.tile_coarse_network is not None else []
-        return [*(network for network, _ in self.stages), *self.first_stages, self.tile_network, *tile_coarse]
+        return self.networks.files()
 
     def rounds(self) -> list[OnnxHomographyModel]:
         """The network of every round of the cascade, in order."""
@@ -274,143 +239,35 @@ class DeepEstimator(Estimator):
         return NETWORK_CHECK.score_grey(small_a, small_b, b_from_a)
 
     def estimate_pairs(self, pairs: Sequence[PreparedPair]) -> list[Estimate]:
+        """The stages of :mod:`~udh_cli.estimators.learned`: prepare, network, tiles, the rescues of the doubted
+        pairs (headings, match, search), verdict; each timed in ``details["stage_ms"]``."""
         if not pairs:
             return []
-        start = time.perf_counter()
-        s = self.network.input_size
-        small_a, small_b = (np.stack(side) for side in zip(*(pair.square(s) for pair in pairs)))
-        prepared = time.perf_counter()
-        small_h, scores = cascade_headings(self, small_a, small_b)
-        coarse = time.perf_counter()
-        tiled = self._tiles(pairs, small_h) if self.tiles else [None] * len(pairs)
-        tiles_done = time.perf_counter()
-        searched, matched, turned, seen_match = [False] * len(pairs), [None] * len(pairs), [None] * len(pairs), [None] * len(pairs)
-
-        def offer(i: int, h: np.ndarray, score: float) -> bool:
-            # Kept when tile levels confirm it more, or as much with a better score.
-            retiled = self._tiles([pairs[i]], [h])[0] if self.tiles else None
-            confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
-            if kept := (confirmed, score) > (was_confirmed, scores[i]):
-                small_h[i], scores[i], tiled[i], matched[i] = h, score, retiled, None
-            return kept
-
-        def still_doubted(i: int) -> bool:
-            # A low score, or (with tiles) an answer the tile levels did not confirm although B had room for tiles
-            # (on real flights: a start too far off for the tiles); not a match many cells support.
-            return (scores[i] < self.search_below or self._unconfirmed(tiled[i], pairs[i])) \
-                and not (matched[i] is not None and matched[i].inliers >= CONFIDENT_INLIERS)
-
-        doubtful = [i for i in range(len(pairs)) if still_doubted(i)]
-        turned_any = bool(self.heading_search and doubtful)
-        if turned_any:  # the cheapest rescue first: a few network passes, before describing both frames
-            found, found_scores, angles = self._turned(small_a[doubtful], small_b[doubtful])
-            for i, h, score, angle in zip(doubtful, found, found_scores, angles):
-                if offer(i, h, score):
-                    turned[i] = angle
-            doubtful = [i for i in doubtful if still_doubted(i)]
-        headings_done = time.perf_counter()
-        matched_any = self.matcher is not None and bool(doubtful)
-        if matched_any:
-            for i in doubtful:
-                found = self.match_settings.match(self.matcher, pairs[i].a, pairs[i].b)
-                if found.b_from_a is None:
-                    continue
-                h = geometry.rescale_homography(found.b_from_a, pairs[i].a.size, (s, s), pairs[i].b.size, (s, s))
-                if not geometry.is_valid_homography(h, s, s):  # a folded fit is no answer, however many cells agree
-                    continue
-                seen_match[i] = found  # a second opinion for the verdict, kept or not
-                score = self.score(small_a[i], small_b[i], h)
-                confident = found.inliers >= CONFIDENT_INLIERS
-                # A match hundreds of cells agree on is kept as the guided matching left it, not tiled: the tile
-                # stage is less precise than it (flight-motion benchmark: one accepted coarse level moved 0.5-1.3 px
-                # matches to 6-23 px; consecutive pairs at 800 px against SIFT references, median: copr 0.91 px
-                # kept against 1.20 px tiled, where the tiles confirmed it).
-                retiled = self._tiles([pairs[i]], [h])[0] if self.tiles and not confident else None
-                # A match many cells support first: a doubted cascade answer that one tile level accepted was
-                # 204 px off where 1,077 cells put the match 0.2 px from the truth (flight-motion benchmark).
-                # Then tile levels (they confirm precise answers), then the score.
-                confirmed, was_confirmed = (retiled.levels_used if retiled else 0), (tiled[i].levels_used if tiled[i] else 0)
-                if (confident, confirmed, score) > (False, was_confirmed, scores[i]):
-                    small_h[i], scores[i], tiled[i], matched[i], turned[i] = h, score, retiled, found, None
-            doubtful = [i for i in doubtful if still_doubted(i)]
-        matching_done = time.perf_counter()
-        searched_any = bool(self.search and doubtful)
-        if searched_any:  # its answers are judged by score and tiles only
-            found, found_scores = self._search([pairs[i] for i in doubtful], small_a[doubtful], small_b[doubtful])
-            for i, h, score in zip(doubtful, found, found_scores):
-                if offer(i, h, score):
-                    searched[i], turned[i] = True, None
-        finished = time.perf_counter()
-        fulls = [self._full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
-        fulls = [full if full is None or refined is None else refined.b_from_a for full, refined in zip(fulls, tiled)]
-        verdicts = judge_answers(self, pairs, small_a, small_b, fulls, scores, tiled, matched, seen_match) if self.judged else [None] * len(pairs)
-        judged = time.perf_counter()
-        per_pair_ms = (judged - start) * 1e3 / len(pairs)
-        # Only the stages that ran are timed: an absent key says "skipped" where a rounded 0.0 could not.
-        ran = {"prepare": True, "network": True, "tiles": self.tiles, "headings": turned_any, "match": matched_any,
-               "search": searched_any, "verdict": self.judged}
-        stage_ms = {name: round((t1 - t0) * 1e3 / len(pairs), 2) for name, t0, t1 in
-                    (("prepare", start, prepared), ("network", prepared, coarse), ("tiles", coarse, tiles_done),
-                     ("headings", tiles_done, headings_done), ("match", headings_done, matching_done),
-                     ("search", matching_done, finished), ("verdict", finished, judged)) if ran[name]}
+        clock = StageClock(len(pairs))
+        batch = Batch.of(pairs, self.network.input_size)
+        clock.lap("prepare")
+        answers = rescued(self, batch, first_answers(self, batch, clock), clock)
+        fulls = [final_homography(self, answer, pair) for answer, pair in zip(answers, pairs)]
+        verdicts = judged(self, batch, answers, fulls)
+        clock.lap("verdict", ran=self.judged)
         precision = self.loaded_precision()
-        out = []
-        for pair, full, score, was_searched, angle, refined, match, verdict in zip(pairs, fulls, scores, searched, turned, tiled, matched, verdicts):
-            failure = None if full is not None else "the network's 4-point output gives a degenerate homography"
-            details = {"iterations": self.iterations, "refine_rounds": self.refine_rounds, "searched": was_searched,
-                       "precision": precision, "provider": self.network.provider, "stage_ms": stage_ms}
-            if angle is not None:
-                details["heading"] = angle
-            if match is not None:
-                details.update(matched=True, match_inliers=match.inliers, match_heading=match.heading, match_side=match.side)
-            if full is not None and refined is not None:  # never for a confident match: it is not tiled
-                details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
-                               tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
-            stage = ("tiles" if details.get("tile_levels") else "search" if was_searched else "heading" if angle is not None
-                     else "match" if match is not None else "network")
-            confidence, verified, verified_by = (score, None, None) if not self.judged else (0.0, False, None)
-            if verdict is not None:
-                details.update(verdict_failed=list(verdict[1].failed), **verdict[0])
-                confidence, verified, verified_by = verdict[1].confidence, verdict[1].verified, verdict[1].verified_by
-            out.append(self._checked(full, confidence, per_pair_ms, failure, details, pair.a.shape, stage=stage, verified=verified,
-                                     verified_by=verified_by, verification_score=verdict[0]["alignment"] if verdict else None,
-                                     inliers=match.inliers if match else None))
-        return out
+        return [packed(self, pair, answer, full, verdict, clock.stage_ms, clock.per_pair_ms(), precision)
+                for pair, answer, full, verdict in zip(pairs, answers, fulls, verdicts)]
 
-    def _unconfirmed(self, refined, pair: PreparedPair) -> bool:
-        """Whether the tile stage ran on ``pair`` (``refined``: its result, None when it did not) and did not
-        confirm the answer (:meth:`TileResult.confirms`), although B had room for tiles."""
-        return refined is not None and not refined.confirms() and TileRefinement().can_confirm(pair.b.size, self.network.input_size)
-
-    def _full_resolution(self, small_h: np.ndarray, pair: PreparedPair) -> np.ndarray | None:
+    def full_resolution(self, small_h: np.ndarray, pair: PreparedPair) -> np.ndarray | None:
         """A ``b_from_a`` of the S x S images rescaled exactly to the pair's pixels; None when degenerate."""
         s = self.network.input_size
         if not geometry.is_valid_homography(small_h, s, s):
             return None
         return geometry.rescale_homography(small_h, (s, s), pair.a.size, (s, s), pair.b.size)
 
-    def _tiles(self, pairs: Sequence[PreparedPair], small_h: Sequence[np.ndarray]) -> list:
+    def tile_stage(self, pairs: Sequence[PreparedPair], small_h: Sequence[np.ndarray]) -> list:
         """The tile stage (every pair's tiles of a level together) from S x S answers; None where one is degenerate."""
-        fulls = [self._full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
+        fulls = [self.full_resolution(h, pair) for h, pair in zip(small_h, pairs)]
         valid = [i for i, full in enumerate(fulls) if full is not None]
-        found = refine_pairs_with_tiles(self.tile_network, [(pairs[i].a, pairs[i].b) for i in valid], [fulls[i] for i in valid],
-                                        coarse_network=self.tile_coarse_network) if valid else []
+        found = refine_pairs_with_tiles(self.networks.tile, [(pairs[i].a, pairs[i].b) for i in valid], [fulls[i] for i in valid],
+                                        coarse_network=self.networks.tile_coarse) if valid else []
         return [dict(zip(valid, found)).get(i) for i in range(len(pairs))]
-
-    def _search(self, pairs: Sequence[PreparedPair], small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
-        """Large-motion search: for every pair, run the network from each translation hypothesis of a
-        (2 * search + 1)^2 grid of shifts up to half the frame (:func:`~udh_cli.estimators.hypotheses.shift_hypotheses`)
-        and keep the best-scoring answer: ``(N, 3, 3)`` ``b_from_a`` of the whole S x S images and their scores."""
-        hypotheses = shift_hypotheses(pairs, self.network.input_size, self.search)
-        found, scores, _ = best_hypotheses(self, hypotheses, small_a, small_b, SEARCH_FINALISTS)
-        return found, scores
-
-    def _turned(self, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float], list[float]]:
-        """Heading search: B turned by :attr:`heading_search` angles over the whole circle (those the cascade
-        tried left out), screened in one call: ``(N, 3, 3)`` ``b_from_a`` of the whole S x S images, their scores
-        and the turn, degrees, each came from."""
-        angles = heading_angles(self.heading_search, (0.0, 180.0) if self.headings == 2 else (0.0,))
-        return best_hypotheses(self, heading_hypotheses(small_a, small_b, angles), small_a, small_b, HEADING_FINALISTS)
 
 
 def _safe_dlt(offsets: np.ndarray, size: int) -> np.ndarray:

@@ -98,7 +98,7 @@ def shift_hypotheses(pairs, side: int, steps: int) -> Hypotheses:
 
 def cascade_headings(estimator, small_a: np.ndarray, small_b: np.ndarray) -> tuple[np.ndarray, list[float]]:
     """The cascade of every coarse network of a :class:`~udh_cli.estimators.deep.DeepEstimator` (its
-    ``first_stages``), from B as given and (``headings`` 2) from B turned half a turn: the best-scoring answer of
+    ``networks.first``), from B as given and (``headings`` 2) from B turned half a turn: the best-scoring answer of
     each pair, (N, 3, 3) ``b_from_a`` of the S x S images, and its score. With one network and one heading this is
     the plain cascade."""
     n, s = len(small_a), estimator.network.input_size
@@ -110,9 +110,9 @@ def cascade_headings(estimator, small_a: np.ndarray, small_b: np.ndarray) -> tup
     stacked_b = np.concatenate([view for view, _ in views])
     stacked_a = np.concatenate([small_a] * len(views))
     coarse_answers = np.concatenate([estimator.predict_small(stacked_a, stacked_b, [coarse] * estimator.iterations)
-                                     for coarse in estimator.first_stages])
+                                     for coarse in estimator.networks.first])
     # Every coarse network's answers share the refinement rounds: one call a round for all of them.
-    copies = len(estimator.first_stages)
+    copies = len(estimator.networks.first)
     answers = coarse_answers if not later else estimator.predict_small(
         np.concatenate([stacked_a] * copies), np.concatenate([stacked_b] * copies), later, start=coarse_answers)
     candidates = [undo @ answers[(c * len(views) + k) * n : (c * len(views) + k + 1) * n]  # per coarse network and view,

@@ -113,8 +113,8 @@ def judge_matched(network, pair, b_from_a: np.ndarray, alignment: float, confide
     checks = {"aligns": alignment >= thresholds.min_alignment_matched}
     levels = None
     if checks["aligns"] and network is not None and TileRefinement().can_confirm(pair.b.size, network.network.input_size):
-        found = refine_pairs_with_tiles(network.tile_network, [(pair.a, pair.b)], [b_from_a],
-                                        coarse_network=network.tile_coarse_network)[0]
+        found = refine_pairs_with_tiles(network.networks.tile, [(pair.a, pair.b)], [b_from_a],
+                                        coarse_network=network.networks.tile_coarse)[0]
         levels = found.levels_used
         checks["tiles"] = found.confirms(thresholds.min_matched_tile_levels)
     failed = tuple(name for name, passed in checks.items() if not passed)
@@ -176,7 +176,7 @@ def judge_answers(estimator, pairs, small_a, small_b, fulls, scores, tiled, matc
     retile = [i for i in answered if matched[i] is not None and tiled[i] is None and estimator.tiles
               and matched[i].inliers >= thresholds.confident_inliers and alignments[i] >= thresholds.min_alignment
               and TileRefinement().can_confirm(pairs[i].b.size, s)]
-    match_tiles = dict(zip(retile, estimator._tiles([pairs[i] for i in retile], [small[i] for i in retile]))) if retile else {}
+    match_tiles = dict(zip(retile, estimator.tile_stage([pairs[i] for i in retile], [small[i] for i in retile]))) if retile else {}
     out = []
     for i, (pair, full) in enumerate(zip(pairs, fulls)):
         if full is None:

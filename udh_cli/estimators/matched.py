@@ -48,12 +48,12 @@ class MatcherEstimator(Estimator):
     match_settings: MatchSettings = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        from udh_cli.models_catalog import shipped_onnx
+        from udh_cli.models_catalog import ShippedRoles, shipped_onnx
 
         if self.min_inliers < 4:
             raise UdhError(f"method 'matcher': min_inliers ({self.min_inliers}) must be at least 4")
         self.match_settings = MatchSettings(self.side, self.headings, self.refine_side, self.escalate_side).checked(self.name)
-        path = self.model if self.model is not None else shipped_onnx("unsupervised-matcher", "fp32")
+        path = self.model if self.model is not None else shipped_onnx(ShippedRoles.of("unsupervised").matcher, "fp32")
         self.network = OnnxMatcher.load(path, self.device, self.threads)
 
     def model_files(self) -> list[str]:

@@ -3,6 +3,7 @@ per-run cache of expensive folders (tiny exported networks, simulated flights) h
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -15,7 +16,7 @@ import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Hashable
+from typing import Callable, Hashable, Iterator
 
 import cv2
 import numpy as np
@@ -78,7 +79,9 @@ def shared_data() -> Path:
 class SessionCache:
     """Folders built once per test run and handed out as copies, so that a test may change its copy freely.
 
-    Keyed by anything hashable; ``build(folder)`` fills an empty folder. Copies get fresh modification times,
+    Keyed by anything hashable with a stable ``repr``; ``build(folder)`` fills an empty folder. The parallel
+    workers of one run (pytest-xdist) share ``root``: the first to need a key builds it under a lock while the
+    others wait, and a folder appears under its key's name only once whole. Copies get fresh modification times,
     as if the files had just been written.
     """
 
@@ -89,14 +92,43 @@ class SessionCache:
     def copy_into(self, folder: Path, key: Hashable, build: Callable[[Path], None]) -> None:
         """Fill ``folder`` (created if missing) with the files ``build`` makes, building them only on first use."""
         if key not in self.built:
-            built = Path(tempfile.mkdtemp(dir=self.root))
-            try:
-                build(built)
-            except BaseException:  # a skip or a failure leaves nothing half-built for the next caller
-                shutil.rmtree(built)
-                raise
-            self.built[key] = built
+            entry = self.root / hashlib.sha1(repr(key).encode()).hexdigest()[:16]
+            with exclusive_lock(entry.with_name(entry.name + ".lock")):
+                if not entry.is_dir():
+                    build_atomically(entry, build)
+            self.built[key] = entry
         shutil.copytree(self.built[key], folder, copy_function=shutil.copy, dirs_exist_ok=True)
+
+
+@contextlib.contextmanager
+def exclusive_lock(path: Path) -> Iterator[None]:
+    """Hold an advisory lock on ``path`` (created if missing), where the platform has one: a parallel worker that
+    needs the same folder waits for it rather than building it again."""
+    try:
+        import fcntl
+    except ImportError:  # no flock: workers may build the same folder twice, and :func:`build_atomically` keeps one
+        yield
+        return
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def build_atomically(entry: Path, build: Callable[[Path], None]) -> None:
+    """``build`` into a staging folder beside ``entry``, then rename it to ``entry``: a reader sees the whole folder
+    or none. A skip or a failure leaves nothing half-built; losing the rename to another builder keeps theirs."""
+    staged = Path(tempfile.mkdtemp(dir=entry.parent, prefix=".part-"))
+    try:
+        build(staged)
+        staged.rename(entry)
+    except OSError:
+        if not entry.is_dir():
+            raise
+    finally:
+        shutil.rmtree(staged, ignore_errors=True)
 
 
 _session_cache: SessionCache | None = None
@@ -107,12 +139,27 @@ _network_store: Path | None = None
 
 @pytest.fixture(scope="session", autouse=True)
 def session_cache(tmp_path_factory, pytestconfig) -> SessionCache:
-    """The run's :class:`SessionCache`, reachable from plain helpers such as :func:`export_tiny_network`."""
+    """The run's :class:`SessionCache`, reachable from plain helpers such as :func:`export_tiny_network`.
+
+    Under pytest-xdist every worker's temporary folder sits in the run's own, which holds the shared cache."""
     global _session_cache, _network_store
-    _session_cache = SessionCache(tmp_path_factory.mktemp("session-cache"))
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = tmp_path_factory.getbasetemp().parent / "session-cache"
+        root.mkdir(exist_ok=True)
+    else:
+        root = tmp_path_factory.mktemp("session-cache")
+    _session_cache = SessionCache(root)
     cache = getattr(pytestconfig, "cache", None)  # absent with -p no:cacheprovider: every run exports afresh
     _network_store = None if cache is None else cache.mkdir("udh-tiny-networks")
     return _session_cache
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_auto_num_workers(config) -> int:
+    """``-n auto``: one worker per core, at most 4: the longest test file bounds the run, and each worker holds
+    its own torch and onnxruntime."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, 4))
 
 
 def cached_copy(folder: Path, key: Hashable, build: Callable[[Path], None]) -> None:
@@ -162,15 +209,7 @@ def _stored_tiny_network(folder: Path, arch: str, seed: int) -> None:
         return _export_tiny_network(folder, arch, seed)
     entry = _network_store / f"{arch}-seed{seed}-{_source_digest()}"
     if not entry.is_dir():
-        staged = Path(tempfile.mkdtemp(dir=_network_store, prefix=".part-"))
-        try:
-            _export_tiny_network(staged, arch, seed)
-            staged.rename(entry)
-        except OSError:
-            if not entry.is_dir():  # not a concurrent run that stored the same network first
-                raise
-        finally:
-            shutil.rmtree(staged, ignore_errors=True)
+        build_atomically(entry, lambda staged: _export_tiny_network(staged, arch, seed))
     shutil.copytree(entry, folder, copy_function=shutil.copy, dirs_exist_ok=True)
 
 

@@ -214,7 +214,7 @@ def test_torchrun_two_processes(pool, tmp_path):
     """`udh train` runs unchanged under torchrun with 2 CPU processes (gloo)."""
     out = tmp_path / "ddp"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    command = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29533", "-m", "udh_cli",
+    command = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone", "-m", "udh_cli",
                "train", "--data", str(pool), "--out", str(out), "--steps", "6", "--batch", "4", "--eval-every", "3", "--rho", "16"]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]

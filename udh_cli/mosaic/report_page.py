@@ -88,7 +88,7 @@ def build_report_page(report: dict[str, Any], previews: dict[int, bytes | None])
 
 def write_report_page(report: dict[str, Any], staged: StagedFiles, files: RunFiles) -> Path:
     """Stage ``NAME.report.html`` (``files.report_page``) in ``staged``, each part's preview taken from its staged
-    file, and name it in ``report``; returns the final path."""
+    file; returns the final path. ``report`` names the page already (``report_page``), as the sidecar does."""
     folder = files.output.parent
     staged_by_final = {Path(final).resolve(): temporary for temporary, final in staged.staged}
     previews = {}
@@ -96,7 +96,6 @@ def write_report_page(report: dict[str, Any], staged: StagedFiles, files: RunFil
         temporary = staged_by_final.get((folder / part["preview"]).resolve()) if part.get("preview") else None
         previews[part["part"]] = temporary.read_bytes() if temporary is not None and temporary.is_file() else None
     path = files.report_page
-    report["report_page"] = path.name
     atomic_write_bytes(staged.path_for(path), build_report_page(report, previews).encode())
     return path
 

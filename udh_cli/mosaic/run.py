@@ -56,6 +56,7 @@ def run_mosaic(
     gcp_image_width: int | None = None,
     camera: str | Path | None = None,
     overwrite: bool = False,
+    live: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Mosaic a folder of frames (or a video) into ``output``; returns the sidecar dict (also written).
 
@@ -79,6 +80,8 @@ def run_mosaic(
 
     Files are replaced or removed only when an earlier run to ``output`` wrote them (:mod:`.outputs.staging`);
     ``overwrite`` replaces any file in the way, and another run's sidecar ``NAME.json``, all the same.
+
+    ``live`` is live mode's record of the flight (:func:`~.live.run.run_live`): the sidecar and the report page carry it.
     """
     reporter = reporter or Reporter(quiet=True)
     source, files = Path(source), RunFiles(Path(output), None if cache_dir is None else Path(cache_dir))
@@ -106,7 +109,7 @@ def run_mosaic(
         drawn = [composite_part(frameset, part, config.drawing(), reporter, staged, part.number in keep) for part in plan.parts]
         warn_about_earlier_output(files, plan, reporter)
         report = _write_report(frameset, plan, drawn, solved.pairs, solved.loops, truth, config, opinions, reporter, staged, files, gcps,
-                               gcp_image_width, cache, started)
+                               gcp_image_width, cache, started, live)
         del drawn  # the images held for the GeoTIFFs
         published = staged.publish()
     finally:
@@ -191,7 +194,8 @@ def _pairs_and_parts(frameset: FrameSet, opinions, runner, config: MosaicConfig,
 
 def _write_report(frameset: FrameSet, plan: CanvasPlan, drawn: list[DrawnPart], pairs: list[PairResult], loops: dict[str, Any],
                   truth: dict | None, config: MosaicConfig, opinions, reporter: Reporter, staged: StagedFiles, files: RunFiles,
-                  gcps: GcpFile | None, gcp_image_width: int | None, cache: PairCache, started: float) -> dict[str, Any]:
+                  gcps: GcpFile | None, gcp_image_width: int | None, cache: PairCache, started: float,
+                  live: dict[str, Any] | None) -> dict[str, Any]:
     """The sidecar, with the map placement, staged last beside the images (a run that fails while writing leaves
     the earlier run's files, all of them, and never new images beside an old sidecar); returns its content."""
     on_map = on_canvas(plan)
@@ -213,6 +217,9 @@ def _write_report(frameset: FrameSet, plan: CanvasPlan, drawn: list[DrawnPart], 
     if frameset.lens_fit is not None and frameset.lens is not None:  # the fitted lens, for the next run and for ODM
         atomic_write_bytes(staged.path_for(files.cameras), (json.dumps(frameset.lens.to_cameras_json(), indent=1) + "\n").encode())
         report["camera"]["file"] = files.cameras.name
+    report["report_page"] = files.report_page.name
+    if live is not None:  # the last key, where a last refresh published as the final mosaic has it too
+        report["live"] = live
     write_report_page(report, staged, files)  # NAME.report.html, from the same results as the sidecar
     atomic_write_bytes(staged.path_for(files.sidecar), (json.dumps(report, indent=1) + "\n").encode())
     return report

@@ -226,15 +226,17 @@ def test_the_final_run_comes_only_when_the_last_refresh_missed_frames(tmp_path):
     now, sleep = _arrivals(batches, live)
     runs = []
 
-    def run(folder):
-        runs.append(folder)
+    def run(folder, live=None):
+        runs.append((folder, live))
         held = len(list(folder.glob("*.jpg")))
         return {"summary": {"placed": held, "frames": held}}
 
     report = follow_mosaic(live, tmp_path / "m.png", run, FollowConfig(refresh_every=8, poll_s=0.1, idle_timeout_s=60.0),
                            clock=lambda: now[0], sleep=sleep)
-    assert len(runs) == 2 and runs[0] != live and runs[-1] == live
-    assert report["summary"]["frames"] == 12 and report["live"]["final"] == "a final run"
+    assert len(runs) == 2 and runs[0][0] != live and runs[-1][0] == live
+    record = {"refreshes": 1, "frames": 12, "ended_by": "sentinel", "final": "a final run"}
+    assert runs[0][1] is None and runs[-1][1] == record  # the final run writes the flight's record itself
+    assert report["summary"]["frames"] == 12 and report["live"] == record
 
 
 def test_a_refresh_in_the_refresher_process_stops_on_ctrl_c_and_the_idle_process_ignores_it(monkeypatch):

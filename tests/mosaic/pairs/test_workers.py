@@ -53,7 +53,8 @@ def test_a_pool_of_two_processes_gives_the_same_homographies(flight, local, tmp_
 @pytest.mark.slow
 def test_a_dask_cluster_of_two_workers_gives_the_same_homographies(flight, local, tmp_path):
     distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+    # ":0", a free port: with None the scheduler still serves HTTP, on 8787, which another run may hold
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
         report = run_mosaic(flight, tmp_path / "m.png", MosaicConfig(method="auto", batch_size=4, scheduler=cluster.scheduler_address))
     assert_same_pairs(report, local)
 

@@ -196,14 +196,16 @@ def check_followed_folder(folder: Path) -> None:
         raise UdhError(f"--follow {folder}: not a folder; live mode watches a folder that frames are written into")
 
 
-def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], dict[str, Any]], follow: FollowConfig = FollowConfig(),
+def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[..., dict[str, Any]], follow: FollowConfig = FollowConfig(),
                   reporter: Reporter | None = None, exclude: Callable[[], set[Path]] = frozenset, clock: Callable[[], float] = time.time,
                   sleep: Callable[[float], None] = time.sleep, on_frames: Callable[[list[Path]], None] | None = None,
                   start_refresh: Callable[[Path], Future] | None = None) -> dict[str, Any]:
     """Follow ``folder`` until the flight ends; returns the final run's sidecar.
 
-    ``run(source)`` mosaics a folder of frames into ``output`` (``run_mosaic`` with the pair cache on);
-    refreshes give it a staging folder of links to the complete frames, the final run ``folder`` itself.
+    ``run(source, live=None)`` mosaics a folder of frames into ``output`` (``run_mosaic`` with the pair cache on);
+    refreshes give it a staging folder of links to the complete frames, the final run ``folder`` itself and
+    ``live``, the record of the flight that its sidecar carries. When the last refresh held every frame, its
+    report is returned instead, with ``live`` added but not written (:func:`~.run.run_live` writes it).
     ``exclude()`` names the files (resolved paths) that are never frames: the run's own outputs, asked anew at
     every poll because a split run adds part files. ``on_frames(paths)`` gets the frames as they become
     complete. ``start_refresh(source)``, when given, starts a refresh elsewhere and returns its future: the next
@@ -272,14 +274,15 @@ def follow_mosaic(folder: str | Path, output: str | Path, run: Callable[[Path], 
         ended_by = "sentinel" if (folder / follow.sentinel).exists() else "idle timeout"
         cause = f"a {follow.sentinel} file" if ended_by == "sentinel" else f"no new frame for {follow.idle_timeout_s:g} s"
         why = f"live: the flight ended ({cause}) with {len(watch.complete)} frames"
+        live = {"refreshes": refreshes, "frames": len(watch.complete), "ended_by": ended_by}
         if latest is not None and latest["summary"]["frames"] == len(watch.complete):  # the staging folder holds complete frames only
             reporter.info(f"{why}; the last refresh held all of them, so its mosaic is the final one")
-            report = latest
-        else:
-            reporter.info(f"{why}; making the final mosaic of all of them (the pairs already estimated are reused)")
-            report = run(folder)
-        report["live"] = {"refreshes": refreshes, "frames": len(watch.complete), "ended_by": ended_by,
-                          "final": "the last refresh" if report is latest else "a final run"}
+            latest["live"] = {**live, "final": "the last refresh"}
+            return latest
+        reporter.info(f"{why}; making the final mosaic of all of them (the pairs already estimated are reused)")
+        record = {**live, "final": "a final run"}
+        report = run(folder, live=record)
+        report["live"] = record  # in its sidecar already, where ``run`` is run_mosaic
         return report
     finally:
         if pending is not None and not pending.cancel():  # a refresh still reads the staging folder: let it end

@@ -55,9 +55,9 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
     check_outputs_are_not_inputs(Path(folder), files.live_roles(), files.sidecar)
     cache_file = files.pair_cache
 
-    def run(source: Path) -> dict[str, Any]:
+    def run(source: Path, live: dict[str, Any] | None = None) -> dict[str, Any]:
         reporter.timings_s.clear()  # each run's stage times are its own, as its total is
-        return _live_run(source, output, config, cache_file, reporter, options)
+        return _live_run(source, output, config, cache_file, reporter, {**options, "live": live})
 
     look = None
     if quick_look:
@@ -85,15 +85,19 @@ def run_live(folder: str | Path, output: str | Path, config: MosaicConfig = Mosa
 
         report = follow_mosaic(folder, output, run, follow, reporter, exclude=lambda: {p.resolve() for p in files.own_files()},
                                on_frames=on_frames if look is not None else None, start_refresh=start_refresh)
-    sidecar = Path(report["sidecar"])
-    written = json.loads(sidecar.read_text())
-    written["live"] = report["live"]
-    # A refresh that became the final mosaic read the frames through a staging folder, gone now: name the folder.
-    written["source"] = report["source"] = relative_to(Path(folder), sidecar.parent)
-    atomic_write_bytes(sidecar, (json.dumps(written, indent=1) + "\n").encode())
-    rewrite_report_page(written, sidecar.parent)  # it too names the folder, and says how the flight went
-    record_written(*[p for p in (sidecar, files.report_page) if p.is_file()], run=output.name)  # the next run's to replace
+    if report["live"]["final"] == "the last refresh":  # written before the flight ended; a final run wrote its own
+        _publish_last_refresh(report, Path(folder), files)
     return report
+
+
+def _publish_last_refresh(report: dict[str, Any], folder: Path, files: RunFiles) -> None:
+    """Write the sidecar and report page of the refresh that became the final mosaic again, from its ``report``:
+    with the flight's ``live`` record, and naming ``folder``, not the staging folder (gone now) it read the frames from."""
+    report["source"] = relative_to(folder, files.sidecar.parent)
+    sidecar = {key: value for key, value in report.items() if key != "sidecar"}  # the path, added once it was written
+    atomic_write_bytes(files.sidecar, (json.dumps(sidecar, indent=1) + "\n").encode())
+    rewrite_report_page(sidecar, files.sidecar.parent)
+    record_written(*[p for p in (files.sidecar, files.report_page) if p.is_file()], run=files.output.name)  # the next run's to replace
 
 
 def _refresh_in_worker(source: Path, output: Path, config: MosaicConfig, cache_file: Path, options: dict[str, Any]) -> dict[str, Any]:

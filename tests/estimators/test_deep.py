@@ -353,7 +353,7 @@ def test_a_folded_global_match_never_replaces_the_cascades_answer(monkeypatch):
 
 def test_a_confident_match_outranks_what_the_tiles_confirmed_and_is_kept_as_matched(monkeypatch):
     """A match hundreds of cells agree on beats a doubted cascade answer that tile levels accepted, and its own
-    homography is the answer: the tile stage is less precise than guided matching."""
+    homography is the answer where no two tile levels accept it."""
     if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
         pytest.skip("shipped unsupervised model not built yet")
     from udh_cli.estimators.matching import MatchResult
@@ -375,9 +375,9 @@ def test_a_confident_match_outranks_what_the_tiles_confirmed_and_is_kept_as_matc
     estimate = estimator.estimate(a, b)
     assert estimate.stage == "match" and estimate.verified_by == "matches"
     assert geometry.mace(estimate.homography, truth, 320, 240) < 1e-6
-    # The confident match's answer is not tiled; the judge runs the tiles on it once, as evidence only, and as
-    # none of their levels accepts it here, it is supported by its matches, not verified.
-    assert len(tile_calls) == 2 and not estimate.verified and estimate.details["verdict_failed"] == ["match tiles"]
+    # The confident match's answer is tiled (tiles.polished_match: no level accepts it, so it stays as matched); the
+    # judge runs the tiles on it once more, as evidence only, and it is supported by its matches, not verified.
+    assert len(tile_calls) == 3 and not estimate.verified and estimate.details["verdict_failed"] == ["match tiles"]
     # Below the confident support, the answer the tile levels confirmed stands.
     tile_calls.clear()
     monkeypatch.setattr(matching, "global_match", lambda *args, **kwargs: MatchResult(truth.copy(), 40, 500, 0))
@@ -385,6 +385,32 @@ def test_a_confident_match_outranks_what_the_tiles_confirmed_and_is_kept_as_matc
     assert estimate.stage == "tiles" and geometry.mace(estimate.homography, moved, 320, 240) < 1e-6
     # ...but the verdict sees that the match, an opinion of 40 cells, puts it 30 px elsewhere.
     assert not estimate.verified and "match agrees" in estimate.details["verdict_failed"]
+
+
+@pytest.mark.parametrize("levels, polished", [(2, True), (1, False)])
+def test_a_confident_match_takes_the_tile_stages_answer_where_two_levels_accept_it(monkeypatch, levels, polished):
+    """A match's answer 3 px off: the tile stage's answer replaces it where two levels accept it, not one."""
+    if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
+        pytest.skip("shipped unsupervised model not built yet")
+    from udh_cli.estimators.matching import MatchResult
+    from udh_cli.estimators.tiles import TileResult
+
+    truth = geometry.translation(6.0, -4.0)
+    a, b = warped_pair(truth, seed=5)
+    off = geometry.translation(3.0, 0.0) @ truth
+
+    def tiles(network, pairs, starts, **kwargs):  # the cascade's answer confirmed by nothing; a match's moved to the truth
+        near = geometry.mace(starts[0], off, 320, 240) < 1e-3
+        return [TileResult(truth.copy(), levels, 1.0, 0.3, 2) if near else TileResult(starts[0], 0, 0.0, float("nan"), 2)]
+
+    monkeypatch.setattr(deep, "refine_pairs_with_tiles", tiles)
+    monkeypatch.setattr(matching, "global_match", lambda *args, **kwargs: MatchResult(off.copy(), 400, 500, 0))
+    matcher = str(models_dir() / f"{SHIPPED_MODELS['unsupervised-matcher']}.onnx")
+    estimator = create_estimator("unsupervised", device="cpu", search=0, heading_search=0, search_below=1.0, matcher_model=matcher)
+    estimate = estimator.estimate(a, b)
+    assert estimate.details["matched"] and estimate.inliers == 400
+    expected, stage = (truth, "tiles") if polished else (off, "match")
+    assert estimate.stage == stage and geometry.mace(estimate.homography, expected, 320, 240) < 1e-3
 
 
 def test_near_its_prior_the_network_keeps_its_networks_and_drops_the_far_searches():

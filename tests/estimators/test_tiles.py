@@ -8,7 +8,7 @@ import pytest
 from conftest import warped_pair
 from udh_cli import geometry
 from udh_cli.estimators import create_estimator
-from udh_cli.estimators.tiles import TileRefinement, TileResult, polished_match, refine_with_tiles
+from udh_cli.estimators.tiles import TileRefinement, refine_with_tiles
 from udh_cli.images import to_gray_float
 from udh_cli.models_catalog import shipped_onnx
 from udh_cli.onnx_model import OnnxHomographyModel
@@ -142,10 +142,3 @@ def test_a_result_confirms_by_the_levels_asked_or_by_every_level_that_ran():
     one_of_three = TileResult(np.eye(3), levels_used=1, agreeing=0.5, residual_px=1.0, levels_run=3)
     assert CONFIRMING_LEVELS == 2 and not one_of_three.confirms() and one_of_three.confirms(1)
     assert TileResult(np.eye(3), levels_used=1, agreeing=0.5, residual_px=1.0, levels_run=1).confirms(3)  # all that ran
-
-
-@pytest.mark.parametrize("levels, kept", [(3, True), (2, True), (1, False), (0, False)])
-def test_a_match_is_polished_only_where_two_tile_levels_accept_it(levels, kept):
-    found = TileResult(np.eye(3), levels, 0.75, 0.4, 3)
-    assert (polished_match(found) is found) == kept
-    assert polished_match(None) is None

@@ -16,8 +16,9 @@ from udh_cli.flight_motion import PREWARP_BORDER
 from udh_cli.estimators.base import Estimate, Estimator
 from udh_cli.estimators.hypotheses import HEADING_COUNT, best_hypotheses, cascade_headings, heading_angles, heading_hypotheses, shift_hypotheses
 from udh_cli.estimators.judge import judge_answers
+from udh_cli.estimators.polish import polished_match
 from udh_cli.estimators.thresholds import THRESHOLDS
-from udh_cli.estimators.tiles import TileRefinement, polished_match, refine_pairs_with_tiles
+from udh_cli.estimators.tiles import TileRefinement, refine_pairs_with_tiles
 from udh_cli.estimators.pair import PreparedPair
 from udh_cli.onnx_model import PASSES_PER_CALL, OnnxHomographyModel, OnnxMatcher
 from udh_cli.estimators.matching import CONFIDENT_INLIERS, MatchSettings
@@ -321,10 +322,9 @@ class DeepEstimator(Estimator):
                 seen_match[i] = found  # a second opinion for the verdict, kept or not
                 score = self.score(small_a[i], small_b[i], h)
                 confident = found.inliers >= CONFIDENT_INLIERS
-                # A match hundreds of cells agree on keeps the tile stage's answer only where two levels accept it
-                # (tiles.polished_match): one accepted level moved right matches by 6-23 px.
+                # A match hundreds of cells agree on keeps the tile stage's answer only where it is a polish (polish.py).
                 retiled = self._tiles([pairs[i]], [h])[0] if self.tiles else None
-                retiled = polished_match(retiled) if confident else retiled
+                retiled = polished_match(pairs[i], found.b_from_a, retiled) if confident else retiled
                 # A match many cells support first: a doubted cascade answer that one tile level accepted was
                 # 204 px off where 1,077 cells put the match 0.2 px from the truth (flight-motion benchmark).
                 # Then tile levels (they confirm precise answers), then the score.

@@ -98,18 +98,6 @@ class TileResult:
         return self.levels_used >= min(levels, self.levels_run)
 
 
-def polished_match(found: TileResult | None) -> TileResult | None:
-    """The tile stage's result ``found`` on a global match's answer that many cells support, where it replaces
-    that answer: when :data:`CONFIRMING_LEVELS` levels accepted it; else None (the match's answer is kept).
-
-    Why: a match is one or two px off inside the overlap (its cells are 4 px of a 384 or 640-px copy), which a
-    pair seen turned or at another scale, where A reaches far outside B, magnifies to 10-40 px at A's corners;
-    the tiles, pre-warped by the answer and run up to full resolution, are sub-pixel where two levels accept
-    them. One accepted level is not enough: alone it moved right matches by 6-23 px (docs/benchmarks.md, 2026-11-28).
-    """
-    return found if found is not None and found.levels_used >= CONFIRMING_LEVELS else None
-
-
 def _level_sizes(size_a: tuple[int, int], size_b: tuple[int, int], side: int) -> tuple[tuple[int, int], tuple[int, int]]:
     longest = max(*size_a, *size_b)
     scale = 1.0 if side <= 0 or side >= longest else side / longest

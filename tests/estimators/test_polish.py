@@ -8,7 +8,7 @@ import pytest
 from conftest import warped_pair
 from udh_cli import geometry
 from udh_cli.estimators.pair import PreparedPair
-from udh_cli.estimators.polish import MAX_SCORE_LOSS, polished_match
+from udh_cli.estimators.polish import MAX_SCORE_LOSS, MIN_AGREEMENT, polished_match
 from udh_cli.estimators.tiles import TileResult
 from udh_cli.estimators.verify import VERIFIER
 
@@ -35,3 +35,9 @@ def test_a_polish_that_aligns_worse_than_the_match_is_refused(pair):
     assert right - wrong > MAX_SCORE_LOSS
     assert polished_match(pair, TRUTH, TileResult(off, 2, 1.0, 0.3, 2)) is None
     assert polished_match(pair, off, TileResult(TRUTH.copy(), 2, 1.0, 0.3, 2)) is not None
+
+
+def test_a_polish_most_tiles_do_not_agree_on_is_refused(pair):
+    off = geometry.translation(3.0, 0.0) @ TRUTH
+    assert polished_match(pair, off, TileResult(TRUTH.copy(), 2, MIN_AGREEMENT - 0.1, 0.3, 2)) is None
+    assert polished_match(pair, off, TileResult(TRUTH.copy(), 2, MIN_AGREEMENT, 0.3, 2)) is not None

@@ -21,6 +21,7 @@ from udh_cli.estimators.hypotheses import best_hypotheses, cascade_headings, hea
 from udh_cli.estimators.judge import judge_answers
 from udh_cli.estimators.matching import CONFIDENT_INLIERS, MatchResult
 from udh_cli.estimators.pair import PreparedPair
+from udh_cli.estimators.polish import polished_match
 from udh_cli.estimators.tiles import TileRefinement, TileResult
 
 
@@ -157,11 +158,12 @@ def match_offers(estimator, batch: Batch, doubted: list[int], answers: Sequence[
         if not geometry.is_valid_homography(h, s, s):  # a folded fit is no answer, however many cells agree
             continue
         # A match hundreds of cells agree on is kept as the guided matching left it, not tiled: the tile stage is
-        # less precise than it (flight-motion benchmark: one accepted coarse level moved 0.5-1.3 px matches to
-        # 6-23 px; consecutive pairs at 800 px against SIFT references, median: copr 0.91 px kept against 1.20 px
-        # tiled, where the tiles confirmed it).
+        # less precise than it on the flights' pairs (docs/estimators.md, "The global match"); with polish_matches
+        # it takes the tiles' answer where they agree on it (polish.py: better on turned pairs, looser loops).
         confident = found.inliers >= CONFIDENT_INLIERS
-        tiled = _retiled(estimator, pair, h) if not confident else None
+        tiled = _retiled(estimator, pair, h) if not confident or estimator.polish_matches else None
+        if confident and tiled is not None:
+            tiled = polished_match(pair, found.b_from_a, tiled)
         offers[i] = Answer(h, estimator.score(batch.small_a[i], batch.small_b[i], h), tiled, match=found, seen_match=found)
     return offers
 

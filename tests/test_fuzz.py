@@ -690,7 +690,7 @@ def test_a_mosaic_killed_by_sigterm_keeps_its_pairs_and_resumes(tmp_path):
     process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.time() + 120
     while not cache.exists() and process.poll() is None and time.time() < deadline:
-        time.sleep(0.005)  # the cache appears after the first batch of 16 pairs, of about 75
+        time.sleep(0.005)  # the cache appears after the first batch of pairs, of about 75
     assert process.poll() is None, "the mosaic ended before it could be interrupted"
     process.send_signal(signal.SIGTERM)
     _, err = process.communicate(timeout=120)
@@ -700,7 +700,7 @@ def test_a_mosaic_killed_by_sigterm_keeps_its_pairs_and_resumes(tmp_path):
     assert "--resume" in err  # the warning says how to go on
     assert sorted(p.name for p in out.iterdir()) == ["m.pairs.json"]  # no mosaic, no sidecar, no temporary
     kept = len(json.loads(cache.read_text())["pairs"])
-    assert kept >= 16
+    assert kept >= 1  # at least the first batch (its size depends on the workers: pairs.estimate.even_batch_size)
 
     resumed = subprocess.run(args, capture_output=True, text=True, env=env, timeout=300)
     assert resumed.returncode == 0, resumed.stderr

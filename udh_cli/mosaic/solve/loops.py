@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -73,16 +73,14 @@ def close_loops(frameset: FrameSet, parts: list[Part], pairs: list[PairResult], 
             break
         stage = "loop-closure pairs" if round_number == 0 else f"loop-closure pairs again, from the solve ({round_number + 1})"
         for result in estimate_pairs(requests, frames, opinions, acceptance, reporter, stage, batch_size, cache, runner):
+            if result.ok:
+                w, h = frames[result.b].size
+                disagreement = corner_disagreement_px(result.b_from_a, result.prior, frames[result.a].size)
+                if disagreement > settings.max_disagreement * float(np.hypot(w, h)):
+                    result = replace(result, status="rejected", b_from_a=None, reason=(
+                        f"moves the corners {disagreement:.0f} px away from the {'chained' if round_number == 0 else 'solved'} "
+                        f"prediction (limit {settings.max_disagreement:.0%} of the diagonal)"))
             results[(result.a, result.b)] = result
-            if not result.ok:
-                continue
-            w, h = frames[result.b].size
-            disagreement = corner_disagreement_px(result.b_from_a, result.prior, frames[result.a].size)
-            if disagreement > settings.max_disagreement * float(np.hypot(w, h)):
-                result.status = "rejected"
-                result.reason = (f"moves the corners {disagreement:.0f} px away from the "
-                                 f"{'chained' if round_number == 0 else 'solved'} prediction (limit {settings.max_disagreement:.0%} of the diagonal)")
-                result.b_from_a = None
         retry = {(r.a, r.b) for r in results.values() if r.status == "rejected"}
         if round_number > 0 and all(key in retry for key in requested):
             break  # nothing new accepted: a new solve would predict the same

@@ -388,14 +388,17 @@ def test_estimate_help_states_the_licence_of_the_shipped_weights(monkeypatch, ca
     assert code == 0 and "research use only" in " ".join(out.split()) and "models/README.md" in out
 
 
-def test_estimate_flags_go_where_dash_o_goes_and_win_over_it(files, monkeypatch):
+def test_estimate_flags_go_where_dash_o_goes_and_may_not_contradict_it(files, monkeypatch):
     from udh_cli import api
 
     seen = {}
     monkeypatch.setattr(api, "estimate_report", lambda *args, **kwargs: seen.update(kwargs) or {"verified": True})
-    args = ["estimate", str(files["a.png"]), str(files["b16.png"]), "-m", "auto", "-O", "network.search=1", "-O", "min_score=0.6", "--search", "2"]
+    args = ["estimate", str(files["a.png"]), str(files["b16.png"]), "-m", "auto", "-O", "network.iterations=1", "-O", "min_score=0.6", "--search", "2"]
     assert CliRunner().invoke(cli.app, [*args, "--flight-model", "none", "--json"]).exit_code == 0
-    assert seen["network"] == {"search": 2, "flight_model": ""} and seen["min_score"] == 0.6
+    assert seen["network"] == {"iterations": 1, "search": 2, "flight_model": ""} and seen["min_score"] == 0.6
+    contradicted = CliRunner().invoke(cli.app, [*args, "-O", "network.search=1"])
+    assert contradicted.exit_code == 1  # main() prints the error as one line; the runner keeps it as the exception
+    assert "network.search is given twice, as --search 2 and -O network.search=1" in str(contradicted.exception)
     help_text = CliRunner().invoke(cli.app, ["estimate", "--help"], env={"COLUMNS": "400"}).stdout
     for flag in OPTION_FLAGS:  # every flag, its help from the one table
         assert flag.name in help_text and flag.help[:40] in " ".join(help_text.split())

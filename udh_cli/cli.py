@@ -22,7 +22,7 @@ from udh_cli import __version__
 from udh_cli.errors import UdhError
 from udh_cli.api import ESTIMATE_WORK_SIZE
 from udh_cli.estimators.flags import OPTION_FLAGS, given_flags
-from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS, nest_options, parse_method_options
+from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS, merge_flag_options, parse_method_options
 from udh_cli.generator_settings import FlightConfig as _FlightConfig, GpsConfig as _GpsConfig, MotionConfig as _MotionConfig
 from udh_cli.train.config import MOTIONS as _MOTIONS, TrainConfig as _TrainConfig
 
@@ -145,7 +145,7 @@ def estimate(
     from udh_cli.api import estimate_report
 
     try:
-        options = nest_options(method.value, flags or {}, parse_method_options(option, [method.value]).get(method.value, {}))
+        options = merge_flag_options(method.value, flags or {}, parse_method_options(option, [method.value]).get(method.value, {}))
         report = estimate_report(image_a, image_b, method.value, gt=gt, viz=viz, work_size=None if full_resolution else work_size,
                                  overwrite=overwrite, **options)
     except UdhError as exc:

@@ -59,3 +59,16 @@ def test_the_network_options_reach_the_start_network():
         create_estimator("unsupervised+ecc", device="cpu", search="two")
     with pytest.raises(UdhError, match="network takes the network's options"):
         create_estimator("unsupervised+ecc", network="search=2")
+
+
+def test_a_flag_and_an_option_that_set_one_setting_differently_are_refused():
+    """``--search 2 -O network.search=3``: neither may silently win; the same value twice, or different settings, merge."""
+    from udh_cli.estimators.registry import merge_flag_options
+
+    options = parse_method_options(["network.search=3"], ["auto"])["auto"]
+    with pytest.raises(UdhError, match=r"network\.search is given twice, as --search 2 and -O network\.search=3"):
+        merge_flag_options("auto", {"search": 2}, options)
+    assert merge_flag_options("auto", {"search": 3}, options) == {"network": {"search": 3}}
+    assert merge_flag_options("auto", {"search": 2}, {"min_score": 0.5}) == {"min_score": 0.5, "network": {"search": 2}}
+    with pytest.raises(UdhError, match="search is given twice"):
+        merge_flag_options("unsupervised", {"search": 2}, {"search": 3})

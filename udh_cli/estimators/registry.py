@@ -168,6 +168,19 @@ def nest_options(name: str, options: dict[str, Any], into: dict[str, Any] | None
     return out
 
 
+def merge_flag_options(name: str, flags: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
+    """A command's flags (``{"search": 2}``) and its ``-O`` options of method ``name`` (nested, as
+    :func:`parse_method_options` returns them) as one nested dict; raises :class:`UdhError` when a flag and an
+    option set the same setting to different values, so that neither silently wins."""
+    for key, value in flags.items():
+        path = option_path(name, key)
+        holder = options if path is None or len(path) == 1 else options.get(path[0], {})
+        if path is not None and path[-1] in holder and holder[path[-1]] != value:
+            raise UdhError(f"method '{name}': {'.'.join(path)} is given twice, as --{key.replace('_', '-')} {value} and "
+                           f"-O {'.'.join(path)}={holder[path[-1]]}; give it once")
+    return nest_options(name, flags, options)
+
+
 def with_option_default(name: str, options: dict[str, Any], key: str, value: Any, none_is_unset: bool = False) -> dict[str, Any]:
     """``options`` of method ``name`` nested (:func:`nest_options`), with ``key`` set to ``value`` where the method
     takes it and ``options`` do not give it (or give None, with ``none_is_unset``); unchanged where it does not."""

@@ -111,7 +111,7 @@ def remove_dead_runs_folders(parent: Path, prefix: str) -> list[Path]:
 
 def in_order(jobs: Sequence[Callable[[], Future]], window: int) -> Iterator[tuple[int, Future]]:
     """Start ``jobs`` keeping up to ``window`` in flight, and yield ``(index, future)`` in submission order; the
-    caller waits for each (``runner.result``) before the next job starts."""
+    caller waits for each (its ``result()``) before the next job starts."""
     window = max(1, window)
     started: deque[tuple[int, Future]] = deque()
     next_job = 0

@@ -96,9 +96,8 @@ class DeepEstimator(Estimator):
         match_refine_side: the longer side, px, at which the global match is refined by guided matching
             (:func:`~udh_cli.estimators.matching.guided_matches`); ``None``: not refined.
         polish_matches: a global match many cells support takes the tile stage's answer from it where the tiles
-            agree on one (:mod:`~udh_cli.estimators.polish`). Off by default: on the hard real-pair benchmark it
-            took 2 failures of 66 off each draw and in-plane rotation's from 3 to 2 of 10, but loosened
-            brighton-beach's network-only loops from 3.47 to 4.69 px (docs/benchmarks.md, "Turned and scaled
+            agree on one (:mod:`~udh_cli.estimators.polish`). Off by default: a little better on turned and scaled
+            pairs, but looser loops on a real flight's network-only mosaic (docs/benchmarks.md, "Turned and scaled
             pairs: the global match polished by the tiles").
         tiles: refine the answer on 128x128 tiles at finer levels up to full resolution with the last
             network of the cascade (:mod:`udh_cli.estimators.tiles`): the network alone is then sub-pixel

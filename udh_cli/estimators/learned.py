@@ -65,9 +65,9 @@ class Answer:
 def settle(current: Answer, offer: Answer | None) -> Answer:
     """The one rule of the rescues: ``offer`` replaces ``current`` when it ranks higher (:meth:`Answer.rank`).
 
-    A match many cells support first: a doubted cascade answer that one tile level accepted was 204 px off where
-    1,077 cells put the match 0.2 px from the truth (flight-motion benchmark). Then tile levels (they confirm
-    precise answers), then the score. A rejected offer still leaves the global match it saw, as evidence.
+    A match many cells support first: a doubted cascade answer that one tile level accepted can be hundreds of px
+    off where a match of a thousand cells is right (docs/estimators.md, "The global match"). Then tile levels (they
+    confirm precise answers), then the score. A rejected offer still leaves the global match it saw, as evidence.
     """
     if offer is None:
         return current
@@ -235,7 +235,7 @@ def packed(estimator, pair: PreparedPair, answer: Answer, full: np.ndarray | Non
         details["heading"] = answer.heading
     if match is not None:
         details.update(matched=True, match_inliers=match.inliers, match_heading=match.heading, match_side=match.side)
-    if full is not None and refined is not None:  # never for a confident match: it is not tiled
+    if full is not None and refined is not None:  # a confident match only where polish_matches polished it
         details.update(tile_levels=refined.levels_used, tile_agreement=round(refined.agreeing, 3),
                        tile_residual_px=None if np.isnan(refined.residual_px) else round(refined.residual_px, 3))
     stage = ("tiles" if details.get("tile_levels") else "search" if answer.searched else "heading" if answer.heading is not None

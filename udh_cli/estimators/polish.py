@@ -3,7 +3,7 @@
 A match many cells support is one or two px off inside the overlap (its cells are 4 px of a 384 or 640-px copy).
 Where A reaches far outside B (a pair turned, or seen at another scale) that magnifies to 10-40 px at A's corners,
 and the tile stage, pre-warped by the answer and run up to full resolution, is sub-pixel where it agrees with
-itself (docs/benchmarks.md, 2026-11-28: the hard real-pair benchmark, and the network-only mosaics).
+itself (docs/benchmarks.md, "Turned and scaled pairs: the global match polished by the tiles").
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ def polished_match(pair: PreparedPair, matched: np.ndarray, found: TileResult | 
     ``pair``), where it replaces that answer; else None (the match's answer is kept).
 
     It replaces it where :data:`~udh_cli.estimators.tiles.CONFIRMING_LEVELS` levels accepted it (one accepted level
-    moved right matches by 6-23 px), most tiles of the finest agreed (:data:`MIN_AGREEMENT`: over surf and trees
-    a few tiles agree on a plane of their own) and it aligns about as well (:data:`MAX_SCORE_LOSS`, the photometric
-    score of :data:`~udh_cli.estimators.verify.VERIFIER`): two levels once agreed on a plane 49 px off a right match.
+    moves right matches), most tiles of the finest agreed (:data:`MIN_AGREEMENT`: over surf and trees a few tiles
+    agree on a plane of their own) and it aligns about as well (:data:`MAX_SCORE_LOSS`, the photometric score of
+    :data:`~udh_cli.estimators.verify.VERIFIER`): two levels can agree on a plane far from a right match.
     """
     if found is None or found.levels_used < CONFIRMING_LEVELS or found.agreeing < MIN_AGREEMENT:
         return None

@@ -66,11 +66,11 @@ class Thresholds:
         max_prediction_move: largest corner move, as a share of A's diagonal, of ECC confirming a prediction:
             beyond it ECC left the prediction's basin.
         max_polish_score_loss: most the photometric score of a global match's answer may drop when the tile stage
-            polishes it (:mod:`.polish`): right answers moved by a few px change it by up to 0.04 either way, a
-            polish 49 px off a right copr match took it from 0.84 to 0.70.
+            polishes it (:mod:`.polish`): right answers moved by a few px change it by less, a polish far off a right
+            match by more (docs/benchmarks.md, "Turned and scaled pairs: the global match polished by the tiles").
         min_polish_tile_agreement: least share of the finest accepted tile level's tiles that must agree for that
-            polish: brighton-beach's consecutive pairs (surf, trees) agreed at 0.33-0.58 and their polish loosened the
-            network-only mosaic's loops; the benchmark's polishes that turned a failure into a right answer, 0.75-1.0 on seed 0.
+            polish: over surf and trees fewer agree, and their polish loosened a network-only mosaic's loops; the
+            polishes that turned a failure into a right answer agreed more (the same section).
     """
 
     min_alignment: float = 0.55

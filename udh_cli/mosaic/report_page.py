@@ -134,7 +134,7 @@ def _summary_table(report: dict[str, Any]) -> str:
         rows.append(("error vs ground truth (px)", f"{solved['mean_corner_px']:.3f} mean, {solved['max_corner_px']:.3f} max corner"))
     if report.get("live"):
         live = report["live"]
-        rows.append(("live mode", f"{live['frames']} frames, {live['refreshes']} refreshes, ended by {live['ended_by']}; "
+        rows.append(("live mode", f"{live['frames']} frames, {live['refreshes']} refresh{'' if live['refreshes'] == 1 else 'es'}, ended by {live['ended_by']}; "
                                   f"the final mosaic is {live.get('final', 'a final run')}"))
     rows.append(("total time", f"{report['timings_s'].get('total', sum(report['timings_s'].values())):.1f} s"))
     return "<table class=\"summary\">" + "".join(f"<tr><th>{_e(k)}</th><td>{_e(v)}</td></tr>" for k, v in rows) + "</table>"

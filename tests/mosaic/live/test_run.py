@@ -46,7 +46,7 @@ def test_a_last_refresh_that_became_the_final_mosaic_is_published_from_its_repor
     assert written == {**refreshed, "source": "../flight", "live": report["live"]} and list(written)[-1] == "live"
     assert "sidecar" not in written and report["source"] == "../flight"
     page = (tmp_path / "out" / "m.report.html").read_text()
-    assert "8 frames, 1 refreshes, ended by idle timeout; the final mosaic is the last refresh" in page
+    assert "8 frames, 1 refresh, ended by idle timeout; the final mosaic is the last refresh" in page
     assert "<title>udh mosaic of flight</title>" in page
     assert page.count("data:image/jpeg;base64,") == 1  # the preview, read from the published files
     recorded = json.loads((tmp_path / "out" / ".udh-written.json").read_text())["files"]

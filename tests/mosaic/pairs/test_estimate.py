@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from tests.conftest import warped_pair
+from conftest import warped_pair
 from udh_cli import geometry
 from udh_cli.estimators import create_estimator
 from udh_cli.mosaic.pairs.estimate import even_batch_size
@@ -27,7 +27,8 @@ def test_batches_are_cut_two_per_slot_of_the_window(count, largest, window, expe
 
 def test_the_learned_estimate_of_a_pair_does_not_depend_on_its_batch():
     """Cutting batches by the number of workers must not change a mosaic: the shipped network's answers for six
-    pairs in one batch, in batches of two and one by one are the same to the last bit."""
+    pairs in one batch, in batches of two and one by one are the same to the last bit (one onnxruntime thread, as
+    the mosaic's workers run; in one process with more threads the sums may be taken in another order)."""
     estimator = create_estimator("unsupervised", threads=1)
     motions = [geometry.translation(3.0 * k - 7, 2.0 - k) for k in range(6)]
     pairs = [warped_pair(motion, seed=k) for k, motion in enumerate(motions)]

@@ -9,9 +9,7 @@ from __future__ import annotations
 import os
 import re
 from collections import Counter
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
@@ -26,15 +24,11 @@ from udh_cli.mosaic.inputs.listing import natural_key, not_a_file, subfolder_hin
 from udh_cli.mosaic.inputs.metadata import FrameMetadata, read_metadata
 from udh_cli.mosaic.outputs.staging import earlier_outputs
 from udh_cli.mosaic.report import Reporter
-from udh_cli.processes import in_order
 
 ORDERS = ("name", "time")  # the --order choices
 # Files a frame folder may hold that are not frames: the simulator's ground truth, and live mode's end-of-flight
 # sentinel (FollowConfig.sentinel), which stays in the folder its final run reads.
 IGNORED_FILES = ("ground_truth.json", "DONE")
-# Threads that decode frames and make their working copies: the decoder runs one at a time (its messages are
-# caught on a shared stderr), the file read, undistortion, grey copy and resize beside it.
-READING_THREADS = 2
 
 
 @dataclass
@@ -294,10 +288,9 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
             reporter.warn(f"{len(missing)} frames have no EXIF capture time and go last, by name: {', '.join(missing[:5])}{'...' if len(missing) > 5 else ''}")
         candidates.sort(key=lambda p: (times[p] is None, times[p] or "", natural_key(p.name)))
     frames: list[Frame] = []
-    with reporter.stage("reading frames", len(candidates)) as advance, ThreadPoolExecutor(READING_THREADS, thread_name_prefix="udh-read") as pool:
-        jobs = [partial(pool.submit, _read_frame, path, work_size, lens) for path in candidates]
-        for index, future in in_order(jobs, window=2 * READING_THREADS):
-            path, (stamp, image, work) = candidates[index], future.result()
+    with reporter.stage("reading frames", len(candidates)) as advance:
+        for path in candidates:
+            stamp, image, work = _read_frame(path, work_size, lens)
             if isinstance(image, UdhError):
                 skipped.append({"file": path.name, "reason": str(image)})
                 # The reason read_image gives: unreadable (permissions), NaN pixels, not an image...
@@ -307,7 +300,6 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
             kept.offer(len(frames), image)
             frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work, path, None,
                                 metadata[path].capture_time if order == "time" else None, metadata[path], stamp))
-            del image
             advance(1)
     if len(frames) < 2:
         found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"

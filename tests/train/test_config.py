@@ -18,9 +18,13 @@ STORED = sorted((REPO / "models" / "training").glob("*/config.json")) + [Path("/
 
 
 def as_before(stored: dict) -> MotionConfig | None:
-    """The motion a flat config trained on, as the code before nesting built it (its perspective was ``rho``)."""
-    if stored.get("motion", "paper") == "paper":
+    """The motion a flat config trained on, as the code before nesting built it (its perspective was ``rho``); a
+    config written since then (``motion`` nested, or null for the paper's motion) as it is."""
+    motion = stored.get("motion", "paper")
+    if motion in (None, "paper"):
         return None
+    if isinstance(motion, dict):
+        return MotionConfig(**{key: tuple(value) if isinstance(value, list) else value for key, value in motion.items()})
     scale, defaults = stored["max_scale"], MotionConfig()
     return MotionConfig(max_heading=stored["max_heading"], scale_range=(1.0 / scale, scale), max_shift=stored["max_shift"],
                         perspective=stored["rho"], min_overlap=stored.get("min_overlap", defaults.min_overlap),

@@ -6,9 +6,6 @@ holding the terminal's output and the resource tracker with it.
 
 Temporary folders: :func:`run_temp_folder` names a folder with the process that owns it (its pid and a tag of
 this host, boot and pid namespace), so that :func:`remove_dead_runs_folders` can remove what a killed run left, and never a live run's.
-
-Jobs in order: :func:`in_order` keeps a few jobs of a pool (of processes or threads) in flight and hands their
-results back in the order they were given.
 """
 
 from __future__ import annotations
@@ -21,10 +18,7 @@ import signal
 import socket
 import tempfile
 import threading
-from collections import deque
-from concurrent.futures import Future
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
 
 # Seconds between a worker's looks at its parent: a killed run's workers are gone within this.
 PARENT_POLL_S = 0.5
@@ -107,16 +101,3 @@ def remove_dead_runs_folders(parent: Path, prefix: str) -> list[Path]:
             shutil.rmtree(entry.path, ignore_errors=True)
             removed.append(Path(entry.path))
     return removed
-
-
-def in_order(jobs: Sequence[Callable[[], Future]], window: int) -> Iterator[tuple[int, Future]]:
-    """Start ``jobs`` keeping up to ``window`` in flight, and yield ``(index, future)`` in submission order; the
-    caller waits for each (its ``result()``) before the next job starts."""
-    window = max(1, window)
-    started: deque[tuple[int, Future]] = deque()
-    next_job = 0
-    while next_job < len(jobs) or started:
-        while next_job < len(jobs) and len(started) < window:
-            started.append((next_job, jobs[next_job]()))
-            next_job += 1
-        yield started.popleft()

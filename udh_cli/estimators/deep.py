@@ -272,7 +272,8 @@ class DeepEstimator(Estimator):
         valid = [i for i, full in enumerate(fulls) if full is not None]
         found = refine_pairs_with_tiles(self.networks.tile, [(pairs[i].a, pairs[i].b) for i in valid], [fulls[i] for i in valid],
                                         coarse_network=self.networks.tile_coarse) if valid else []
-        return [dict(zip(valid, found)).get(i) for i in range(len(pairs))]
+        by_index = dict(zip(valid, found))
+        return [by_index.get(i) for i in range(len(pairs))]
 
 
 def _safe_dlt(offsets: np.ndarray, size: int) -> np.ndarray:

@@ -12,8 +12,7 @@ from udh_cli.errors import UdhError
 from udh_cli.estimators import Estimator
 from udh_cli.mosaic import MosaicConfig, run_mosaic
 from udh_cli.mosaic.pairs.types import Acceptance
-from udh_cli.mosaic.pairs.workers import judge_opinions
-from udh_cli.processes import in_order
+from udh_cli.mosaic.pairs.workers import in_order, judge_opinions
 
 from conftest import textured_image
 

@@ -290,36 +290,26 @@ def _open_folder(folder: Path, work_size: int, order: str, exclude: Iterable[Pat
     frames: list[Frame] = []
     with reporter.stage("reading frames", len(candidates)) as advance:
         for path in candidates:
-            stamp, image, work = _read_frame(path, work_size, lens)
-            if isinstance(image, UdhError):
-                skipped.append({"file": path.name, "reason": str(image)})
+            stamp = file_stamp(path)  # before the read: a change during it is a change too
+            try:
+                image = read_image(path)
+            except UdhError as exc:
+                skipped.append({"file": path.name, "reason": str(exc)})
                 # The reason read_image gives: unreadable (permissions), NaN pixels, not an image...
-                reporter.warn(f"skipping {path.name}: cannot be decoded ({str(image).removeprefix(f'{path}: ')})")
+                reporter.warn(f"skipping {path.name}: cannot be decoded ({str(exc).removeprefix(f'{path}: ')})")
                 advance(1)
                 continue
+            if lens is not None:
+                lens.check((image.shape[1], image.shape[0]), path.name)
+            image = _undistorted(image, lens)
             kept.offer(len(frames), image)
-            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work, path, None,
+            frames.append(Frame(len(frames), path.name, (image.shape[1], image.shape[0]), work_copy(image, work_size), path, None,
                                 metadata[path].capture_time if order == "time" else None, metadata[path], stamp))
             advance(1)
     if len(frames) < 2:
         found = "no readable image" if not frames else f"only one readable image ({frames[0].name})"
         raise UdhError(f"{folder}: {found}; a mosaic needs at least two overlapping frames{subfolder_hint(folder)}")
     return FrameSet(folder, frames, skipped, stretch_work_copies(frames), decoded_while_reading=kept.kept)
-
-
-def _read_frame(path: Path, work_size: int, lens: Lens | None) -> tuple[tuple[int, int, int] | None, np.ndarray | UdhError, np.ndarray | None]:
-    """One frame's file stamp (taken before the read: a change during it is a change too), its full image,
-    undistorted, and its working copy; the :class:`UdhError` in place of the image when it cannot be decoded.
-    A lens that does not fit the frame raises."""
-    stamp = file_stamp(path)
-    try:
-        image = read_image(path)
-    except UdhError as exc:
-        return stamp, exc, None
-    if lens is not None:
-        lens.check((image.shape[1], image.shape[0]), path.name)
-    image = _undistorted(image, lens)
-    return stamp, image, work_copy(image, work_size)
 
 
 def _open_capture(path: Path) -> cv2.VideoCapture:

@@ -14,8 +14,7 @@ from udh_cli.estimators import Estimator
 from udh_cli.mosaic.inputs.frames import Frame
 from udh_cli.mosaic.pairs.types import Acceptance, PairRequest, PairResult, full_resolution, work_inputs
 from udh_cli.mosaic.report import Reporter
-from udh_cli.mosaic.pairs.workers import DaskRunner, LocalRunner, PoolRunner
-from udh_cli.processes import in_order
+from udh_cli.mosaic.pairs.workers import DaskRunner, LocalRunner, PoolRunner, in_order
 
 
 def estimate_pairs(

@@ -18,6 +18,7 @@ import os
 import re
 import sys
 import threading
+from collections import deque
 from contextlib import contextmanager
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
@@ -359,3 +360,16 @@ def closed_after(runner: LocalRunner | PoolRunner | DaskRunner) -> Iterator[None
         runner.close(abort=True)
         raise
     runner.close()
+
+
+def in_order(jobs: Sequence[Callable[[], Future]], window: int):
+    """Start ``jobs`` keeping up to ``window`` in flight, and yield ``(index, future)`` in submission order; the
+    caller waits for each (``runner.result``) before the next job starts."""
+    window = max(1, window)
+    started: deque[tuple[int, Future]] = deque()
+    next_job = 0
+    while next_job < len(jobs) or started:
+        while next_job < len(jobs) and len(started) < window:
+            started.append((next_job, jobs[next_job]()))
+            next_job += 1
+        yield started.popleft()

@@ -203,7 +203,8 @@ def _write_report(frameset: FrameSet, plan: CanvasPlan, drawn: list[DrawnPart], 
     if gcps is not None or gps_fixes(frameset.frames):
         with reporter.stage("georeferencing", 1) as advance:  # world files and the north-up GeoTIFFs
             images = {part.plan.number: part.image for part in drawn if part.image is not None}
-            placement = georeference(frameset, on_map, staged, reporter, files, gcps, gcp_image_width, config.gcp_sigma_m > 0, images)
+            placement = georeference(frameset, on_map, staged, reporter, files, gcps, gcp_image_width, config.gcp_sigma_m > 0, images,
+                                     threads=config.workers)
             advance(1)
         for entry in report["parts"]:
             entry.update(placement.parts.get(entry["part"], {}))

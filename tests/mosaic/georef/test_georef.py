@@ -278,7 +278,7 @@ def test_a_geotiff_too_large_is_a_warning_and_nothing_half_written(tmp_path, mon
     write_flight(folder, FlightConfig(frame_size=(320, 240), strips=1, frames_per_strip=4, focal_px=300.0), seed=1,
                  gps=GpsConfig(46.85, -92.0, noise_m=0.5))
     real = geotiff.write_combined_cog
-    monkeypatch.setattr(geotiff, "write_combined_cog", lambda layers, epsg, path, max_pixels=0: real(layers, epsg, path, max_pixels=10))
+    monkeypatch.setattr(geotiff, "write_combined_cog", lambda layers, epsg, path, max_pixels=0, threads=1: real(layers, epsg, path, max_pixels=10))
     reporter = Reporter(quiet=True)
     out = tmp_path / "out"
     out.mkdir()
@@ -322,6 +322,25 @@ def test_a_north_up_geotiff_drawn_strip_by_strip_equals_the_whole_warp(tmp_path,
     assert np.abs(rgba[..., 3].astype(int) - whole[..., 3]).max() <= 1  # OpenCV's fixed-point rounding
     inside = whole[..., 3] == 255
     assert np.abs(rgba[..., 0][inside].astype(int) - whole[..., 2][inside]).max() <= 1
+
+
+def test_a_cog_compressed_on_two_threads_holds_the_same_pixels_and_overviews(tmp_path):
+    """GDAL's compression threads change the time, not the map: every level reads back the same."""
+    rasterio = pytest.importorskip("rasterio")
+    import cv2
+
+    from conftest import textured_image
+    from udh_cli.mosaic.georef import geotiff
+
+    bgra = cv2.cvtColor(textured_image(1300, 900, seed=4), cv2.COLOR_GRAY2BGRA)
+    map_from_mosaic = np.array([[0.05, 0.0, 500000.0], [0.0, -0.05, 4000000.0], [0.0, 0.0, 1.0]])
+    levels = {}
+    for threads in (1, 2):
+        path = tmp_path / f"t{threads}.cog.tif"
+        geotiff.write_cog(geotiff.MosaicImage(array=bgra), map_from_mosaic, 32633, path, threads=threads)
+        with rasterio.open(path) as dataset:
+            levels[threads] = [dataset.read()] + [rasterio.open(path, overview_level=k).read() for k in range(len(dataset.overviews(1)))]
+    assert len(levels[1]) == 3 and all(np.array_equal(a, b) for a, b in zip(levels[1], levels[2], strict=True))
 
 
 def test_the_cogs_overviews_are_area_averages_of_the_map_without_dark_edges(tmp_path):

@@ -111,15 +111,18 @@ def write_tiled_tiff(path: Path, size: tuple[int, int], tiles) -> None:
         raise UdhError(f"{path}: writing the mosaic failed ({exc}); check the free space and permissions") from None
 
 
-def write_cog(mosaic: MosaicImage, map_from_mosaic: np.ndarray, epsg: int, path: Path, max_pixels: int = 400_000_000) -> dict:
+def write_cog(mosaic: MosaicImage, map_from_mosaic: np.ndarray, epsg: int, path: Path, max_pixels: int = 400_000_000,
+              threads: int = 1) -> dict:
     """Resample a mosaic north-up and write it as a COG at ``path``; returns its size and grid."""
-    return write_combined_cog([(mosaic, map_from_mosaic)], epsg, path, max_pixels)
+    return write_combined_cog([(mosaic, map_from_mosaic)], epsg, path, max_pixels, threads)
 
 
-def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, path: Path, max_pixels: int = 400_000_000) -> dict:
+def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, path: Path, max_pixels: int = 400_000_000,
+                       threads: int = 1) -> dict:
     """Several mosaics (``(image, map_from_mosaic)``, earlier ones on top) resampled onto one north-up grid of
     the finest pixel size among them, written as one COG: the parts of a split flight in one map. Each strip
-    of the grid reads only the window of each mosaic it covers; the mosaics' files are closed at the end."""
+    of the grid reads only the window of each mosaic it covers; the mosaics' files are closed at the end.
+    ``threads``: how many threads GDAL compresses the COG's blocks on (the same file for any count)."""
     _require_rasterio()
     pixel = min(math.hypot(m[0, 0], m[1, 0]) for _, m in layers)
     edges = []
@@ -144,6 +147,7 @@ def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, 
             block_from_out = np.array([[1.0, 0.0, -left], [0.0, 1.0, -top], [0.0, 0.0, 1.0]])
             outline = np.array([[-1, -1, 1], [width, -1, 1], [width, height, 1], [-1, height, 1]], float).T
             block = canvas[:, left : left + width]
+            empty = True  # the first layer that reaches a block is drawn straight into it: no mask to build
             for image, map_from_mosaic in layers:
                 block_from_mosaic = block_from_out @ out_from_map @ map_from_mosaic
                 seen = (np.linalg.inv(block_from_mosaic) @ outline)[:2]  # the block's outline in mosaic pixels
@@ -154,11 +158,15 @@ def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, 
                 window_to_block = block_from_mosaic @ np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
                 drawn = cv2.warpAffine(image.window(x0, y0, x1, y1), window_to_block[:2], (width, height),
                                        flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
-                np.copyto(block, drawn, where=((block[..., 3] == 0) & (drawn[..., 3] > 0))[..., None])
+                if empty:
+                    block[...] = drawn
+                    empty = False
+                else:
+                    np.copyto(block, drawn, where=((block[..., 3] == 0) & (drawn[..., 3] > 0))[..., None])
         return canvas
 
     try:
-        _write_rgba_cog(strip, rows, columns, west, north, pixel, epsg, path)
+        _write_rgba_cog(strip, rows, columns, west, north, pixel, epsg, path, threads)
     finally:
         for image, _ in layers:
             image.close()
@@ -175,10 +183,11 @@ STRIP_ROWS = BLOCK  # rows of the north-up grid drawn at a time: one block high
 COG_DEFLATE_LEVEL = 1  # DEFLATE's fastest: a sixth less CPU than GDAL's 6 for a slightly larger file (docs/mosaic.md, "Georeferencing from GPS")
 
 
-def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, pixel: float, epsg: int, path: Path) -> None:
+def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, pixel: float, epsg: int, path: Path,
+                    threads: int = 1) -> None:
     """A north-up image drawn strip by strip (``strip(top, height)`` -> (height, columns, 4) BGRA) to a
     Cloud-Optimised GeoTIFF: RGBA with an alpha band, tiled, DEFLATE, overviews; (west, north) is the outer
-    corner of the top-left pixel.
+    corner of the top-left pixel; GDAL compresses its blocks on ``threads`` threads.
 
     Memory stays at about two strips: the strips go to a tiled GeoTIFF beside ``path`` and its overviews to
     one more per level (:class:`_OverviewPyramid`); a VRT ties them together and GDAL's COG driver copies it
@@ -208,7 +217,8 @@ def _write_rgba_cog(strip, rows: int, columns: int, west: float, north: float, p
                     dataset.write(rgba.transpose(2, 0, 1), window=Window(0, top, columns, height))
                     pyramid.add(rgba, last=top + height >= rows)
             levels.write_text(_vrt_with_overviews(strips, pyramid.files, columns, rows, west, north, pixel, epsg), encoding="utf-8")
-            raster_copy(str(levels), str(path), driver="COG", COMPRESS="DEFLATE", LEVEL=COG_DEFLATE_LEVEL, BLOCKSIZE=BLOCK, OVERVIEWS="AUTO")
+            raster_copy(str(levels), str(path), driver="COG", COMPRESS="DEFLATE", LEVEL=COG_DEFLATE_LEVEL, BLOCKSIZE=BLOCK, OVERVIEWS="AUTO",
+                        NUM_THREADS=str(max(1, threads)))
     except (RasterioError, OSError) as exc:  # a full disk, a folder that went away: one line, and the caller goes on without it
         raise UdhError(f"{path.name}: writing the GeoTIFF failed ({exc}); check the free space and permissions") from None
     finally:

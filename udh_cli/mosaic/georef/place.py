@@ -45,15 +45,16 @@ class Placement:
 
 def georeference(frameset: FrameSet, parts: list[PartOnCanvas], staged: StagedFiles, reporter: Reporter, files: RunFiles,
                  gcps: GcpFile | None = None, gcp_image_width: int | None = None, gcps_in_solve: bool = False,
-                 images: Mapping[int, np.ndarray] | None = None) -> Placement:
+                 images: Mapping[int, np.ndarray] | None = None, threads: int = 1) -> Placement:
     """World and projection files for every written part placed by ground-control points (``gcps``) or else
     by its frames' GPS (see :mod:`.gcp`, :mod:`.gps`), staged with the images; returns what the sidecar
     records of them. ``gcps_in_solve``: the points also anchored the solve. ``images``: part number -> its
-    (H, W, 4) BGRA mosaic as written, drawn into the GeoTIFFs instead of reading the staged file back."""
+    (H, W, 4) BGRA mosaic as written, drawn into the GeoTIFFs instead of reading the staged file back.
+    ``threads``: how many threads GDAL compresses each GeoTIFF on."""
     placement = Placement()
     images = images or {}
     if gcps is not None:
-        _georeference_by_gcps(frameset, parts, placement, staged, reporter, gcps, gcp_image_width, gcps_in_solve, images)
+        _georeference_by_gcps(frameset, parts, placement, staged, reporter, gcps, gcp_image_width, gcps_in_solve, images, threads)
         return placement
     with_gps = {f.index: f.metadata for f in frameset.frames if f.metadata is not None and f.metadata.has_gps}
     if not with_gps:
@@ -79,16 +80,16 @@ def georeference(frameset: FrameSet, parts: list[PartOnCanvas], staged: StagedFi
         if found.frames_rejected:
             names = ", ".join(frameset.frames[i].name for i in found.frames_rejected)
             reporter.warn(f"{part.file.name}: the GPS of {names} disagrees with the other frames' by far (a bad fix); left out of the georeference")
-        _write_georeference(part, found, staged, entry, reporter, images.get(part.number))
+        _write_georeference(part, found, staged, entry, reporter, images.get(part.number), threads)
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} from {len(found.frames_used)} frames' GPS, "
                       f"{found.residual_rms_m:.1f} m RMS, {found.pixel_size_m * 100:.1f} cm per pixel")
     if len(placed) > 1 and has_rasterio():
-        placement.map = _write_combined_map(placed, staged, reporter, files.combined_map, images)
+        placement.map = _write_combined_map(placed, staged, reporter, files.combined_map, images, threads)
     return placement
 
 
 def _write_combined_map(placed: list, staged: StagedFiles, reporter: Reporter, path: Path,
-                        images: Mapping[int, np.ndarray]) -> dict[str, Any] | None:
+                        images: Mapping[int, np.ndarray], threads: int) -> dict[str, Any] | None:
     """The parts of a split run in one north-up GeoTIFF, each placed by its own frames' GPS: GPS ties together
     what no estimated pair could. The largest part is drawn on top; the others' frames rest on GPS alone.
     Returns the sidecar's ``map``, or None for none."""
@@ -106,7 +107,7 @@ def _write_combined_map(placed: list, staged: StagedFiles, reporter: Reporter, p
     if len(layers) < 2:
         return None
     try:
-        written = write_combined_cog(layers, epsg, staged.path_for(path))
+        written = write_combined_cog(layers, epsg, staged.path_for(path), threads=threads)
     except UdhError as exc:  # the one map is an extra: the parts and their own georeferences still stand
         staged.forget(path)
         reporter.warn(f"no combined map: {exc}")
@@ -139,7 +140,7 @@ def _staged_bgra(staged: StagedFiles, part: PartOnCanvas, image: np.ndarray | No
 
 
 def _write_georeference(part: PartOnCanvas, found, staged: StagedFiles, entry: dict[str, Any], reporter: Reporter,
-                        image: np.ndarray | None = None) -> None:
+                        image: np.ndarray | None = None, threads: int = 1) -> None:
     """Stage a georeferenced part's world file, .prj, GDAL PAM file and north-up COG (when rasterio is installed)."""
     names = MosaicFiles(part.file)
     atomic_write_bytes(staged.path_for(names.world_file), world_file_text(found).encode())
@@ -153,7 +154,7 @@ def _write_georeference(part: PartOnCanvas, found, staged: StagedFiles, entry: d
         reporter.warn(f"{part.file.name}: its image could not be read back for the GeoTIFF; written without one")
         return
     try:
-        written = write_cog(mosaic, found.map_from_mosaic, found.epsg, staged.path_for(names.cog))
+        written = write_cog(mosaic, found.map_from_mosaic, found.epsg, staged.path_for(names.cog), threads=threads)
     except UdhError as exc:  # the GeoTIFF is an extra: the mosaic and its world file still stand
         staged.forget(names.cog)
         reporter.warn(f"{part.file.name}: no north-up GeoTIFF: {exc}")
@@ -162,7 +163,8 @@ def _write_georeference(part: PartOnCanvas, found, staged: StagedFiles, entry: d
 
 
 def _georeference_by_gcps(frameset: FrameSet, parts: list[PartOnCanvas], placement: Placement, staged: StagedFiles, reporter: Reporter,
-                          gcps: GcpFile, gcp_image_width: int | None, in_solve: bool, images: Mapping[int, np.ndarray]) -> None:
+                          gcps: GcpFile, gcp_image_width: int | None, in_solve: bool, images: Mapping[int, np.ndarray],
+                          threads: int) -> None:
     for part in parts:
         frames = {f.name: (f.size, part.mosaic_from_frame.get(f.index)) for f in frameset.frames}
         entry = placement.parts[part.number] = {}
@@ -182,7 +184,7 @@ def _georeference_by_gcps(frameset: FrameSet, parts: list[PartOnCanvas], placeme
                               f"reported and left out of the fit")
         for line in found.skipped[:5]:
             reporter.warn(f"GCP skipped: {line}")
-        _write_georeference(part, found, staged, entry, reporter, images.get(part.number))
+        _write_georeference(part, found, staged, entry, reporter, images.get(part.number), threads)
         used = sum(p["used"] for p in found.points.values())
         reporter.info(f"{part.file.name}: georeferenced in EPSG:{found.epsg} by {used} ground-control points, "
                       f"{found.checkpoint_rms_m:.2f} m RMS at checkpoints (each point left out of the fit in turn"

@@ -199,7 +199,7 @@ def test_a_frame_cut_to_what_it_owns_blends_as_the_whole_frame(small_flight, exp
     assert cut_area < 0.9 * whole_area  # the frames were cut
     assert (cut[..., 3] == whole[..., 3]).all()
     difference = np.abs(cut.astype(np.int16) - whole.astype(np.int16))[..., :3]
-    # At a quarter of FEED_MARGIN (5 bands reach about 128 px) nearly every pixel is still within 1 grey level.
+    # At half of FEED_MARGIN (5 bands reach about 128 px) nearly every pixel is still within 1 grey level.
     assert difference.max() <= 2 and (difference <= 1).mean() > 0.9999 and (difference == 0).mean() > 0.99
 
 

@@ -126,13 +126,18 @@ def test_too_big_canvas_is_refused_before_writing(small_flight, tmp_path):
         plan_canvas(ref_from, [(640, 240), (640, 240)], "feather")
 
 
-def test_learned_methods_search_for_large_motion_in_mosaics_unless_told_otherwise():
+def test_mosaics_search_for_large_motion_and_skip_autos_views_unless_told_otherwise():
+    from udh_cli.estimators import create_estimator
     from udh_cli.mosaic.config import MOSAIC_SEARCH, mosaic_method_options
 
     assert mosaic_method_options("unsupervised", {}) == {"search": MOSAIC_SEARCH}
-    assert mosaic_method_options("auto", {"model": "m.onnx"}) == {"network": {"model": "m.onnx", "search": MOSAIC_SEARCH}}
+    assert mosaic_method_options("auto", {"model": "m.onnx"}) == {"network": {"model": "m.onnx", "search": MOSAIC_SEARCH}, "views": ()}
     assert mosaic_method_options("unsupervised", {"search": 0}) == {"search": 0}
     assert mosaic_method_options("sift", {"ratio": 0.8}) == {"ratio": 0.8}
+    assert mosaic_method_options("auto", {"views": ["flipped"]})["views"] == ["flipped"]  # the user's choice stands
+    # auto on its own still asks the views; in a mosaic its opinions end with the escalated network.
+    assert [o.key for o in create_estimator("auto").opinions] == ["fallback", "escalated", "mirrored", "flipped", "swapped"]
+    assert [o.key for o in create_estimator("auto", **mosaic_method_options("auto", {})).opinions] == ["fallback", "escalated"]
 
 
 def test_the_pair_cache_knows_both_networks_of_a_cascade_inside_auto():

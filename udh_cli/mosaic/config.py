@@ -117,6 +117,7 @@ SOLVES = ("homography", "camera")  # the global solve's models (MosaicConfig.sol
 
 
 MOSAIC_SEARCH = 2  # the learned methods' large-motion search, on for mosaics unless the user sets it
+MOSAIC_VIEWS: tuple[str, ...] = ()  # auto's mirrored, flipped and swapped looks at a pair, off for mosaics unless set
 
 
 def check_config(config: MosaicConfig) -> None:
@@ -154,12 +155,17 @@ def check_config(config: MosaicConfig) -> None:
 
 
 def mosaic_method_options(method: str, given: dict[str, Any]) -> dict[str, Any]:
-    """``given`` plus the mosaic's defaults for ``method``: the learned methods search for large motion.
+    """``given`` plus the mosaic's defaults for ``method``: the learned methods search for large motion, and
+    ``auto`` asks no second opinion of mirrored, flipped or swapped copies of a pair (``views``).
 
     Why: consecutive frames of real flights move further than the synthetic pairs the networks were trained
-    on (docs/mosaic.md, "Stages": the learned methods' large-motion search).
+    on (docs/mosaic.md, "Stages": the learned methods' large-motion search). The views rescue small patches
+    moved far, not whole frames, which the escalated network already matches at four headings: in the flights'
+    mosaics no view's answer was ever accepted, while every pair that failed paid for three more runs of the
+    escalated network (docs/benchmarks.md, "A mosaic's pairs without the views").
     """
-    return with_option_default(method, given, "search", MOSAIC_SEARCH)
+    options = with_option_default(method, given, "search", MOSAIC_SEARCH)
+    return with_option_default(method, options, "views", MOSAIC_VIEWS)
 
 
 def acceptance(config: MosaicConfig) -> Acceptance:

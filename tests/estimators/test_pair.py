@@ -48,26 +48,6 @@ def test_prepared_copies_equal_converting_the_original_again():
     assert PreparedImage.of(prepared) is prepared
 
 
-def test_small_copies_come_from_halvings_whatever_was_asked_first_and_stay_near_the_whole_images_average():
-    from udh_cli.estimators.pair import HALVING_MARGIN
-
-    grey = textured_image(1600, 1067, seed=5)
-    sizes = [(480, 320), (256, 171), (128, 128), (1000, 667)]
-    forwards, backwards = PreparedImage.of(grey), PreparedImage.of(grey)
-    made = {size: forwards.resized(size) for size in sizes}
-    for size in reversed(sizes):  # the other order: the same pixels, bitwise
-        np.testing.assert_array_equal(backwards.resized(size), made[size])
-    whole = images.to_gray_float(grey)
-    for size in sizes:
-        direct = cv2.resize(whole, size, interpolation=cv2.INTER_AREA)
-        difference = np.abs(made[size] - direct)
-        if 800 < HALVING_MARGIN * size[0]:  # the first half is too small: made from the whole image
-            np.testing.assert_array_equal(made[size], direct)
-        else:
-            # On this noise-like texture, the worst case: on copr's frames the mean is a tenth of this.
-            assert difference.mean() < 1.5 / 255 and difference.max() < 24.0 / 255, size
-    assert ("halving", 2) in forwards._cache and ("halving", 3) not in forwards._cache  # 800x533 and 400x266
-
 def test_a_prepared_pair_gives_the_same_estimate_as_the_arrays():
     truth = np.array([[1.0, 0.02, 5.0], [-0.01, 1.0, -3.0], [0.0, 0.0, 1.0]])
     a, b = warped_pair(truth, 320, 240, seed=5)

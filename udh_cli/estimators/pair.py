@@ -26,13 +26,6 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     return array
 
 
-# A smaller copy is area-averaged from the smallest halving of the image (each half of the one before) that is
-# still this many times its size each way, not from the whole image: a 1600x1067 frame's 256 and 128-px
-# copies cost a fraction as much, and differ from averaging the whole image by a fraction of a grey level
-# (docs/benchmarks.md, "Smaller copies from halvings").
-HALVING_MARGIN = 2.0
-
-
 @dataclass(eq=False)
 class PreparedImage:
     """One image as every estimator stage reads it.
@@ -67,27 +60,14 @@ class PreparedImage:
         return self.grey.shape[0], self.grey.shape[1]
 
     def resized(self, size: tuple[int, int]) -> np.ndarray:
-        """(h, w) float32 grey at ``size`` = (w, h), area-averaged (from a halving, :data:`HALVING_MARGIN`), made
-        once; ``grey`` itself at its own size. The same pixels whatever was asked of the image before."""
+        """(h, w) float32 grey at ``size`` = (w, h), area-averaged, made once; ``grey`` itself at its own size."""
         size = (int(size[0]), int(size[1]))
         if size == self.size:
             return self.grey
         key = ("resized", size)
         if key not in self._cache:
-            self._cache[key] = _read_only(cv2.resize(self._halving_for(size), size, interpolation=cv2.INTER_AREA))
+            self._cache[key] = _read_only(cv2.resize(self.grey, size, interpolation=cv2.INTER_AREA))
         return self._cache[key]
-
-    def _halving_for(self, size: tuple[int, int]) -> np.ndarray:
-        """The smallest of ``grey``'s successive halvings (area-averaged, (w // 2, h // 2) each, made once) still
-        :data:`HALVING_MARGIN` times ``size`` each way; ``grey`` itself when its first half is not."""
-        source, level = self.grey, 0
-        while source.shape[1] // 2 >= HALVING_MARGIN * size[0] and source.shape[0] // 2 >= HALVING_MARGIN * size[1]:
-            level += 1
-            key = ("halving", level)
-            if key not in self._cache:
-                self._cache[key] = _read_only(cv2.resize(source, (source.shape[1] // 2, source.shape[0] // 2), interpolation=cv2.INTER_AREA))
-            source = self._cache[key]
-        return source
 
     def derived(self, key: Any, make: "Callable[[], np.ndarray]") -> np.ndarray:
         """A copy made once by ``make`` and kept read-only under ``key`` (e.g. a network's descriptors of it)."""

@@ -160,9 +160,8 @@ def mosaic_method_options(method: str, given: dict[str, Any]) -> dict[str, Any]:
 
     Why: consecutive frames of real flights move further than the synthetic pairs the networks were trained
     on (docs/mosaic.md, "Stages": the learned methods' large-motion search). The views rescue small patches
-    moved far, not whole frames, which the escalated network already matches at four headings: in the flights'
-    mosaics no view's answer was ever accepted, while every pair that failed paid for three more runs of the
-    escalated network (docs/benchmarks.md, "A mosaic's pairs without the views").
+    moved far, not whole frames, which the escalated network already matches at four headings; in a mosaic they
+    only made failed pairs dearer (docs/benchmarks.md, "A mosaic's pairs without the views").
     """
     options = with_option_default(method, given, "search", MOSAIC_SEARCH)
     return with_option_default(method, options, "views", MOSAIC_VIEWS)

@@ -247,6 +247,22 @@ def test_a_split_flight_becomes_one_map_with_gps(tmp_path):
             assert alpha[row, column] == 255
 
 
+def test_the_geotiffs_are_compressed_on_the_runs_workers(tmp_path, monkeypatch):
+    pytest.importorskip("rasterio")
+    from udh_cli.mosaic import MosaicConfig, run_mosaic
+    from udh_cli.mosaic.georef import place
+    from udh_cli.simulate import FlightConfig, GpsConfig, write_flight
+
+    folder = tmp_path / "flight"
+    write_flight(folder, FlightConfig(frame_size=(320, 240), strips=1, frames_per_strip=4, focal_px=300.0), seed=5,
+                 gps=GpsConfig(46.85, -92.0, metres_per_pixel=0.1, noise_m=0.3))
+    asked = []
+    real = place.write_cog
+    monkeypatch.setattr(place, "write_cog", lambda *args, threads=1, **kwargs: asked.append(threads) or real(*args, threads=threads, **kwargs))
+    report = run_mosaic(folder, tmp_path / "map.png", MosaicConfig(method="orb", workers=2))
+    assert report["summary"]["placed"] == 4 and asked == [2] and (tmp_path / "map.cog.tif").is_file()
+
+
 def test_an_earlier_runs_georeference_never_stays_beside_a_mosaic_without_one(tmp_path):
     """Run 1 places the mosaic by GPS; run 2 (frames without GPS) writes a new mosaic under the same name: the
     old world file, .prj and GeoTIFF go, or GIS tools would put the new mosaic where the old one was."""
@@ -322,6 +338,33 @@ def test_a_north_up_geotiff_drawn_strip_by_strip_equals_the_whole_warp(tmp_path,
     assert np.abs(rgba[..., 3].astype(int) - whole[..., 3]).max() <= 1  # OpenCV's fixed-point rounding
     inside = whole[..., 3] == 255
     assert np.abs(rgba[..., 0][inside].astype(int) - whole[..., 2][inside]).max() <= 1
+
+
+def test_colour_under_transparent_pixels_never_reaches_the_cog_or_its_overviews(tmp_path):
+    """A caller's BGRA with noise where alpha is 0 (OpenCV leaves such pixels): every transparent pixel of the COG
+    has colour 0, as the overviews, averaging it as premultiplied colour, need; in the overviews only the
+    partly covered edge pixels' own colour is left under a rounded-down alpha (a pixel or two)."""
+    rasterio = pytest.importorskip("rasterio")
+    import cv2
+
+    from conftest import textured_image
+    from udh_cli.mosaic.georef import geotiff
+
+    bgra = cv2.cvtColor(textured_image(900, 700, seed=6), cv2.COLOR_GRAY2BGRA)
+    bgra[:, 450:, 3] = 0  # the right half transparent, its colour left as noise
+    turn = math.radians(30.0)
+    map_from_mosaic = np.array([[0.05 * math.cos(turn), 0.05 * math.sin(turn), 500000.0],
+                                [0.05 * math.sin(turn), -0.05 * math.cos(turn), 4000000.0], [0.0, 0.0, 1.0]])
+    path = tmp_path / "noisy.cog.tif"
+    geotiff.write_cog(geotiff.MosaicImage(array=bgra), map_from_mosaic, 32633, path)
+    with rasterio.open(path) as dataset:
+        levels = [dataset.read()] + [rasterio.open(path, overview_level=k).read() for k in range(len(dataset.overviews(1)))]
+    assert len(levels) >= 2
+    full = levels[0]
+    assert (full[3] == 0).mean() > 0.3 and not full[:3][:, full[3] == 0].any()
+    for overview in levels[1:]:
+        coloured = overview[:3][:, overview[3] == 0].max(0) > 0
+        assert coloured.sum() <= 2  # the noise itself, averaged in, would colour most of them
 
 
 def test_a_cog_compressed_on_two_threads_holds_the_same_pixels_and_overviews(tmp_path):

@@ -147,7 +147,7 @@ def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, 
             block_from_out = np.array([[1.0, 0.0, -left], [0.0, 1.0, -top], [0.0, 0.0, 1.0]])
             outline = np.array([[-1, -1, 1], [width, -1, 1], [width, height, 1], [-1, height, 1]], float).T
             block = canvas[:, left : left + width]
-            empty = True  # the first layer that reaches a block is drawn straight into it: no mask to build
+            empty = True  # the first layer that reaches a block is copied into it, not masked against the ones before
             for image, map_from_mosaic in layers:
                 block_from_mosaic = block_from_out @ out_from_map @ map_from_mosaic
                 seen = (np.linalg.inv(block_from_mosaic) @ outline)[:2]  # the block's outline in mosaic pixels
@@ -160,6 +160,8 @@ def write_combined_cog(layers: list[tuple[MosaicImage, np.ndarray]], epsg: int, 
                                        flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
                 if empty:
                     block[...] = drawn
+                    # No colour under no alpha: the overviews average the strips as premultiplied colour.
+                    np.copyto(block, 0, where=drawn[..., 3:] == 0)
                     empty = False
                 else:
                     np.copyto(block, drawn, where=((block[..., 3] == 0) & (drawn[..., 3] > 0))[..., None])

@@ -37,11 +37,11 @@ MULTIBAND_LEVELS = 5
 TILE_SIDE = 2048  # canvas pixels per tile side at most; a canvas that fits in one tile is blended whole
 TILE_ALIGN = 2**MULTIBAND_LEVELS  # tile corners on multiples of this: the multiband blender's coarsest grid
 # Canvas pixels each tile also blends beyond its edges, then drops. Multiband blending mixes each band over a
-# reach that doubles per level (the 5th level's 5x5 kernel spans about 2^5 * 4 = 128 px): with 128 px the tiled
-# result differs from the whole canvas blended at once by at most 1 grey level (tests/mosaic/render/test_composite.py);
-# twice that margin changes a few pixels in ten thousand of a real map, at a third more blending (docs/benchmarks.md,
-# "The blender's reach").
-TILE_MARGIN = {"feather": 0, "none": 0, "multiband": 128}
+# reach that doubles per level: the coarsest level's 5x5 kernel spans 4 * 2^MULTIBAND_LEVELS px, and the tiled
+# result stays within a grey level or so of the canvas blended whole (tests/mosaic/render/test_composite.py; a
+# wider margin costs more blending for a few pixels in ten thousand: docs/benchmarks.md, "The blender's reach and
+# the COG's threads").
+TILE_MARGIN = {"feather": 0, "none": 0, "multiband": 4 * 2**MULTIBAND_LEVELS}
 # A streamed canvas costs no memory, but one this large (64k x 64k) comes from a homography gone astray, not a survey.
 MAX_STREAMED_PIXELS = 2**32
 # Canvas pixels of a frame fed to the multiband blender beyond those it owns: its bands reach as far as a tile's

@@ -83,13 +83,18 @@ def frame_normaliser(size: tuple[int, int]) -> np.ndarray:
     return np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
 
 
-def _project(params: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(P, 8) homographies (h33 = 1) applied to (P, K, 2) points -> (P, K, 2), as :func:`_project_with_jacobian`
-    computes them, without the Jacobian (the cost alone)."""
-    g = params[:, None, :]
+def _projected(params: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(P, 8) homographies (h33 = 1) applied to (P, K, 2) points: x, y, the denominator w, u and v, each (P, K)."""
+    g = params[:, None, :]  # P, 1, 8
     x, y = points[..., 0], points[..., 1]
     w = g[..., 6] * x + g[..., 7] * y + 1.0
-    return np.stack([(g[..., 0] * x + g[..., 1] * y + g[..., 2]) / w, (g[..., 3] * x + g[..., 4] * y + g[..., 5]) / w], -1)
+    return x, y, w, (g[..., 0] * x + g[..., 1] * y + g[..., 2]) / w, (g[..., 3] * x + g[..., 4] * y + g[..., 5]) / w
+
+
+def _project(params: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(P, 8) homographies (h33 = 1) applied to (P, K, 2) points -> (P, K, 2), without the Jacobian (the cost alone)."""
+    _, _, _, u, v = _projected(params, points)
+    return np.stack([u, v], -1)
 
 
 def _project_with_jacobian(params: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -102,11 +107,7 @@ def _project_with_jacobian(params: np.ndarray, points: np.ndarray) -> tuple[np.n
     Returns:
         projected (P, K, 2) and the Jacobian with respect to the parameters (P, K, 2, 8).
     """
-    g = params[:, None, :]  # P, 1, 8
-    x, y = points[..., 0], points[..., 1]
-    w = g[..., 6] * x + g[..., 7] * y + 1.0
-    u = (g[..., 0] * x + g[..., 1] * y + g[..., 2]) / w
-    v = (g[..., 3] * x + g[..., 4] * y + g[..., 5]) / w
+    x, y, w, u, v = _projected(params, points)
     zero = np.zeros_like(x)
     du = np.stack([x / w, y / w, 1 / w, zero, zero, zero, -u * x / w, -u * y / w], -1)
     dv = np.stack([zero, zero, zero, x / w, y / w, 1 / w, -v * x / w, -v * y / w], -1)

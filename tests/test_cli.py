@@ -18,6 +18,7 @@ from udh_cli.estimators.flags import OPTION_FLAGS
 from udh_cli import cli, geometry
 from udh_cli.files import MANIFEST_NAME
 from udh_cli.homography_files import format_homography
+from udh_cli.onnx_model import RECORDED_SINCE
 
 from conftest import run_main, warped_pair
 
@@ -404,3 +405,16 @@ def test_estimate_flags_go_where_dash_o_goes_and_may_not_contradict_it(files, mo
         assert flag.name in help_text and flag.help[:40] in " ".join(help_text.split())
     too_far = CliRunner().invoke(cli.app, [*args[:-1], "5"])
     assert too_far.exit_code == 2 and "less than or equal to 4" in too_far.output
+
+
+def test_estimate_notes_what_a_model_file_lacks_on_stderr_and_in_the_json(files, tmp_path, monkeypatch, capfd):
+    from conftest import export_tiny_network
+
+    tiny = export_tiny_network(tmp_path, "corr", seed=0)  # exported without --licence
+    code, out, err = run_main(monkeypatch, capfd, "estimate", str(files["a.png"]), str(files["b16.png"]), "-m", "unsupervised",
+                              "-O", f"model={tiny}", "--json")
+    report = json.loads(out)
+    assert code in (0, 3) and report["notes"] == [f"corr.onnx: {line}" for line in [RECORDED_SINCE["licence"]]]
+    assert "note: corr.onnx: records no licence for its weights" in " ".join(err.split())
+    code, out, _ = run_main(monkeypatch, capfd, "estimate", str(files["a.png"]), str(files["b16.png"]), "-m", "sift", "--json")
+    assert "notes" not in json.loads(out)  # classical methods have no model files

@@ -71,7 +71,8 @@ def estimate_report(
         ``image_a``, ``image_b``, ``size_a`` and ``size_b`` ([width, height] px), ``offsets_4pt``
         ((4, 2) px, where A's corners move in B, corner order TL, TR, BR, BL); with ``gt`` also
         ``corner_error_px`` (MACE) and ``corner_rmse_px``; with ``viz`` also ``viz``; ``verified``
-        (:func:`is_verified`) and ``work_size_a`` / ``work_size_b`` (the sizes estimated at).
+        (:func:`is_verified`) and ``work_size_a`` / ``work_size_b`` (the sizes estimated at); ``notes``, when the
+        model files lack metadata (:meth:`~udh_cli.estimators.base.Estimator.model_notes`).
 
     Raises:
         UdhError: for bad input, and when the method finds no homography.
@@ -115,6 +116,8 @@ def estimate_report(
     width, height = image_a.shape[1], image_a.shape[0]
     report = result.to_json()
     report["verified"] = verified
+    if notes := estimator.model_notes():
+        report["notes"] = notes
     report["work_size_a"], report["work_size_b"] = list(small_a), list(small_b)
     report["image_a"], report["image_b"] = str(path_a), str(path_b)
     report["size_a"], report["size_b"] = [width, height], [image_b.shape[1], image_b.shape[0]]

@@ -157,6 +157,8 @@ def estimate(
         sys.stdout.write(json.dumps({**report, "exit_code": code}) + "\n")
     else:
         _print_estimate(report)
+    for note in report.get("notes", []):
+        err_console.print(f"note: {note}", highlight=False, soft_wrap=True)
     if code:
         err_console.print("[yellow]warning:[/yellow] this answer did not verify (a low confidence, or no alignment and no matches "
                           "that agree on it): it is the best found, and may be wrong", highlight=False)
@@ -248,6 +250,7 @@ def export_onnx(
     checkpoint: Annotated[Path, typer.Argument(metavar="CHECKPOINT", help="A checkpoint written by `udh train` (checkpoint.pt or best.pt).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="The .onnx file to write.")] = Path("model.onnx"),
     check_images: Annotated[Optional[Path], typer.Option(help="Folder of images whose synthetic pairs join the parity check.")] = None,
+    licence: Annotated[Optional[str], typer.Option(help="The weights' licence, recorded in the model (e.g. 'CC BY 4.0; trained on CC0 and CC BY images'): the terms of the images it was trained on decide it.")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing output file that udh did not write.", metavar="")] = False,
 ) -> None:
     """Export a checkpoint's network to ONNX with its metadata, and check parity against torch."""
@@ -263,7 +266,7 @@ def export_onnx(
         sources = load_sources(list_images(check_images)[:20], min_count=1)
         pairs = make_pairs(sources, 16, PairConfig(), np.random.default_rng(0), with_context=False)
         real = np.stack([pairs.patch_a, pairs.patch_b], 1)
-    result = run_export(checkpoint, output, real, overwrite)
+    result = run_export(checkpoint, output, real, overwrite, licence)
     meta = result["metadata"]
     if meta["mode"] == "match":  # descriptors of images of any size, not offsets of a fixed input
         console.print(f"wrote {result['path']}: {meta['arch']} ({meta['mode']}), {meta['steps']} steps, images of any size "

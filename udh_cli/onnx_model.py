@@ -18,6 +18,13 @@ MAX_INPUT_SIZE = 512  # px: the largest patch training builds (udh_cli.train.che
 MAX_MODEL_BYTES = 2**31  # protobuf's own limit for one ONNX file
 
 
+LICENCE_KEY = "licence"  # the metadata key of the weights' licence, e.g. "research use only" or "CC BY 4.0"
+# Metadata that older udh exports lack, and what a file without it is taken to be.
+RECORDED_SINCE = {
+    LICENCE_KEY: "records no licence for its weights; check the terms of the images it was trained on before using "
+                 "its answers (re-export it with `udh export-onnx --licence TEXT`)",
+    "max_heading": "records no training headings; taken as trained without turns (the paper's motion)",
+}
 MATCHER_ARCH = "matcher"  # the metadata ``arch`` of a descriptor network (udh_cli.train.archs.DenseMatcher)
 
 
@@ -133,6 +140,16 @@ class _UdhOnnxModel:
         """Grey values in [0, 1] (patches or images, any shape) -> the float32 network input, standardised as in
         training."""
         return ((grey - self.mean) / self.std).astype(np.float32)
+
+    @property
+    def licence(self) -> str | None:
+        """The licence of the weights as exported (``udh export-onnx --licence``); None: the file records none."""
+        return self.metadata.get(LICENCE_KEY) or None
+
+    def lacks(self) -> list[str]:
+        """One line per piece of metadata this file lacks that later exports record (:data:`RECORDED_SINCE`); the
+        network loads and runs all the same, with what the line says assumed."""
+        return [f"{self.path.name}: {what}" for key, what in RECORDED_SINCE.items() if key not in self.metadata]
 
 
 @dataclass

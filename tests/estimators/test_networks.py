@@ -55,3 +55,30 @@ def test_every_shipped_role_is_a_catalogue_name_and_the_supervised_method_has_no
     assert {roles.coarse, roles.refine, roles.flight, roles.matcher} <= set(SHIPPED_MODELS)
     assert ShippedRoles.of("supervised").refine not in SHIPPED_MODELS
     assert not has_refinement_stage("supervised", None, None) and has_refinement_stage("supervised", None, "fine.onnx")
+
+
+def _with_metadata(source: Path, target: Path, drop: tuple[str, ...] = (), **extra: str) -> Path:
+    """A copy of the ONNX file ``source`` with the metadata keys ``drop`` removed and ``extra`` set."""
+    onnx = pytest.importorskip("onnx")
+    from udh_cli.onnx_model import write_metadata
+
+    proto = onnx.load(str(source))
+    metadata = {p.key: p.value for p in proto.metadata_props if p.key not in drop} | extra
+    write_metadata(proto, metadata)
+    target.write_bytes(proto.SerializeToString())
+    return target
+
+
+def test_a_file_without_a_licence_or_headings_loads_with_a_note_of_what_it_lacks(tiny, tmp_path):
+    coarse, fine = tiny
+    assert load(coarse).notes() == ["corr.onnx: records no licence for its weights; check the terms of the images it was trained "
+                                    "on before using its answers (re-export it with `udh export-onnx --licence TEXT`)"]
+    old = _with_metadata(coarse, tmp_path / "old.onnx", drop=("max_heading",))
+    networks = load(old, refine_rounds=2, refine_model=str(fine))
+    assert [line.split(": ")[0] for line in networks.notes()] == ["old.onnx", "old.onnx", "corr-fine.onnx"]
+    assert "taken as trained without turns" in networks.notes()[1]
+    licensed = _with_metadata(coarse, tmp_path / "licensed.onnx", licence="CC BY 4.0")
+    assert load(licensed).notes() == [] and load(licensed).coarse.licence == "CC BY 4.0"
+    assert load(coarse).coarse.licence is None
+    twice = load(coarse, refine_rounds=2, refine_model=str(coarse), flight_model=str(coarse))
+    assert len(twice.notes()) == 1  # one file in three roles: one note

@@ -31,3 +31,19 @@ def test_no_shipped_model_carries_an_absolute_path():
             text = metadata.get(key, "")
             assert "/work/" not in text and '"/' not in text, (path.name, key, text[:80])
             json.loads(text or "{}")
+
+
+def test_the_licence_given_is_recorded_and_an_export_without_one_records_none(tmp_path, monkeypatch, capfd):
+    from conftest import export_tiny_network, run_main
+    from udh_cli.onnx_model import OnnxHomographyModel
+    from udh_cli.train.export import export_onnx
+
+    plain = export_tiny_network(tmp_path, "corr", seed=0)
+    assert "licence" not in OnnxHomographyModel.load(plain, "cpu").metadata
+    result = export_onnx(tmp_path / "corr.pt", tmp_path / "licensed.onnx", licence="  CC BY 4.0;\n trained on CC0 images ")
+    assert result["metadata"]["licence"] == "CC BY 4.0; trained on CC0 images"  # one line, as typed
+    licensed = OnnxHomographyModel.load(tmp_path / "licensed.onnx", "cpu")
+    assert licensed.licence == "CC BY 4.0; trained on CC0 images" and licensed.lacks() == []
+    code, out, _ = run_main(monkeypatch, capfd, "export-onnx", str(tmp_path / "corr.pt"), "-o", str(tmp_path / "cli.onnx"),
+                            "--licence", "research use only")
+    assert code == 0 and OnnxHomographyModel.load(tmp_path / "cli.onnx", "cpu").licence == "research use only"

@@ -144,6 +144,11 @@ class Estimator:
         """The model files its answers depend on (none for the classical methods)."""
         return []
 
+    def model_notes(self) -> list[str]:
+        """One line per thing its model files do not record (a licence, training headings), for the user to read;
+        none for the classical methods."""
+        return []
+
     def _checked(self, homography, confidence, elapsed_ms, failure, details, shape_a, **typed: Any) -> Estimate:
         """Pack an answer into an :class:`Estimate`; ``shape_a`` is A's (height, width, ...)."""
         if homography is not None:

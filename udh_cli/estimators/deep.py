@@ -205,6 +205,9 @@ class DeepEstimator(Estimator):
     def model_files(self) -> list[str]:
         return self.networks.files()
 
+    def model_notes(self) -> list[str]:
+        return self.networks.notes()
+
     def rounds(self) -> list[OnnxHomographyModel]:
         """The network of every round of the cascade, in order."""
         return [network for network, count in self.stages for _ in range(count)]

@@ -59,6 +59,9 @@ class MatcherEstimator(Estimator):
     def model_files(self) -> list[str]:
         return [str(self.network.path)]
 
+    def model_notes(self) -> list[str]:
+        return self.network.lacks()
+
     def near_prior(self) -> "MatcherEstimator":
         """The same matcher (its network not loaded again) at B's own heading and the first side only
         (:meth:`MatchSettings.near_prior`)."""

@@ -53,6 +53,12 @@ class LearnedNetworks:
         found = {network.metadata.get("precision", "fp32") for network in self.homography_networks()}
         return found.pop() if len(found) == 1 else "mixed"
 
+    def notes(self) -> list[str]:
+        """What each loaded file's metadata lacks (:meth:`~udh_cli.onnx_model.OnnxHomographyModel.lacks`), each
+        line once, in the order of :meth:`homography_networks` then the matcher."""
+        loaded = self.homography_networks() + ([self.matcher] if self.matcher is not None else [])
+        return list(dict.fromkeys(line for network in loaded for line in network.lacks()))
+
     def files(self) -> list[str]:
         """The model files the answers depend on, sorted, each once."""
         matcher = [str(self.matcher.path)] if self.matcher is not None else []

@@ -151,6 +151,10 @@ class Cascade(Estimator):
         inner = [self.start, *(opinion.estimator for opinion in self.opinions)]
         return sorted({path for estimator in inner for path in estimator.model_files()})
 
+    def model_notes(self) -> list[str]:
+        inner = [self.start, *(opinion.estimator for opinion in self.opinions)]
+        return list(dict.fromkeys(line for estimator in inner for line in estimator.model_notes()))
+
     def near_prior(self) -> "Cascade":
         """The same cascade with its start and every opinion :meth:`~Estimator.near_prior`."""
         opinions = tuple(Opinion(o.key, o.estimator.near_prior(), o.stage) for o in self.opinions)

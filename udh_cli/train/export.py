@@ -24,7 +24,7 @@ import torch
 from udh_cli.errors import UdhError
 from udh_cli.files import check_replaceable, write_output
 from udh_cli.images import check_output_path
-from udh_cli.onnx_model import MODEL_FORMAT, write_metadata
+from udh_cli.onnx_model import LICENCE_KEY, MODEL_FORMAT, write_metadata
 from udh_cli.train.archs import MATCHERS, create_model
 from udh_cli.train.checkpoint import load_checkpoint
 from udh_cli.train.config import stored_motion
@@ -53,11 +53,13 @@ def _portable_history(trained_before: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def model_metadata(state: dict[str, Any]) -> dict[str, str]:
-    """The ONNX metadata (all strings) describing a checkpoint: what the estimator and the model card read."""
+def model_metadata(state: dict[str, Any], licence: str | None = None) -> dict[str, str]:
+    """The ONNX metadata (all strings) describing a checkpoint: what the estimator and the model card read.
+    ``licence``: the weights' licence, recorded as given (a checkpoint does not know its images' terms)."""
     config = state["config"]
     motion = stored_motion(config)  # nested, or the flat keys of older checkpoints
-    return {
+    recorded = {LICENCE_KEY: " ".join(licence.split())} if licence and licence.strip() else {}
+    return {**recorded,
         "udh_format": MODEL_FORMAT,
         "arch": config["arch"],
         "mode": config["mode"],
@@ -82,12 +84,13 @@ def model_metadata(state: dict[str, Any]) -> dict[str, str]:
 
 
 def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.ndarray | None = None,
-                overwrite: bool = False) -> dict[str, Any]:
+                overwrite: bool = False, licence: str | None = None) -> dict[str, Any]:
     """Export ``checkpoint`` to ``output`` (written atomically; an existing file only when udh wrote it, or with
     ``overwrite``) and verify it against torch.
 
     ``check_inputs`` (N, 2, P, P) in [0, 1] adds real patches to the random ones used for the parity check;
     they are resized to the network's S x S input when P differs (``udh export-onnx --check-images`` draws 128).
+    ``licence``: the weights' licence, written into the metadata (:data:`~udh_cli.onnx_model.LICENCE_KEY`).
     Returns ``{"path", "max_abs_diff", "metadata"}``; raises :class:`UdhError` when parity fails (> 1e-3 px).
     """
     import onnx
@@ -132,7 +135,7 @@ def export_onnx(checkpoint: str | Path, output: str | Path, check_inputs: np.nda
         exporter_log.setLevel(level)
     buffer = io.BytesIO(program.model_proto.SerializeToString())
     proto = onnx.load_from_string(buffer.getvalue())
-    metadata = model_metadata(state)
+    metadata = model_metadata(state, licence)
     write_metadata(proto, metadata)
     onnx.checker.check_model(proto)
     data = proto.SerializeToString()

@@ -3,7 +3,6 @@ takes its defaults from here."""
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 

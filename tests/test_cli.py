@@ -18,6 +18,7 @@ from udh_cli.estimators.flags import OPTION_FLAGS
 from udh_cli import cli, geometry
 from udh_cli.files import MANIFEST_NAME
 from udh_cli.homography_files import format_homography
+from udh_cli.models_catalog import licence_help
 from udh_cli.onnx_model import RECORDED_SINCE
 
 from conftest import run_main, warped_pair
@@ -386,7 +387,7 @@ def test_the_mosaic_command_loads_when_invoked():
 
 def test_estimate_help_states_the_licence_of_the_shipped_weights(monkeypatch, capfd):
     code, out, _ = run_main(monkeypatch, capfd, "estimate", "--help")
-    assert code == 0 and "research use only" in " ".join(out.split()) and "models/README.md" in out
+    assert code == 0 and licence_help() in " ".join(out.split()) and "models/README.md" in out
 
 
 def test_estimate_flags_go_where_dash_o_goes_and_may_not_contradict_it(files, monkeypatch):

@@ -18,3 +18,23 @@ def test_every_shipped_run_is_installed_with_the_package():
         assert relative in patterns, name
         assert (ROOT / "models" / relative).is_file(), name
         assert models_catalog.shipped_checkpoint(name) == models_catalog.models_dir() / relative
+
+
+def test_every_shipped_network_records_its_sets_licence_and_lacks_no_metadata():
+    from udh_cli.onnx_model import OnnxHomographyModel, OnnxMatcher
+
+    assert set(models_catalog.SHIPPED_LICENCE) == set(models_catalog.SHIPPED_MODELS)
+    for name, licence in models_catalog.SHIPPED_LICENCE.items():
+        precisions = ("fp32", "int8") if name in models_catalog.SHIPPED_INT8 else ("fp32",)
+        for precision in precisions:
+            path = models_catalog.shipped_onnx(name, precision)
+            network = (OnnxMatcher if name.endswith("-matcher") else OnnxHomographyModel).load(path, "cpu")
+            assert network.licence == models_catalog.WEIGHTS_LICENCES[licence], path.name
+            assert network.lacks() == [], path.name
+
+
+def test_the_help_names_each_sets_terms_and_the_methods_that_run_it():
+    text = models_catalog.licence_help()
+    for key in set(models_catalog.SHIPPED_LICENCE.values()):
+        assert models_catalog.WEIGHTS_LICENCES[key] in text
+    assert "unsupervised (also inside auto)" in text and "supervised" in text.replace("unsupervised", "")

@@ -25,6 +25,7 @@ from udh_cli.estimators.flags import OPTION_FLAGS, given_flags
 from udh_cli.estimators.registry import DEFAULT_METHOD, ESTIMATORS, merge_flag_options, parse_method_options
 from udh_cli.generator_settings import FlightConfig as _FlightConfig, GpsConfig as _GpsConfig, MotionConfig as _MotionConfig
 from udh_cli.train.config import MOTIONS as _MOTIONS, TrainConfig as _TrainConfig
+from udh_cli.models_catalog import licence_help
 
 _TRAIN = _TrainConfig()  # the command line's defaults are the library's
 _MOTION = _MotionConfig()
@@ -139,8 +140,6 @@ def estimate(
     """Estimate the homography that maps pixels of IMAGE_A to IMAGE_B ([bold]x_B ~ H x_A[/bold]).
 
     Exit codes: 0 a verified answer; 3 an answer that did not verify (printed, may be wrong); 1 no answer or bad input.
-
-    Licence of the weights: the shipped networks (unsupervised, supervised, auto's start) were trained on research-only images (RSSCN7, BSDS500): research use only; for other use, train your own on permissive images (models/README.md, "Data and licenses").
     """
     from udh_cli.api import estimate_report
 
@@ -163,6 +162,9 @@ def estimate(
         err_console.print("[yellow]warning:[/yellow] this answer did not verify (a low confidence, or no alignment and no matches "
                           "that agree on it): it is the best found, and may be wrong", highlight=False)
         raise typer.Exit(code)
+
+
+estimate.__doc__ += f"\n    Licence of the shipped weights (models/README.md, \"Data and licenses\"): {licence_help()}\n"
 
 
 def _print_estimate(payload: dict) -> None:

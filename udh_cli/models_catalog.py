@@ -28,6 +28,18 @@ SHIPPED_INT8 = {
 }
 PRECISIONS = ("int8", "fp32")
 
+# The terms of the shipped weights, by the images they were trained on (models/README.md, "Data and licenses"); every
+# shipped ONNX file records its set's text in its metadata (onnx_model.LICENCE_KEY), and `udh estimate --help` shows them.
+WEIGHTS_LICENCES = {
+    "research": "research use only: trained on RSSCN7 and BSDS500, research image collections without a licence for "
+                "other use",
+    "permissive": "MIT, as udh: trained only on CC0, BSD-2-Clause and CC BY images and procedural grounds, whose "
+                  "authors models/README.md credits",
+}
+# catalogue name -> its key in WEIGHTS_LICENCES
+SHIPPED_LICENCE = {"unsupervised": "research", "unsupervised-refine": "research", "unsupervised-flight": "research",
+                   "unsupervised-matcher": "research", "supervised": "research"}
+
 
 @dataclass(frozen=True)
 class ShippedRoles:
@@ -50,6 +62,16 @@ class ShippedRoles:
     def of(cls, method: str) -> "ShippedRoles":
         """The roles of the learned method ``method``: its own name and ``<method>-<role>``, as the catalogue names them."""
         return cls(method, f"{method}-refine", f"{method}-flight", f"{method}-matcher")
+
+
+def licence_help() -> str:
+    """The terms of each set of shipped weights and the methods that run them, one sentence a set (``udh estimate
+    --help``)."""
+    methods: dict[str, list[str]] = {}
+    for name, key in SHIPPED_LICENCE.items():
+        if "-" not in name:  # a method's own network, not one of its roles
+            methods.setdefault(key, []).append(name + (" (also inside auto)" if name == "unsupervised" else ""))
+    return " ".join(f"The weights of {' and '.join(names)}: {WEIGHTS_LICENCES[key]}." for key, names in methods.items())
 
 
 def models_dir() -> Path:

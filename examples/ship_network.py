@@ -1,12 +1,13 @@
 """Ship a trained coarse network: the float32 and int8 ONNX files, the fine-tuning weights, the resumable
 run and its learning curves, all in ``models/``. Needs the ``train`` extra (torch, onnx).
 
-    python examples/ship_network.py RUN_FOLDER --name udh-unsupervised-flight --data IMAGES [--data IMAGES ...]
+    python examples/ship_network.py RUN_FOLDER --name udh-unsupervised-flight --licence permissive --data IMAGES [--data IMAGES ...]
 
 ``RUN_FOLDER`` is a ``udh train --out`` folder. Its last checkpoint (the weights that resume and fine-tune
 are the weights that ship) becomes ``models/NAME.onnx`` (checked for
 parity against torch on synthetic pairs of the first ``--data`` folder) and ``models/NAME-int8.onnx``
-(``udh quantize``, calibrated on ``--data``). The run's ``checkpoint.pt``, ``metrics.jsonl`` and
+(``udh quantize``, calibrated on ``--data``; none for a matcher, which ships in float32). Both record the terms
+of ``--licence``'s set (``models_catalog.WEIGHTS_LICENCES``: those of the images the run trained on). The run's ``checkpoint.pt``, ``metrics.jsonl`` and
 ``config.json`` go to ``models/training/TRAINING_NAME/``: ``udh train --out ... --resume`` continues it
 exactly, and ``udh train --init`` fine-tunes from it (``models_catalog.SHIPPED_RUNS``). With ``--weights-only``
 the run's weights alone go there as ``weights.pt`` (a third of the checkpoint: no optimiser state, so it
@@ -24,6 +25,7 @@ import cv2
 import numpy as np
 
 from udh_cli.images import write_image
+from udh_cli.models_catalog import WEIGHTS_LICENCES
 from udh_cli.synthetic import PairConfig, list_images, load_sources, make_pairs
 from udh_cli.train.curves import learning_curve_plot, read_metrics
 from udh_cli.train.export import export_onnx
@@ -42,15 +44,18 @@ def main() -> None:
     parser.add_argument("--name", default="udh-unsupervised-flight", help="file stem in models/")
     parser.add_argument("--training-name", default="unsupervised-flight", help="folder in models/training/")
     parser.add_argument("--data", type=Path, action="append", required=True, help="training image folders (calibration)")
+    parser.add_argument("--licence", choices=sorted(WEIGHTS_LICENCES), required=True, help="the set whose terms the weights carry")
     parser.add_argument("--weights-only", action="store_true", help="keep the weights, not the resumable checkpoint")
     args = parser.parse_args()
 
     sources = load_sources(list_images(args.data[0])[:20], min_count=1)
     check = make_pairs(sources, 16, PairConfig(), np.random.default_rng(0), with_context=False)
-    exported = export_onnx(args.run / "checkpoint.pt", MODELS / f"{args.name}.onnx", np.stack([check.patch_a, check.patch_b], 1))
-    print(f"{exported['path']}: parity {exported['max_abs_diff']:.2e} px")
-    quantized = quantize_from_folders(MODELS / f"{args.name}.onnx", MODELS / f"{args.name}-int8.onnx", args.data)
-    print(f"{quantized['path']}: {quantized['median_drift_px']:.3f} px median from float32")
+    exported = export_onnx(args.run / "checkpoint.pt", MODELS / f"{args.name}.onnx", np.stack([check.patch_a, check.patch_b], 1),
+                           overwrite=True, licence=WEIGHTS_LICENCES[args.licence])
+    print(f"{exported['path']}: parity {exported['max_abs_diff']:.2e}")
+    if exported["metadata"]["mode"] != "match":
+        quantized = quantize_from_folders(MODELS / f"{args.name}.onnx", MODELS / f"{args.name}-int8.onnx", args.data, overwrite=True)
+        print(f"{quantized['path']}: {quantized['median_drift_px']:.3f} px median from float32")
 
     kept = MODELS / "training" / args.training_name
     kept.mkdir(parents=True, exist_ok=True)

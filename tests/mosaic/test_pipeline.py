@@ -237,3 +237,15 @@ def test_the_command_line_reports_the_cameras_and_refuses_an_unknown_model(accur
     code, out, err = run_main(monkeypatch, capfd, "mosaic", str(folder), "-o", str(tmp_path / "bad.png"), "-m", "sift", "--solve", "bundle")
     assert code == 2 and "Traceback" not in err and "bundle" in err
     assert not (tmp_path / "bad.png").exists()
+
+
+def test_what_a_methods_model_files_lack_is_a_warning_of_the_run(small_flight, tmp_path):
+    from udh_cli.estimators.features import SiftRansac
+
+    class Unlicensed(SiftRansac):
+        def model_notes(self) -> list[str]:
+            return ["net.onnx: records no licence for its weights"]
+
+    report = run_mosaic(small_flight, tmp_path / "m.png", MosaicConfig(method="sift", overlap_per_frame=0), estimator=Unlicensed())
+    assert report["warnings"].count("net.onnx: records no licence for its weights") == 1
+    assert json.loads((tmp_path / "m.json").read_text())["warnings"] == report["warnings"]

@@ -89,6 +89,8 @@ def run_mosaic(
     started = time.perf_counter()
     truth = load_truth(source, ground_truth)
     opinions, spec = run_estimators(config, estimator, fallback)
+    for note in dict.fromkeys(line for opinion in opinions for line in opinion.model_notes()):
+        reporter.warn(note)  # a model file without its licence or training headings: the sidecar keeps the note
     config = with_workers(config, frames_listed(source, config.every))
     # Opened before the frames are read, so that worker processes start while they are.
     runner = open_runner(opinions, acceptance(config), spec, config.workers, config.scheduler, warn=reporter.warn)

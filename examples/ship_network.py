@@ -33,8 +33,8 @@ from udh_cli.train.quantize import quantize_from_folders
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 # Logs drawn in models/learning_curves.png: the runs behind the shipped networks.
-CURVES = {"coarse, flight motion": "unsupervised-flight", "coarse, paper motion": "unsupervised",
-          "refinement": "unsupervised-refine-tiles", "matcher (global match)": "unsupervised-matcher"}
+CURVES = {"coarse, flight motion": "permissive-flight", "coarse, paper motion": "permissive-coarse",
+          "refinement": "permissive-refine", "matcher (global match)": "permissive-matcher"}
 WEIGHT_KEYS = ("format", "model", "config", "step", "normalization")  # what --weights-only keeps of a checkpoint
 
 

@@ -37,8 +37,8 @@ WEIGHTS_LICENCES = {
                   "authors models/README.md credits",
 }
 # catalogue name -> its key in WEIGHTS_LICENCES
-SHIPPED_LICENCE = {"unsupervised": "research", "unsupervised-refine": "research", "unsupervised-flight": "research",
-                   "unsupervised-matcher": "research", "supervised": "research"}
+SHIPPED_LICENCE = {"unsupervised": "permissive", "unsupervised-refine": "permissive", "unsupervised-flight": "permissive",
+                   "unsupervised-matcher": "permissive", "supervised": "research"}
 
 
 @dataclass(frozen=True)
@@ -140,8 +140,9 @@ def shipped_onnx(name: str, precision: str | None = "fp32") -> Path:
 
 # Shipped networks whose weights for fine-tuning are kept with their training run (weights.pt: the weights the
 # ONNX file was exported from, without the optimiser state) rather than as a .pt beside the ONNX file.
-SHIPPED_RUNS = {"unsupervised-flight": "training/unsupervised-flight/weights.pt",
-                "unsupervised-matcher": "training/unsupervised-matcher/weights.pt"}
+SHIPPED_RUNS = {"unsupervised-refine": "training/permissive-refine/weights.pt",
+                "unsupervised-flight": "training/permissive-flight/weights.pt",
+                "unsupervised-matcher": "training/permissive-matcher/checkpoint.pt"}
 
 
 def shipped_checkpoint(name: str) -> Path:

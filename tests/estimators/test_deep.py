@@ -309,16 +309,16 @@ def test_the_tiles_coarse_network_runs_only_the_tile_stage_coarse_level(tiny_onn
 
 
 def test_a_doubted_pair_takes_the_global_match_and_a_confident_match_verifies_itself():
-    """A third of the frame of motion: without the search the cascade is lost; the matcher (here the block
-    descriptors of conftest, in place of a trained one) finds the shift, and its answer is marked verified by
-    its matches. The translation search is off so that only the matcher can rescue the pair."""
+    """Half the frame of motion across (200 px of 384): without the search the cascade is lost; the matcher (here
+    the block descriptors of conftest, in place of a trained one) finds the shift, and its answer is marked verified
+    by its matches. The translation search is off so that only the matcher can rescue the pair."""
     if not (models_dir() / f"{SHIPPED_MODELS['unsupervised']}.onnx").is_file():
         pytest.skip("shipped unsupervised model not built yet")
     from conftest import BlockDescriptors
 
     scene = textured_image(700, 500, seed=12)
     a = scene[100:356, 50:434]  # 384 x 256: described at its own size (match_side 384)
-    dx, dy = 128, 64
+    dx, dy = 200, 100
     b = scene[100 + dy : 356 + dy, 50 + dx : 434 + dx]
     truth = geometry.translation(-dx, -dy)
     plain = create_estimator("unsupervised", device="cpu", flight_model="", search=0, matcher_model="")
@@ -458,9 +458,11 @@ def test_the_network_places_a_pair_turned_by_any_angle(shipped_unsupervised, deg
 @pytest.mark.parametrize("degrees", [37, 90, 143, 260])
 def test_a_turned_real_frame_is_placed_by_the_networks_and_the_global_match(shipped_unsupervised, shared_data, degrees):
     """A copr frame turned by each angle, without the heading search: the cascade's half turns, or the global match
-    at a quarter turn polished by the tiles (polish_matches); within 2 px (0.55-0.98 px measured), verified."""
+    at a quarter turn, polished by the tiles (polish_matches) unless its guards refuse the polish; within 2 px
+    (0.10-0.95 px measured), verified."""
     frame = cv2.imread(str(shared_data / "flights" / "copr" / "images" / "IMG_0043.jpg"), cv2.IMREAD_GRAYSCALE)
     image_a, image_b, truth = _turned_pair(cv2.resize(frame, (900, 600), interpolation=cv2.INTER_AREA), degrees)
     estimate = create_estimator("unsupervised", device="cpu", heading_search=0, search=0, polish_matches=True).estimate(image_a, image_b)
-    assert estimate.verified and estimate.stage == "tiles" and geometry.mace(estimate.homography, truth, 480, 360) < 2.0
+    assert estimate.verified and geometry.mace(estimate.homography, truth, 480, 360) < 2.0
     assert estimate.details.get("matched", False) == (degrees in (90, 260))
+    assert estimate.stage == "tiles" if degrees not in (90, 260) else estimate.stage in ("tiles", "match")

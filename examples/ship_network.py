@@ -1,7 +1,7 @@
 """Ship a trained coarse network: the float32 and int8 ONNX files, the fine-tuning weights, the resumable
 run and its learning curves, all in ``models/``. Needs the ``train`` extra (torch, onnx).
 
-    python examples/ship_network.py RUN_FOLDER --name udh-unsupervised-flight --licence permissive --data IMAGES [--data IMAGES ...]
+    python examples/ship_network.py RUN_FOLDER --name udh-unsupervised-flight --training-name permissive-flight --licence permissive --data IMAGES [--data IMAGES ...]
 
 ``RUN_FOLDER`` is a ``udh train --out`` folder. Its last checkpoint (the weights that resume and fine-tune
 are the weights that ship) becomes ``models/NAME.onnx`` (checked for
@@ -42,7 +42,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path)
     parser.add_argument("--name", default="udh-unsupervised-flight", help="file stem in models/")
-    parser.add_argument("--training-name", default="unsupervised-flight", help="folder in models/training/")
+    parser.add_argument("--training-name", required=True, help="folder in models/training/ (models_catalog.SHIPPED_RUNS names the shipped ones)")
     parser.add_argument("--data", type=Path, action="append", required=True, help="training image folders (calibration)")
     parser.add_argument("--licence", choices=sorted(WEIGHTS_LICENCES), required=True, help="the set whose terms the weights carry")
     parser.add_argument("--weights-only", action="store_true", help="keep the weights, not the resumable checkpoint")

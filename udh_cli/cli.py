@@ -164,7 +164,8 @@ def estimate(
         raise typer.Exit(code)
 
 
-estimate.__doc__ += f"\n    Licence of the shipped weights (models/README.md, \"Data and licenses\"): {licence_help()}\n"
+if estimate.__doc__:  # None under python -OO
+    estimate.__doc__ += f"\n    Licence of the shipped weights (models/README.md, \"Data and licenses\"): {licence_help()}\n"
 
 
 def _print_estimate(payload: dict) -> None:

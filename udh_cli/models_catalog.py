@@ -33,8 +33,8 @@ PRECISIONS = ("int8", "fp32")
 WEIGHTS_LICENCES = {
     "research": "research use only: trained on RSSCN7 and BSDS500, research image collections without a licence for "
                 "other use",
-    "permissive": "MIT, as udh: trained only on CC0, BSD-2-Clause and CC BY images and procedural grounds, whose "
-                  "authors models/README.md credits",
+    "permissive": "MIT, as udh: trained only on CC0, public-domain, BSD-2-Clause and CC BY images and procedural "
+                  "grounds, whose authors models/README.md credits",
 }
 # catalogue name -> its key in WEIGHTS_LICENCES
 SHIPPED_LICENCE = {"unsupervised": "permissive", "unsupervised-refine": "permissive", "unsupervised-flight": "permissive",
@@ -138,8 +138,8 @@ def shipped_onnx(name: str, precision: str | None = "fp32") -> Path:
     return _shipped(name, ".onnx")
 
 
-# Shipped networks whose weights for fine-tuning are kept with their training run (weights.pt: the weights the
-# ONNX file was exported from, without the optimiser state) rather than as a .pt beside the ONNX file.
+# Shipped networks whose weights for fine-tuning are kept with their training run (weights.pt: the weights the ONNX
+# file was exported from, without the optimiser state; checkpoint.pt: the resumable run) rather than as a .pt beside it.
 SHIPPED_RUNS = {"unsupervised-refine": "training/permissive-refine/weights.pt",
                 "unsupervised-flight": "training/permissive-flight/weights.pt",
                 "unsupervised-matcher": "training/permissive-matcher/checkpoint.pt"}
